@@ -1,0 +1,1 @@
+"""One module per `procam` sub-command (see app/cli.py for the contract)."""

@@ -1,0 +1,27 @@
+"""The project's exception types. Every message says what is wrong and what to do about it."""
+
+
+class ProcamError(Exception):
+    """Base of every error procam-station raises on purpose."""
+
+
+class SpecError(ProcamError, ValueError):
+    """A board or pattern specification does not parse or is inconsistent."""
+
+
+class FormatError(ProcamError, ValueError):
+    """A file (session manifest, calibration result...) is malformed. `field` names the culprit."""
+
+    def __init__(self, path, field: str, problem: str):
+        self.path = str(path)
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{self.path}: field '{field}': {problem}")
+
+
+class SessionError(ProcamError):
+    """A capture session cannot be opened or written (missing folder, unreadable image...)."""
+
+
+class CalibrationError(ProcamError):
+    """The data cannot be calibrated (too few views, no mirror images for a mirrored rig...)."""

@@ -1,0 +1,202 @@
+"""The calibration result: a frozen dataclass and its files (calibration.json, OpenCV YAML).
+
+calibration.json keys (other tools read them; keep their meaning):
+  camera, projector: {"width", "height", "K": 3x3, "dist": [k1, k2, p1, p2, k3, ...]}
+  T_cam_proj: 4x4, maps projector coordinates to camera coordinates (p_cam = T_cam_proj @ p_proj)
+  mirror: {"normal": [a, b, c], "d": d}, unit normal, a x + b y + c z + d = 0 in camera coordinates,
+          normal oriented towards the camera (d > 0); null without a mirror
+  units: length unit of the boards (and so of T_cam_proj's translation and mirror d)
+  method, rms (per stage, pixels), per_view (residuals), skipped (images and why),
+  uncertainty (1-sigma values, see README), diagnostics (free-form, per stage)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calib.camera import CameraModel
+from calib.errors import FormatError
+from calib.fileio import atomic_write_text
+
+SCHEMA = "procam-calibration"
+VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class MirrorPlane:
+    """n . x + d = 0 in camera coordinates, n unit and pointing to the camera side (d > 0)."""
+
+    normal: np.ndarray
+    d: float
+
+    def __post_init__(self):
+        n = np.array(self.normal, float).reshape(3)
+        norm = np.linalg.norm(n)
+        if not norm > 0:
+            raise ValueError("mirror normal must be non-zero")
+        n, d = n / norm, float(self.d) / norm
+        if d < 0:
+            n, d = -n, -d
+        n.setflags(write=False)
+        object.__setattr__(self, "normal", n)
+        object.__setattr__(self, "d", d)
+
+    def reflection(self) -> np.ndarray:
+        from calib.transforms import reflection_T
+
+        return reflection_T(self.normal, self.d)
+
+    def signed_distance(self, X: np.ndarray) -> np.ndarray:
+        return np.asarray(X, float).reshape(-1, 3) @ self.normal + self.d
+
+    def to_dict(self) -> dict:
+        return {"normal": self.normal.tolist(), "d": self.d}
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    camera: CameraModel
+    projector: CameraModel
+    T_cam_proj: np.ndarray
+    mirror: MirrorPlane | None
+    units: str
+    method: str = "ground-truth"
+    rms: dict = field(default_factory=dict)
+    per_view: tuple = ()
+    skipped: tuple = ()
+    uncertainty: dict | None = None
+    diagnostics: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        T = np.array(self.T_cam_proj, float).reshape(4, 4)
+        T.setflags(write=False)
+        object.__setattr__(self, "T_cam_proj", T)
+
+    def with_(self, **changes) -> "CalibrationResult":
+        return replace(self, **changes)
+
+    # ---- files ----------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "schema": SCHEMA,
+            "version": VERSION,
+            "method": self.method,
+            "units": self.units,
+            "camera": self.camera.to_dict(),
+            "projector": self.projector.to_dict(),
+            "T_cam_proj": self.T_cam_proj.tolist(),
+            "mirror": None if self.mirror is None else self.mirror.to_dict(),
+            "rms": dict(self.rms),
+            "per_view": list(self.per_view),
+            "skipped": list(self.skipped),
+            "uncertainty": self.uncertainty,
+            "diagnostics": self.diagnostics,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, path="<dict>") -> "CalibrationResult":
+        if not isinstance(d, dict):
+            raise FormatError(path, "<root>", "must be a JSON object")
+        for key in ("camera", "projector", "T_cam_proj", "mirror", "units"):
+            if key not in d:
+                raise FormatError(path, key, "missing")
+        cam = CameraModel.from_dict(d["camera"], "camera", path)
+        proj = CameraModel.from_dict(d["projector"], "projector", path)
+        try:
+            T = np.array(d["T_cam_proj"], float)
+        except (TypeError, ValueError):
+            raise FormatError(path, "T_cam_proj", "must be a 4x4 list of numbers") from None
+        if T.shape != (4, 4) or not np.allclose(T[3], [0, 0, 0, 1]):
+            raise FormatError(path, "T_cam_proj", "must be a 4x4 rigid transform with last row [0, 0, 0, 1]")
+        if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(T[:3, :3]) < 0:
+            raise FormatError(path, "T_cam_proj", "rotation part is not a proper rotation matrix")
+        mirror = None
+        if d["mirror"] is not None:
+            m = d["mirror"]
+            if not isinstance(m, dict) or "normal" not in m or "d" not in m:
+                raise FormatError(path, "mirror", 'must be null or {"normal": [a, b, c], "d": d}')
+            try:
+                n = np.array(m["normal"], float).reshape(3)
+                dd = float(m["d"])
+            except (TypeError, ValueError):
+                raise FormatError(path, "mirror.normal", "must be 3 numbers, with d a number") from None
+            if not math.isclose(np.linalg.norm(n), 1.0, abs_tol=1e-6):
+                raise FormatError(path, "mirror.normal", "must be a unit vector")
+            mirror = MirrorPlane(n, dd)
+        if not isinstance(d["units"], str):
+            raise FormatError(path, "units", "must be a string such as 'mm'")
+        return cls(
+            camera=cam, projector=proj, T_cam_proj=T, mirror=mirror, units=d["units"],
+            method=d.get("method", "unknown"), rms=d.get("rms", {}) or {}, per_view=tuple(d.get("per_view", ())),
+            skipped=tuple(d.get("skipped", ())), uncertainty=d.get("uncertainty"),
+            diagnostics=d.get("diagnostics", {}) or {},
+        )
+
+    def save_json(self, path) -> None:
+        atomic_write_text(path, json.dumps(_jsonable(self.to_dict()), indent=2) + "\n")
+
+    @classmethod
+    def load_json(cls, path) -> "CalibrationResult":
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise FormatError(path, "<file>", f"cannot be read: {e.strerror}") from None
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
+        return cls.from_dict(data, path)
+
+    def save_opencv_yaml(self, path) -> None:
+        """OpenCV FileStorage YAML: camera_matrix, camera_distortion, projector_matrix,
+        projector_distortion, T_cam_proj, R_cam_proj, t_cam_proj, mirror_normal, mirror_d, sizes, rms."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        fs.write("units", self.units)
+        fs.write("method", self.method)
+        fs.write("camera_width", self.camera.width)
+        fs.write("camera_height", self.camera.height)
+        fs.write("camera_matrix", np.array(self.camera.K))
+        fs.write("camera_distortion", np.array(self.camera.dist).reshape(1, -1))
+        fs.write("projector_width", self.projector.width)
+        fs.write("projector_height", self.projector.height)
+        fs.write("projector_matrix", np.array(self.projector.K))
+        fs.write("projector_distortion", np.array(self.projector.dist).reshape(1, -1))
+        fs.write("T_cam_proj", np.array(self.T_cam_proj))
+        fs.write("R_cam_proj", np.array(self.T_cam_proj[:3, :3]))
+        fs.write("t_cam_proj", np.array(self.T_cam_proj[:3, 3]).reshape(3, 1))
+        if self.mirror is not None:
+            fs.write("mirror_normal", np.array(self.mirror.normal).reshape(3, 1))
+            fs.write("mirror_d", float(self.mirror.d))
+        for k, v in self.rms.items():
+            if isinstance(v, (int, float)) and v is not None:
+                fs.write(f"rms_{k}", float(v))
+        fs.release()
+        os.replace(tmp, path)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating,)):
+        return float(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x

@@ -1,0 +1,388 @@
+"""Synthetic rigs with exact ground truth, and the observations they produce (no images).
+
+Used by tests and benchmarks of every calibration stage, and by the simulated rig (drivers.sim), which
+renders images of the same scenes. Lengths are in millimetres.
+
+A mirrored rig (camera frame = world frame): the camera looks along +z at a mirror centred at
+(0, 0, mirror_distance_mm). The projector's optical axis is rotated by `angle_deg` about the camera's y
+axis (90, 136, 180: fields of view that do not overlap). The board, lit by the projector, is where the
+camera's central ray lands after reflection, outside the camera's direct view.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.boards import CharucoSpec
+from calib.camera import CameraModel
+from calib.observations import (
+    STEP_REAL_MIRROR,
+    STEP_REAL_VIRTUAL,
+    VIEW_DIRECT,
+    VIEW_MIRROR,
+    BoardObservation,
+    MirrorView,
+    ProjectorView,
+    SessionObservations,
+)
+from calib.pattern import PatternSpec
+from calib.result import CalibrationResult, MirrorPlane
+from calib.transforms import invert_T, make_T, rotation_about, transform_points
+
+
+def d455_camera() -> CameraModel:
+    """A RealSense D455-like colour camera: 1280x800, ~90 deg horizontal field of view."""
+    return CameraModel(1280, 800, [[642.5, 0, 637.3], [0, 641.8, 402.6], [0, 0, 1]],
+                       [-0.054, 0.062, 0.0006, -0.0004, -0.019])
+
+
+def portable_projector(width: int = 1920, height: int = 1080) -> CameraModel:
+    """A portable projector: throw ratio ~1.2, principal point shifted towards the bottom edge."""
+    f = 1.2 * width
+    return CameraModel(width, height, [[f, 0, (width - 1) / 2 + 0.012 * width], [0, f * 1.002, 0.93 * height],
+                                       [0, 0, 1]], [0.021, -0.035, 0.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True, eq=False)
+class BoardLayout:
+    """A physical board: a ChArUco area (board frame origin at its top-left outer corner) and a blank
+    region beside it, to the right, where the projected pattern lands (the paper's Fig. 8)."""
+
+    charuco: CharucoSpec
+    blank_width: float = 320.0
+    gap: float = 20.0
+
+    @property
+    def blank_rect(self) -> tuple[float, float, float, float]:
+        """(x0, y0, x1, y1) of the blank region in board coordinates."""
+        w, h = self.charuco.size
+        x0 = w + self.gap
+        return (x0, 0.0, x0 + self.blank_width, h)
+
+    @property
+    def blank_centre(self) -> np.ndarray:
+        x0, y0, x1, y1 = self.blank_rect
+        return np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+
+    @property
+    def outline(self) -> tuple[float, float, float, float]:
+        """(x0, y0, x1, y1) of the whole board, with a white border of half a square."""
+        m = self.charuco.square_length / 2
+        x0, y0, x1, y1 = self.blank_rect
+        return (-m, -m, x1 + m, y1 + m)
+
+
+@dataclass(frozen=True, eq=False)
+class MirrorRect:
+    """A finite planar mirror: centre, two in-plane unit axes, and its size (mm)."""
+
+    centre: np.ndarray
+    axis_u: np.ndarray
+    axis_v: np.ndarray
+    size: tuple[float, float]
+
+    def contains(self, X: np.ndarray) -> np.ndarray:
+        D = np.asarray(X, float).reshape(-1, 3) - self.centre
+        return (np.abs(D @ self.axis_u) <= self.size[0] / 2) & (np.abs(D @ self.axis_v) <= self.size[1] / 2)
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticRig:
+    camera: CameraModel
+    projector: CameraModel
+    T_cam_proj: np.ndarray
+    mirror: MirrorPlane | None
+    mirror_rect: MirrorRect | None
+    board_target: np.ndarray  # camera-frame point the projector-calibration poses are centred on
+    projector_distance_mm: float
+    angle_deg: float
+    units: str = "mm"
+
+    @property
+    def view(self) -> str:
+        return VIEW_DIRECT if self.mirror is None else VIEW_MIRROR
+
+    def ground_truth(self) -> CalibrationResult:
+        return CalibrationResult(self.camera, self.projector, self.T_cam_proj, self.mirror, self.units,
+                                 method="ground-truth")
+
+    def S(self) -> np.ndarray:
+        return np.eye(4) if self.mirror is None else self.mirror.reflection()
+
+
+def make_rig(angle_deg: float = 136.0, camera: CameraModel | None = None, projector: CameraModel | None = None,
+             mirror_distance_mm: float = 350.0, board_distance_mm: float = 750.0,
+             projector_distance_mm: float = 950.0, mirror_size_mm=(620.0, 420.0)) -> SyntheticRig:
+    """A non-overlapping rig seen through a mirror (see the module docstring)."""
+    camera = camera or d455_camera()
+    projector = projector or portable_projector()
+    M = np.array([0.0, 0.0, mirror_distance_mm])
+    phi = np.radians(60.0 + angle_deg / 2.0)
+    r = np.array([np.sin(phi), 0.0, np.cos(phi)])  # reflected central ray
+    n = np.array([0.0, 0.0, 1.0]) - r
+    n /= np.linalg.norm(n)
+    n = -n if n @ (-M) < 0 else n  # towards the camera
+    mirror = MirrorPlane(n, -n @ M)
+    u = np.cross([0.0, 1.0, 0.0], n)
+    u /= np.linalg.norm(u)
+    rect = MirrorRect(M, u, np.cross(n, u), tuple(mirror_size_mm))
+    B = M + board_distance_mm * r
+    T_cam_proj = _place_projector(projector, B, angle_deg, projector_distance_mm)
+    return SyntheticRig(camera, projector, T_cam_proj, mirror, rect, B, projector_distance_mm, angle_deg)
+
+
+def make_direct_rig(camera: CameraModel | None = None, projector: CameraModel | None = None,
+                    board_distance_mm: float = 1000.0, baseline_mm: float = 250.0) -> SyntheticRig:
+    """The paper's control: camera and projector side by side, both seeing the board, no mirror."""
+    camera = camera or d455_camera()
+    projector = projector or portable_projector()
+    B = np.array([0.0, 0.0, board_distance_mm])
+    P = np.array([baseline_mm, 0.0, 0.0])
+    ang = np.degrees(np.arctan2(-baseline_mm, board_distance_mm))
+    T = _place_projector(projector, B, ang, np.linalg.norm(B - P))
+    return SyntheticRig(camera, projector, T, None, None, B, float(np.linalg.norm(B - P)), 0.0)
+
+
+def _place_projector(projector: CameraModel, target, yaw_deg: float, distance_mm: float) -> np.ndarray:
+    R = rotation_about([0, 1, 0], yaw_deg) @ rotation_about([1, 0, 0], 4.0)
+    centre_ray = projector.rays(np.array([[(projector.width - 1) / 2, (projector.height - 1) / 2]]))[0]
+    P = np.asarray(target, float) - distance_mm * (R @ centre_ray)
+    return make_T(R, P)
+
+
+# ---- board poses ---------------------------------------------------------------------------------
+def _frame_from_normal(face_out: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
+    z = -face_out / np.linalg.norm(face_out)
+    x = x_hint - (x_hint @ z) * z
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def _tilted(R: np.ndarray, rng, max_tilt_deg: float, min_tilt_deg: float = 0.0) -> np.ndarray:
+    a = rng.uniform(0, 2 * np.pi)
+    axis = R[:, 0] * np.cos(a) + R[:, 1] * np.sin(a)
+    return rotation_about(axis, rng.uniform(min_tilt_deg, max_tilt_deg)) @ R
+
+
+def projector_poses(rig: SyntheticRig, layout: BoardLayout, pattern: PatternSpec, per_position: int = 4,
+                    seed: int = 0, max_tilt_deg: float = 28.0) -> list[tuple[int, np.ndarray]]:
+    """Board poses meeting the paper's protocol: for every pattern position, `per_position` poses that
+    put the pattern on the board's blank region, tilted like a person would. [(position, T_cam_board)]."""
+    rng = np.random.default_rng(seed)
+    proj, T_cp = rig.projector, rig.T_cam_proj
+    P = T_cp[:3, 3]
+    V = transform_points(rig.S(), np.zeros((1, 3)))[0]  # (virtual) camera centre
+    poses = []
+    for pos in range(pattern.positions):
+        q = pattern.points_px(proj.width, proj.height, pos)
+        ray = T_cp[:3, :3] @ proj.rays(q.mean(axis=0, keepdims=True))[0]
+        for k in range(per_position):
+            for attempt in range(400):
+                D = rig.projector_distance_mm * rng.uniform(0.85, 1.15)
+                C = P + D * ray
+                to_p = (P - C) / np.linalg.norm(P - C)
+                to_v = (V - C) / np.linalg.norm(V - C)
+                face = to_p + to_v
+                R = _frame_from_normal(face, T_cp[:3, 0])
+                R = _tilted(R, rng, max_tilt_deg, min_tilt_deg=8.0 if attempt < 200 else 0.0)
+                # a person keeps the printed part in view: near the edges of the projector's field of
+                # view the board is held turned by 180 degrees, the printed part towards the centre
+                flip = 180.0 if (attempt % 2 == 1) else 0.0
+                inplane = rotation_about(R[:, 2], rng.uniform(-10, 10) + flip)
+                R = inplane @ R
+                T = make_T(R, C - R @ layout.blank_centre)
+                T[:3, 3] += R @ np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), 0])
+                if _projector_pose_ok(rig, layout, pattern, pos, T):
+                    poses.append((pos, T))
+                    break
+            else:
+                raise RuntimeError(f"no valid board pose found for pattern position {pos}")
+    return poses
+
+
+def _projector_pose_ok(rig, layout, pattern, pos, T_cam_board) -> bool:
+    corners = transform_points(T_cam_board, layout.charuco.corner_points())
+    if not _visible(rig, corners, T_cam_board):
+        return False
+    q = pattern.points_px(rig.projector.width, rig.projector.height, pos)
+    Xb = projector_points_on_board(rig, T_cam_board, q)
+    x0, y0, x1, y1 = layout.blank_rect
+    m = pattern.spacing_px * 0.0 + 15.0
+    if not (np.all(Xb[:, 0] > x0 + m) and np.all(Xb[:, 0] < x1 - m) and np.all(Xb[:, 1] > y0 + m)
+            and np.all(Xb[:, 1] < y1 - m)):
+        return False
+    Xc = transform_points(T_cam_board, Xb)
+    return _visible(rig, Xc, T_cam_board)
+
+
+def _visible(rig: SyntheticRig, X_cam: np.ndarray, T_cam_board: np.ndarray, max_oblique_deg: float = 65.0) -> bool:
+    """All points imaged inside the camera (through the mirror rectangle when there is one), with
+    the board's face towards the (virtual) camera at an angle below `max_oblique_deg`."""
+    S = rig.S()
+    Xs = transform_points(S, X_cam)
+    uv = rig.camera.project(Xs)
+    if not np.all(rig.camera.in_image(uv, margin_px=8)):
+        return False
+    face_out = -T_cam_board[:3, 2]
+    centre = X_cam.mean(axis=0)
+    V = transform_points(S, np.zeros((1, 3)))[0]
+    to_v = (V - centre) / np.linalg.norm(V - centre)
+    if face_out @ to_v < np.cos(np.radians(max_oblique_deg)):
+        return False
+    if rig.mirror is not None:
+        n, d = rig.mirror.normal, rig.mirror.d
+        t = -d / (Xs @ n)  # camera ray to the virtual point meets the mirror at t * Xs
+        if np.any(t <= 0) or np.any(t >= 1):
+            return False
+        if not np.all(rig.mirror_rect.contains(t[:, None] * Xs)):
+            return False
+        if np.any(rig.mirror.signed_distance(X_cam) <= 0):
+            return False
+    return True
+
+
+def projector_points_on_board(rig: SyntheticRig, T_cam_board: np.ndarray, q_px: np.ndarray) -> np.ndarray:
+    """Board-frame (z = 0) points lit by projector pixels `q_px` (exact, with projector distortion)."""
+    T_board_proj = invert_T(T_cam_board) @ rig.T_cam_proj
+    rays = rig.projector.rays(q_px) @ T_board_proj[:3, :3].T
+    o = T_board_proj[:3, 3]
+    t = -o[2] / rays[:, 2]
+    return o + t[:, None] * rays
+
+
+def mirror_poses(rig: SyntheticRig, board: CharucoSpec, method: str, count: int = 7, seed: int = 0,
+                 thickness_mm: float = 3.0) -> list[np.ndarray]:
+    """T_cam_board of mirror-calibration placements. real-virtual: board between camera and mirror,
+    seen directly and in the mirror, unoccluded; real-mirror: board lying on the mirror."""
+    if rig.mirror is None:
+        raise ValueError("a direct rig has no mirror to calibrate")
+    rng = np.random.default_rng(seed)
+    n, d = rig.mirror.normal, rig.mirror.d
+    V = transform_points(rig.S(), np.zeros((1, 3)))[0]
+    w, h = board.size
+    centre_b = np.array([w / 2, h / 2, 0.0])
+    poses = []
+    for _ in range(20000):
+        if len(poses) == count:
+            break
+        if method == STEP_REAL_MIRROR or method == "real-mirror":
+            rect = rig.mirror_rect
+            c = rect.centre + rect.axis_u * rng.uniform(-0.25, 0.25) * rect.size[0] \
+                + rect.axis_v * rng.uniform(-0.25, 0.25) * rect.size[1] + n * thickness_mm
+            R = _frame_from_normal(n, np.array([1.0, 0, 0]))
+            R = rotation_about(R[:, 2], rng.uniform(-35, 35)) @ R
+            T = make_T(R, c - R @ centre_b)
+            corners = transform_points(T, board.corner_points())
+            uv = rig.camera.project(corners)
+            outline = transform_points(T, np.array([[0, 0, 0], [w, 0, 0], [0, h, 0], [w, h, 0]], float))
+            D = outline - rect.centre
+            inside = np.all(np.abs(D @ rect.axis_u) < rect.size[0] / 2) and np.all(np.abs(D @ rect.axis_v) < rect.size[1] / 2)
+            if inside and np.all(rig.camera.in_image(uv, 10)):
+                poses.append(T)
+            continue
+        # real-virtual
+        uv0 = np.array([[rng.uniform(0.15, 0.85) * rig.camera.width, rng.uniform(0.15, 0.85) * rig.camera.height]])
+        ray = rig.camera.rays(uv0)[0]
+        t_mirror = -d / (ray @ n)
+        c = ray * t_mirror * rng.uniform(0.35, 0.75)
+        face = rng.uniform(0.3, 1.0) * (-c / np.linalg.norm(c)) + rng.uniform(0.3, 1.0) * (V - c) / np.linalg.norm(V - c)
+        R = _frame_from_normal(face, np.array([1.0, 0, 0]))
+        R = _tilted(R, rng, 20.0)
+        R = rotation_about(R[:, 2], rng.uniform(-30, 30)) @ R
+        T = make_T(R, c - R @ centre_b)
+        if _real_virtual_ok(rig, board, T):
+            poses.append(T)
+    if len(poses) < count:
+        raise RuntimeError(f"found only {len(poses)} of {count} {method} mirror poses for this rig")
+    return poses
+
+
+def _real_virtual_ok(rig, board, T) -> bool:
+    X = transform_points(T, board.corner_points())
+    cam = rig.camera
+    if not np.all(cam.in_image(cam.project(X), 10)):
+        return False
+    face_out = -T[:3, 2]
+    c = X.mean(axis=0)
+    if face_out @ (-c / np.linalg.norm(c)) < np.cos(np.radians(65)):
+        return False
+    if not _visible(rig, X, T):
+        return False
+    # the real board must not hide its own reflection: camera ray to each virtual corner vs board plane
+    Xs = transform_points(rig.S(), X)
+    T_b_c = invert_T(T)
+    o = T_b_c[:3, 3]
+    dirs = Xs @ T_b_c[:3, :3].T
+    t = -o[2] / dirs[:, 2]
+    hit = o + t[:, None] * dirs
+    w, h = board.size
+    blocked = (t > 0) & (t < 1) & (hit[:, 0] > -20) & (hit[:, 0] < w + 20) & (hit[:, 1] > -20) & (hit[:, 1] < h + 20)
+    return not np.any(blocked)
+
+
+# ---- observations --------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class SyntheticSession:
+    rig: SyntheticRig
+    layout: BoardLayout
+    mirror_board: CharucoSpec | None
+    pattern: PatternSpec
+    projector_T_cam_board: list
+    mirror_T_cam_board: list
+    mirror_method: str | None
+    board_thickness_mm: float = 0.0
+    extras: dict = field(default_factory=dict)
+
+
+def make_session(rig: SyntheticRig, layout: BoardLayout | None = None, pattern: PatternSpec | None = None,
+                 mirror_board: CharucoSpec | None = None, mirror_method: str | None = "real-virtual",
+                 per_position: int = 4, mirror_count: int = 7, thickness_mm: float = 3.0,
+                 seed: int = 0) -> SyntheticSession:
+    layout = layout or BoardLayout(CharucoSpec(8, 6, "DICT_5X5_50", 50.0, 25.0, "mm"))
+    pattern = pattern or PatternSpec.default_for(rig.projector.width, rig.projector.height)
+    poses = projector_poses(rig, layout, pattern, per_position, seed)
+    mposes, method = [], None
+    if rig.mirror is not None and mirror_method is not None:
+        mirror_board = mirror_board or CharucoSpec(8, 6, "DICT_5X5_50", 22.0, 11.0, "mm")
+        method = mirror_method
+        mposes = mirror_poses(rig, mirror_board, method, mirror_count, seed + 1, thickness_mm)
+    return SyntheticSession(rig, layout, mirror_board, pattern, poses, mposes, method,
+                            thickness_mm if method == "real-mirror" else 0.0)
+
+
+def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0) -> SessionObservations:
+    """Exact (or Gaussian-noised) observations of a synthetic session, as detection would report them."""
+    rng = np.random.default_rng(seed)
+    rig, cam = ss.rig, ss.rig.camera
+    S = rig.S()
+    mirrored = rig.mirror is not None
+
+    def noisy(uv):
+        return uv + rng.normal(0, noise_px, uv.shape) if noise_px > 0 else uv
+
+    pviews = []
+    board = ss.layout.charuco
+    for i, (pos, T) in enumerate(ss.projector_T_cam_board):
+        X = transform_points(S @ T, board.corner_points())
+        obs = BoardObservation(np.arange(board.n_corners), noisy(cam.project(X)), mirrored)
+        q = ss.pattern.points_px(rig.projector.width, rig.projector.height, pos)
+        Xb = projector_points_on_board(rig, T, q)
+        uv = cam.project(transform_points(S @ T, Xb))
+        pviews.append(ProjectorView(f"p{i:04d}", obs, noisy(uv), q, pos))
+    mviews = []
+    for i, T in enumerate(ss.mirror_T_cam_board):
+        Xc = transform_points(T, ss.mirror_board.corner_points())
+        ids = np.arange(ss.mirror_board.n_corners)
+        real = BoardObservation(ids, noisy(cam.project(Xc)), False)
+        if ss.mirror_method == "real-virtual":
+            virt = BoardObservation(ids, noisy(cam.project(transform_points(S, Xc))), True)
+            mviews.append(MirrorView(f"mrv{i:04d}", STEP_REAL_VIRTUAL, real, virt))
+        else:
+            mviews.append(MirrorView(f"mrm{i:04d}", STEP_REAL_MIRROR, real, None))
+    return SessionObservations(
+        camera_size=cam.size, projector_size=rig.projector.size, view=rig.view, projector_board=board,
+        pattern=ss.pattern, projector_views=tuple(pviews), mirror_board=ss.mirror_board,
+        mirror_views=tuple(mviews), board_thickness=ss.board_thickness_mm,
+    )

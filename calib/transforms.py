@@ -1,0 +1,82 @@
+"""Rigid transforms and the mirror reflection, as 4x4 numpy matrices.
+
+`T_a_b` maps points from frame b into frame a: p_a = T_a_b @ p_b (homogeneous), T_a_c = T_a_b @ T_b_c.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: The horizontal image flip as a transform of camera coordinates: x -> -x (GEOMETRY.md "F").
+FLIP_X = np.diag([-1.0, 1.0, 1.0, 1.0])
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, float).reshape(3, 3)
+    T[:3, 3] = np.asarray(t, float).reshape(3)
+    return T
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid (or improper orthogonal) transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def transform_points(T: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N, 3) points."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    return X @ T[:3, :3].T + T[:3, 3]
+
+
+def T_from_rvec_tvec(rvec, tvec) -> np.ndarray:
+    R, _ = cv2.Rodrigues(np.asarray(rvec, float).reshape(3, 1))
+    return make_T(R, np.asarray(tvec, float).reshape(3))
+
+
+def rvec_tvec_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))
+    return rvec.reshape(3), T[:3, 3].copy()
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix, in degrees (robust near 0 and 180)."""
+    R = np.asarray(R, float)[:3, :3]
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(np.degrees(np.arctan2(s, c)))
+
+
+def reflection_T(normal, d: float) -> np.ndarray:
+    """S for the plane n.x + d = 0 (n unit): S = [[I - 2 n n^T, -2 d n], [0, 1]]. S @ S = I, det S = -1."""
+    n = np.asarray(normal, float).reshape(3)
+    n = n / np.linalg.norm(n)
+    S = np.eye(4)
+    S[:3, :3] -= 2.0 * np.outer(n, n)
+    S[:3, 3] = -2.0 * d * n
+    return S
+
+
+def rotation_about(axis, angle_deg: float) -> np.ndarray:
+    """3x3 rotation about `axis` by `angle_deg` (right-hand rule)."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    R, _ = cv2.Rodrigues(a.reshape(3, 1) * np.radians(angle_deg))
+    return R
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """T_world_dev of a device at `eye` looking at `target` in OpenCV axes (+z forward, +y down).
+
+    `up` is the world direction that should appear up in the device's image (default -y, OpenCV's up)."""
+    eye = np.asarray(eye, float)
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(-np.asarray(up, float), z)
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError("look_at: viewing direction is parallel to 'up'")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_T(np.column_stack([x, y, z]), eye)

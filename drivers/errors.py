@@ -1,0 +1,15 @@
+"""Errors raised by device drivers."""
+
+from calib.errors import ProcamError
+
+
+class DeviceError(ProcamError):
+    """A device could not be opened, configured or read."""
+
+
+class DeviceDisconnected(DeviceError):
+    """The device went away mid-stream. The session may catch this and retry when it comes back."""
+
+
+class DeviceTimeout(DeviceError):
+    """No (new) frame arrived in time."""
