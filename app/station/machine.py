@@ -1,0 +1,705 @@
+"""The session state machine: the paper's guideline as explicit states and transitions.
+
+    check_rig -> mirror_capture -> projector_capture -> calibration -> verification -> done
+                 (skipped by direct, overlapping rigs)
+
+Every operator action is a method. An action that is impossible in the current situation raises
+`ActionRefused` with a reason a person can act on (the panel shows it); `why_not(action)` gives the
+same reason without acting, so the panel can grey out buttons. State changes go through the
+`transitions` library; after every change the session manifest's `state` is rewritten (atomically), so
+a killed process resumes where it stopped (`SessionMachine.from_store`).
+
+The machine does not talk to devices: captured images are handed to `record_capture`, and the
+calibration and verification work is done by the callables given at construction.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from transitions import Machine, MachineError
+
+from calib.camera import CameraModel
+from calib.errors import FormatError, ProcamError
+from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
+from calib.result import CalibrationResult
+from calib.session import MIRROR_METHODS, Capture, SessionStore
+
+CHECK_RIG = "check_rig"
+MIRROR_CAPTURE = "mirror_capture"
+PROJECTOR_CAPTURE = "projector_capture"
+CALIBRATION = "calibration"
+VERIFICATION = "verification"
+DONE = "done"
+STATES = (CHECK_RIG, MIRROR_CAPTURE, PROJECTOR_CAPTURE, CALIBRATION, VERIFICATION, DONE)
+CAPTURE_STATES = (MIRROR_CAPTURE, PROJECTOR_CAPTURE)
+
+STATE_TITLES = {
+    CHECK_RIG: "Check the rig",
+    MIRROR_CAPTURE: "Mirror capture",
+    PROJECTOR_CAPTURE: "Projector capture",
+    CALIBRATION: "Calibration",
+    VERIFICATION: "Verification",
+    DONE: "Done",
+}
+
+ACTIONS = ("start", "choose_mirror_method", "capture", "delete", "retake", "proceed", "back", "skip_camera",
+           "use_camera_calibration", "calibrate", "verify", "finish")
+
+CALIBRATION_FILE = "calibration.json"
+CALIBRATION_YAML = "calibration.yaml"
+
+
+def mirror_step(method: str) -> str:
+    return {"real-virtual": STEP_REAL_VIRTUAL, "real-mirror": STEP_REAL_MIRROR}[method]
+
+
+class ActionRefused(ProcamError):
+    """An operator action that is not possible now; `reason` says why and what to do instead."""
+
+    def __init__(self, action: str, reason: str):
+        self.action = action
+        self.reason = reason
+        super().__init__(f"cannot {action.replace('_', ' ')}: {reason}")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How many captures each step asks for. The projector step takes `poses_per_position` board poses
+    at each of the pattern's positions (PatternSpec.positions)."""
+
+    poses_per_position: int = 4
+    real_virtual_captures: int = 6
+    real_mirror_captures: int = 3
+    min_real_virtual: int = 3
+    min_real_mirror: int = 1
+    min_projector_captures: int = 6
+
+    def mirror_captures(self, method: str) -> int:
+        return self.real_virtual_captures if method == "real-virtual" else self.real_mirror_captures
+
+    def min_mirror(self, method: str) -> int:
+        return self.min_real_virtual if method == "real-virtual" else self.min_real_mirror
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "Plan":
+        d = d or {}
+        return cls(**{k: int(v) for k, v in d.items() if k in cls.__dataclass_fields__})
+
+
+@dataclass(frozen=True)
+class Target:
+    """The capture the station asks for next: which step, at which pattern position, which pose."""
+
+    step: str
+    pattern_position: int | None
+    pose_index: int
+
+    def to_dict(self) -> dict:
+        return {"step": self.step, "pattern_position": self.pattern_position, "pose_index": self.pose_index}
+
+    @classmethod
+    def from_dict(cls, d) -> "Target | None":
+        if not isinstance(d, dict) or "step" not in d:
+            return None
+        pos = d.get("pattern_position")
+        return cls(str(d["step"]), None if pos is None else int(pos), int(d.get("pose_index", 0)))
+
+
+@dataclass(frozen=True)
+class RigCheck:
+    """One item of the rig check: camera streaming, projector window up, board and pattern specs."""
+
+    name: str
+    ok: bool
+    detail: str = ""
+
+
+@dataclass
+class Event:
+    time_s: float
+    text: str
+
+
+def load_intrinsics(path, camera_size: tuple[int, int] | None = None) -> CameraModel:
+    """A camera model from a file: a calibration.json (its `camera`) or a bare camera object
+    {"width", "height", "K", "dist"}. FormatError when unreadable or of another image size."""
+    import json
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as e:
+        raise FormatError(path, "<file>", f"cannot be read: {e.strerror}") from None
+    except json.JSONDecodeError as e:
+        raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
+    where = "camera"
+    if isinstance(data, dict) and "camera" in data:
+        data = data["camera"]
+    else:
+        where = "<root>"
+    cam = CameraModel.from_dict(data, where, path)
+    if camera_size is not None and tuple(cam.size) != tuple(camera_size):
+        raise FormatError(path, where, f"is for a {cam.width}x{cam.height} camera, this camera is "
+                                       f"{camera_size[0]}x{camera_size[1]}")
+    return cam
+
+
+CalibrateFn = Callable[[Path, "str | None", "Callable | None"], CalibrationResult]
+VerifyFn = Callable[[CalibrationResult], object]
+
+
+class SessionMachine:
+    """One session's progress through the guideline, backed by a SessionStore."""
+
+    def __init__(self, store: SessionStore, plan: Plan | None = None, calibrate_fn: CalibrateFn | None = None,
+                 verify_fn: VerifyFn | None = None, initial: str = CHECK_RIG):
+        self.store = store
+        self.plan = plan or Plan()
+        self._calibrate_fn = calibrate_fn or default_calibrate
+        self._verify_fn = verify_fn
+        self._lock = threading.RLock()
+        self.busy: str | None = None
+        self.result: CalibrationResult | None = None
+        self.result_stale = False
+        self.calibration_error: str | None = None
+        self.report = None
+        self.verification_error: str | None = None
+        self.rig_checks: tuple[RigCheck, ...] = ()
+        self.retake_target: Target | None = None
+        self.last_capture: Capture | None = None
+        self.events: list[Event] = []
+        st = store.manifest.state or {}
+        self.mirror_method: str | None = store.manifest.mirror_method or st.get("mirror_method")
+        self.camera_intrinsics: str | None = st.get("camera_intrinsics")
+        self.state: str = initial
+        self._machine = Machine(model=self, states=list(STATES), initial=initial, auto_transitions=False,
+                                model_attribute="state", after_state_change="_state_changed")
+        t = self._machine.add_transition
+        t("ev_start", CHECK_RIG, PROJECTOR_CAPTURE, conditions="is_direct")
+        t("ev_start", CHECK_RIG, MIRROR_CAPTURE)
+        t("ev_proceed", MIRROR_CAPTURE, PROJECTOR_CAPTURE)
+        t("ev_proceed", PROJECTOR_CAPTURE, CALIBRATION)
+        t("ev_back", MIRROR_CAPTURE, CHECK_RIG)
+        t("ev_back", PROJECTOR_CAPTURE, CHECK_RIG, conditions="is_direct")
+        t("ev_back", PROJECTOR_CAPTURE, MIRROR_CAPTURE)
+        t("ev_back", CALIBRATION, PROJECTOR_CAPTURE)
+        t("ev_back", VERIFICATION, CALIBRATION)
+        t("ev_back", DONE, VERIFICATION, conditions="has_verification")
+        t("ev_back", DONE, CALIBRATION)
+        t("ev_retake", [MIRROR_CAPTURE, PROJECTOR_CAPTURE, CALIBRATION], MIRROR_CAPTURE,
+          conditions="_retaking_mirror")
+        t("ev_retake", [MIRROR_CAPTURE, PROJECTOR_CAPTURE, CALIBRATION], PROJECTOR_CAPTURE)
+        t("ev_calibrate", [PROJECTOR_CAPTURE, CALIBRATION, VERIFICATION, DONE], CALIBRATION)
+        t("ev_verify", [CALIBRATION, VERIFICATION], VERIFICATION)
+        t("ev_finish", VERIFICATION, DONE)
+        t("ev_finish", CALIBRATION, DONE, unless="has_verification")
+        self._retake_step: str | None = None
+
+    # ---- construction / resume ------------------------------------------------------------------
+    @classmethod
+    def from_store(cls, store: SessionStore, plan: Plan | None = None, **kw) -> "SessionMachine":
+        """Resume a session where its manifest's `state` says it stopped."""
+        st = store.manifest.state or {}
+        step = st.get("step", CHECK_RIG)
+        if step not in STATES:
+            raise FormatError(store.folder / "session.json", "state.step", f"must be one of {STATES}, got '{step}'")
+        if plan is None and "plan" in st:
+            plan = Plan.from_dict(st.get("plan"))
+        # a session always resumes in a stable state: a calibration that was running is re-run on request
+        m = cls(store, plan, initial=step, **kw)
+        m.retake_target = Target.from_dict(st.get("retake"))
+        cal = store.folder / CALIBRATION_FILE
+        if cal.exists() and st.get("calibrated"):
+            try:
+                m.result = CalibrationResult.load_json(cal)
+                m.result_stale = bool(st.get("result_stale", False))
+            except FormatError as e:
+                m.calibration_error = f"the saved calibration does not load ({e}); re-run the calibration"
+        if m.result is None and step in (VERIFICATION, DONE):
+            m.state = CALIBRATION  # nothing to verify without a result
+        m._log(f"resumed in '{STATE_TITLES[m.state]}' with {len(store.manifest.captures)} captures")
+        m._persist()
+        return m
+
+    # ---- facts ----------------------------------------------------------------------------------
+    @property
+    def manifest(self):
+        return self.store.manifest
+
+    @property
+    def direct(self) -> bool:
+        return self.manifest.rig.view == VIEW_DIRECT
+
+    def is_direct(self, *_a, **_k) -> bool:
+        return self.direct
+
+    def has_verification(self, *_a, **_k) -> bool:
+        return self._verify_fn is not None
+
+    def _retaking_mirror(self, *_a, **_k) -> bool:
+        return self._retake_step in (STEP_REAL_VIRTUAL, STEP_REAL_MIRROR)
+
+    @property
+    def positions(self) -> int:
+        return self.manifest.pattern.positions
+
+    @property
+    def projector_total(self) -> int:
+        return self.positions * self.plan.poses_per_position
+
+    @property
+    def mirror_total(self) -> int:
+        return 0 if self.mirror_method is None else self.plan.mirror_captures(self.mirror_method)
+
+    def captures_of(self, step: str) -> list[Capture]:
+        return self.manifest.captures_of(step)
+
+    def mirror_captures(self) -> list[Capture]:
+        return self.captures_of(STEP_REAL_VIRTUAL) + self.captures_of(STEP_REAL_MIRROR)
+
+    def position_counts(self) -> list[int]:
+        counts = [0] * self.positions
+        for c in self.captures_of(STEP_PROJECTOR):
+            if c.pattern_position is not None and 0 <= c.pattern_position < self.positions:
+                counts[c.pattern_position] += 1
+        return counts
+
+    def _free_pose(self, caps: list[Capture], n: int) -> int | None:
+        used = {c.meta.get("pose_index") for c in caps}
+        for k in range(n):
+            if k not in used:
+                return k
+        return None
+
+    @property
+    def target(self) -> Target | None:
+        """The capture asked for next in the current capture step, or None (step complete / no step)."""
+        if self.state == MIRROR_CAPTURE:
+            if self.mirror_method is None:
+                return None
+            step = mirror_step(self.mirror_method)
+            caps = self.captures_of(step)
+            if self.retake_target is not None and self.retake_target.step == step:
+                return self.retake_target
+            if len(caps) >= self.mirror_total:
+                return None
+            k = self._free_pose(caps, self.mirror_total + len(caps))
+            return Target(step, None, k)
+        if self.state == PROJECTOR_CAPTURE:
+            if self.retake_target is not None and self.retake_target.step == STEP_PROJECTOR:
+                return self.retake_target
+            caps = self.captures_of(STEP_PROJECTOR)
+            counts = self.position_counts()
+            for p in range(self.positions):
+                if counts[p] < self.plan.poses_per_position:
+                    at = [c for c in caps if c.pattern_position == p]
+                    return Target(STEP_PROJECTOR, p, self._free_pose(at, self.plan.poses_per_position + len(at)))
+        return None
+
+    def counts(self) -> dict:
+        """Checklist numbers: captures taken and asked for, per step."""
+        return {
+            "mirror": len(self.captures_of(mirror_step(self.mirror_method))) if self.mirror_method else 0,
+            "mirror_total": self.mirror_total,
+            "mirror_other": len(self.mirror_captures()),
+            "projector": len(self.captures_of(STEP_PROJECTOR)),
+            "projector_total": self.projector_total,
+            "positions_done": sum(c >= self.plan.poses_per_position for c in self.position_counts()),
+            "positions": self.positions,
+        }
+
+    # ---- refusals -------------------------------------------------------------------------------
+    def why_not(self, action: str, arg=None) -> str | None:
+        """None when `action` is possible now, else the reason it is not."""
+        if action not in ACTIONS:
+            return f"unknown action '{action}'"
+        if self.busy:
+            return f"the station is busy ({self.busy}); wait until it finishes"
+        s = self.state
+        title = STATE_TITLES[s]
+        if action == "start":
+            if s != CHECK_RIG:
+                return "the rig check is already done; go back to it first"
+            bad = [c for c in self.rig_checks if not c.ok]
+            if not self.rig_checks:
+                return "the rig has not been checked yet"
+            if bad:
+                return "the rig check failed: " + "; ".join(f"{c.name}: {c.detail}" for c in bad)
+            return None
+        if action == "choose_mirror_method":
+            if self.direct:
+                return "this rig views the board directly (overlapping): there is no mirror to calibrate"
+            if s not in (CHECK_RIG, MIRROR_CAPTURE):
+                return f"the mirror method is chosen in the mirror step (now: {title}); go back first"
+            if arg is not None and arg not in MIRROR_METHODS:
+                return f"unknown mirror method '{arg}' (one of {', '.join(MIRROR_METHODS)})"
+            if self.manifest.mirror_board is None:
+                return "the session has no mirror board; it cannot calibrate the mirror"
+            if arg is not None and arg != self.mirror_method:
+                others = self.mirror_captures()
+                if others:
+                    return (f"{len(others)} {self.mirror_method} capture(s) are taken; delete them first to "
+                            f"switch to {arg}")
+            return None
+        if action == "capture":
+            if s not in CAPTURE_STATES:
+                return f"nothing is captured in the {title} step; go back to a capture step to add captures"
+            if s == MIRROR_CAPTURE and self.mirror_method is None:
+                return "choose the mirror method (real-virtual or real-mirror) first"
+            if self.target is None:
+                if s == MIRROR_CAPTURE:
+                    return (f"all {self.mirror_total} mirror captures are taken; press Next, or delete or "
+                            "retake a capture")
+                return (f"all {self.projector_total} projector captures are taken; calibrate, or delete or "
+                        "retake a capture")
+            return None
+        if action in ("delete", "retake"):
+            if s in (VERIFICATION, DONE):
+                return f"captures cannot change during {title}; go back to the calibration step first"
+            if action == "retake" and s == CHECK_RIG:
+                return "finish the rig check first"
+            if arg is None:
+                return "choose a capture first"
+            if not any(c.id == arg for c in self.manifest.captures):
+                return f"there is no capture '{arg}' in this session"
+            if action == "retake":
+                cap = next(c for c in self.manifest.captures if c.id == arg)
+                if cap.step != STEP_PROJECTOR and self.direct:
+                    return "this rig has no mirror step; delete the capture instead"
+            return None
+        if action == "proceed":
+            if s == MIRROR_CAPTURE:
+                if self.mirror_method is None:
+                    return "choose the mirror method and take the mirror captures first"
+                n = len(self.captures_of(mirror_step(self.mirror_method)))
+                need = self.plan.min_mirror(self.mirror_method)
+                if n < need:
+                    return f"take at least {need} {self.mirror_method} captures first ({n} so far)"
+                return None
+            if s == PROJECTOR_CAPTURE:
+                n = len(self.captures_of(STEP_PROJECTOR))
+                if self.target is not None:
+                    return (f"{n} of {self.projector_total} projector captures are taken; finish them, or "
+                            "press Calibrate to calibrate with what is there")
+                return None
+            nxt = {CHECK_RIG: "Start", CALIBRATION: "Verify", VERIFICATION: "Finish"}.get(s)
+            if nxt:
+                return f"use '{nxt}' to leave the {title} step"
+            return "the session is complete"
+        if action == "back":
+            if s == CHECK_RIG:
+                return "this is the first step"
+            return None
+        if action in ("skip_camera", "use_camera_calibration"):
+            if s in (VERIFICATION, DONE):
+                return "the camera model cannot change now; go back to the calibration step first"
+            if action == "use_camera_calibration" and self.camera_intrinsics is None:
+                return "the camera is already calibrated from the captures"
+            if action == "skip_camera":
+                if not arg:
+                    return "give the path of an intrinsics file (a calibration.json or a camera JSON)"
+                try:
+                    load_intrinsics(arg, self.manifest.rig.camera_size)
+                except ProcamError as e:
+                    return str(e)
+            return None
+        if action == "calibrate":
+            if s not in (PROJECTOR_CAPTURE, CALIBRATION, VERIFICATION, DONE):
+                return f"calibration comes after the captures (now: {title})"
+            n = len(self.captures_of(STEP_PROJECTOR))
+            if n < self.plan.min_projector_captures:
+                return f"take at least {self.plan.min_projector_captures} projector captures first ({n} so far)"
+            if not self.direct:
+                if self.mirror_method is None:
+                    return "the mirror has no captures yet; go back to the mirror step"
+                m = len(self.captures_of(mirror_step(self.mirror_method)))
+                need = self.plan.min_mirror(self.mirror_method)
+                if m < need:
+                    return f"the mirror step needs at least {need} {self.mirror_method} captures ({m} so far)"
+            return None
+        if action == "verify":
+            if self._verify_fn is None:
+                return "verification is not available in this installation"
+            if s not in (CALIBRATION, VERIFICATION):
+                return f"verification comes after calibration (now: {title})"
+            if self.result is None:
+                return "calibrate first"
+            if self.result_stale:
+                return "the captures or the camera model changed since the last calibration; calibrate again"
+            return None
+        if action == "finish":
+            if s == VERIFICATION:
+                if self.report is None:
+                    return "run the verification first"
+                return None
+            if s == CALIBRATION:
+                if self._verify_fn is not None:
+                    return "verify the calibration first"
+                if self.result is None or self.result_stale:
+                    return "calibrate first"
+                return None
+            if s == DONE:
+                return "the session is already complete"
+            return f"the session ends after calibration and verification (now: {title})"
+        return None  # pragma: no cover
+
+    def available(self) -> dict[str, str | None]:
+        """Every action with None (possible) or the reason it is refused."""
+        return {a: self.why_not(a) for a in ACTIONS if a not in ("delete", "retake", "skip_camera")}
+
+    def _refuse(self, action: str, arg=None) -> None:
+        reason = self.why_not(action, arg)
+        if reason is not None:
+            raise ActionRefused(action, reason)
+
+    def _fire(self, trigger: str, action: str) -> None:
+        try:
+            ok = getattr(self, trigger)()
+        except MachineError as e:  # a transition the table does not have: refuse with the table's reason
+            raise ActionRefused(action, f"not possible during {STATE_TITLES[self.state]} ({e.value})") from None
+        if not ok:
+            raise ActionRefused(action, f"not possible during {STATE_TITLES[self.state]}")
+
+    # ---- actions --------------------------------------------------------------------------------
+    def set_rig_checks(self, checks) -> None:
+        with self._lock:
+            self.rig_checks = tuple(checks)
+
+    def start_session(self, checks=None) -> str:
+        """Leave the rig check (checks all passed). Returns the new state."""
+        with self._lock:
+            if checks is not None:
+                self.rig_checks = tuple(checks)
+            self._refuse("start")
+            self._fire("ev_start", "start")
+            self._log("rig checked; " + ("direct rig: mirror step skipped" if self.direct else "mirror step next"))
+            return self.state
+
+    def choose_mirror_method(self, method: str) -> None:
+        with self._lock:
+            self._refuse("choose_mirror_method", method)
+            if method != self.mirror_method:
+                self.mirror_method = method
+                self.retake_target = None
+                self.store.update(mirror_method=method)
+                self._mark_stale()
+                self._log(f"mirror method: {method}")
+            self._persist()
+
+    def record_capture(self, image, meta: dict | None = None, pattern_points_px=None) -> Capture:
+        """Write the capture for the current target (image first, then the manifest); return it once it
+        is on disk. Projector captures store the projector pixels of the pattern at the target position."""
+        with self._lock:
+            self._refuse("capture")
+            tgt = self.target
+            meta = dict(meta or {})
+            meta["pose_index"] = tgt.pose_index
+            if self.retake_target is not None:
+                meta["retake"] = True
+            pts = None
+            if tgt.step == STEP_PROJECTOR:
+                w, h = self.manifest.rig.projector_size
+                pts = self.manifest.pattern.points_px(w, h, tgt.pattern_position)
+                if pattern_points_px is not None:
+                    pts = pattern_points_px
+            cap = self.store.add_capture(tgt.step, image, tgt.pattern_position, pts, meta)
+            self.last_capture = cap
+            self.retake_target = None
+            self._mark_stale()
+            where = "" if tgt.pattern_position is None else f" at pattern position {tgt.pattern_position + 1}"
+            self._log(f"captured {cap.id} ({tgt.step}{where}, pose {tgt.pose_index + 1})")
+            self._persist()
+            return cap
+
+    def delete_capture(self, capture_id: str) -> Capture:
+        with self._lock:
+            self._refuse("delete", capture_id)
+            cap = next(c for c in self.manifest.captures if c.id == capture_id)
+            self.store.delete_capture(capture_id)
+            if self.last_capture is not None and self.last_capture.id == capture_id:
+                self.last_capture = None
+            self._mark_stale()
+            self._log(f"deleted {capture_id}")
+            self._persist()
+            return cap
+
+    def retake(self, capture_id: str | None = None) -> Target:
+        """Delete a capture (by default the last one) and ask for the same pose again."""
+        with self._lock:
+            if capture_id is None:
+                capture_id = self.last_capture.id if self.last_capture is not None else None
+                if capture_id is None and self.manifest.captures:
+                    capture_id = self.manifest.captures[-1].id
+            self._refuse("retake", capture_id)
+            cap = next(c for c in self.manifest.captures if c.id == capture_id)
+            self._retake_step = cap.step
+            if cap.step != STEP_PROJECTOR:
+                method = "real-virtual" if cap.step == STEP_REAL_VIRTUAL else "real-mirror"
+                self.mirror_method = method
+            self.store.delete_capture(capture_id)
+            tgt = Target(cap.step, cap.pattern_position, int(cap.meta.get("pose_index", 0)))
+            self.retake_target = tgt
+            self._mark_stale()
+            try:
+                self._fire("ev_retake", "retake")
+            finally:
+                self._retake_step = None
+            self._log(f"retake of {capture_id}: deleted, same pose asked again")
+            self._persist()
+            return tgt
+
+    def proceed(self) -> str:
+        with self._lock:
+            self._refuse("proceed")
+            before = self.state
+            self._fire("ev_proceed", "proceed")
+            self._log(f"{STATE_TITLES[before]} complete")
+            return self.state
+
+    def go_back(self) -> str:
+        with self._lock:
+            self._refuse("back")
+            self.retake_target = None
+            self._fire("ev_back", "back")
+            self._log(f"back to {STATE_TITLES[self.state]}")
+            return self.state
+
+    def skip_camera(self, path) -> None:
+        """Use a pre-calibrated camera (intrinsics file) instead of calibrating it from the captures."""
+        with self._lock:
+            self._refuse("skip_camera", str(path) if path else path)
+            self.camera_intrinsics = str(Path(path).resolve())
+            self._mark_stale()
+            self._log(f"camera intrinsics from {self.camera_intrinsics}; camera calibration skipped")
+            self._persist()
+
+    def use_camera_calibration(self) -> None:
+        with self._lock:
+            self._refuse("use_camera_calibration")
+            self.camera_intrinsics = None
+            self._mark_stale()
+            self._log("camera calibrated from the captures")
+            self._persist()
+
+    def calibrate(self, progress=None) -> CalibrationResult:
+        """Calibrate (or re-run the calibration) on the captures taken so far; writes calibration.json."""
+        with self._lock:
+            self._refuse("calibrate")
+            self._fire("ev_calibrate", "calibrate")
+            self.busy = "calibrating"
+            self.calibration_error = None
+            self.report = None
+            self._log(f"calibrating {len(self.manifest.captures)} captures"
+                      + (" with the given camera intrinsics" if self.camera_intrinsics else ""))
+        try:
+            result = self._calibrate_fn(self.store.folder, self.camera_intrinsics, progress)
+        except ProcamError as e:
+            with self._lock:
+                self.busy = None
+                self.calibration_error = str(e)
+                self._log(f"calibration failed: {e}")
+                self._persist()
+            raise
+        except BaseException:
+            with self._lock:
+                self.busy = None
+            raise
+        with self._lock:
+            result.save_json(self.store.folder / CALIBRATION_FILE)
+            try:
+                result.save_opencv_yaml(self.store.folder / CALIBRATION_YAML)
+            except Exception as e:  # the YAML export is a convenience; the JSON is the result
+                self._log(f"OpenCV YAML export failed: {e}")
+            self.result = result
+            self.result_stale = False
+            self.busy = None
+            rms = ", ".join(f"{k} {v:.3f} px" for k, v in result.rms.items() if isinstance(v, (int, float)))
+            self._log(f"calibrated ({rms})" if rms else "calibrated")
+            self._persist()
+            return result
+
+    def verify(self, **kw):
+        """Run the verification of the current result (the verify callable) and keep its report."""
+        with self._lock:
+            self._refuse("verify")
+            self._fire("ev_verify", "verify")
+            self.busy = "verifying"
+            self.verification_error = None
+            result = self.result
+        try:
+            report = self._verify_fn(result, **kw)
+        except ProcamError as e:
+            with self._lock:
+                self.busy = None
+                self.verification_error = str(e)
+                self._log(f"verification failed to run: {e}")
+                self._persist()
+            raise
+        except BaseException:
+            with self._lock:
+                self.busy = None
+            raise
+        with self._lock:
+            self.report = report
+            self.busy = None
+            passed = getattr(report, "passed", None)
+            mean = getattr(report, "mean_px", None)
+            self._log("verification " + ("passed" if passed else "FAILED")
+                      + (f" (mean {mean:.2f} px)" if isinstance(mean, (int, float)) else ""))
+            self._persist()
+            return report
+
+    def finish(self) -> str:
+        with self._lock:
+            self._refuse("finish")
+            self._fire("ev_finish", "finish")
+            self._log("session complete")
+            return self.state
+
+    # ---- bookkeeping ----------------------------------------------------------------------------
+    def _mark_stale(self) -> None:
+        if self.result is not None:
+            self.result_stale = True
+        self.report = None
+
+    def _state_changed(self, *_a, **_k) -> None:
+        self._persist()
+
+    def state_dict(self) -> dict:
+        tgt = self.target
+        return {
+            "step": self.state,
+            "pattern_position": None if tgt is None else tgt.pattern_position,
+            "pose_index": None if tgt is None else tgt.pose_index,
+            "target": None if tgt is None else tgt.to_dict(),
+            "retake": None if self.retake_target is None else self.retake_target.to_dict(),
+            "mirror_method": self.mirror_method,
+            "camera_intrinsics": self.camera_intrinsics,
+            "plan": self.plan.to_dict(),
+            "calibrated": self.result is not None,
+            "result_stale": self.result_stale,
+            "verified": None if self.report is None else bool(getattr(self.report, "passed", False)),
+            "updated_unix_s": round(time.time(), 3),
+        }
+
+    def _persist(self) -> None:
+        self.store.update(state=self.state_dict())
+
+    def _log(self, text: str) -> None:
+        self.events.append(Event(time.time(), text))
+        del self.events[:-200]
+
+
+def default_calibrate(folder, camera_intrinsics, progress=None) -> CalibrationResult:
+    """The calibration core's pipeline on the session folder."""
+    from calib.pipeline import calibrate_session
+
+    return calibrate_session(folder, camera_intrinsics=camera_intrinsics, progress=progress)
