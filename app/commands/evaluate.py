@@ -1,0 +1,39 @@
+"""`procam evaluate RESULT GROUND_TRUTH`: the paper's metrics of a calibration against ground truth."""
+
+from __future__ import annotations
+
+import json
+
+NAME = "evaluate"
+HELP = "compare a calibration.json with ground truth (the paper's metrics)"
+DESCRIPTION = (
+    "Prints the metrics of Vanherck et al. (Sect. 5.2): CamK/ProjK (Frobenius norm of the K difference, px), "
+    "CamD/ProjD (norm of the distortion difference), Distance and Angle of the camera-projector pose, the "
+    "mirror's normal angle and offset difference, and the RMS values the result carries. GROUND_TRUTH is a "
+    "file in the calibration.json schema (e.g. written by `procam simulate`)."
+)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("result", metavar="RESULT", help="calibration.json to evaluate")
+    p.add_argument("ground_truth", metavar="GROUND_TRUTH", help="ground truth in the calibration.json schema")
+    p.add_argument("--json", action="store_true", help="print the metrics as JSON")
+
+
+def run(args) -> int:
+    from calib.errors import FormatError
+    from calib.metrics import compare
+    from calib.result import CalibrationResult
+
+    result = CalibrationResult.load_json(args.result)
+    truth = CalibrationResult.load_json(args.ground_truth)
+    if result.units != truth.units:
+        raise FormatError(args.ground_truth, "units",
+                          f"is '{truth.units}' but the result is in '{result.units}'; compare like with like")
+    m = compare(result, truth)
+    if args.json:
+        print(json.dumps(m.to_dict(), indent=2))
+    else:
+        print(f"{args.result} vs {args.ground_truth} (method {result.method}, units {result.units})")
+        print(m.format_table())
+    return 0

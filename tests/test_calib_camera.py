@@ -1,0 +1,107 @@
+"""Stage 1 (camera): Zhang over direct and mirrored board views in one calibration."""
+
+import numpy as np
+import pytest
+
+from _calib_helpers import observations, rel_err, replace_obs, session
+from calib.board_pose import MIRROR_BOARD, solve_board_pose, view_object_points
+from calib.camera_calib import calibrate_camera
+from calib.errors import CalibrationError
+from calib.observations import BoardObservation, ProjectorView
+from calib.transforms import transform_points
+
+
+def test_mirrored_view_is_a_rigid_view_of_the_mirrored_board():
+    """u = project(S T X) = project((S T F_b)(F_b X)), and S T F_b is a proper rigid transform."""
+    ss = session("136")
+    rig, board = ss.rig, ss.layout.charuco
+    S = rig.mirror.reflection()
+    T = ss.projector_T_cam_board[7][1]
+    X = board.corner_points()
+    M = S @ T @ MIRROR_BOARD
+    assert np.linalg.det(M[:3, :3]) == pytest.approx(1.0)
+    assert np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3))
+    u_seen = rig.camera.project(transform_points(S @ T, X))
+    u_virtual = rig.camera.project(transform_points(M, X * [-1, 1, 1]))
+    assert np.abs(u_seen - u_virtual).max() < 1e-9
+    # and PnP with the mirrored object points finds exactly that pose, whose un-mirroring is T
+    obs = observations("136").projector_views[7].board
+    pose = solve_board_pose(rig.camera, board, obs)
+    assert np.allclose(view_object_points(board, obs)[:, 0], -X[obs.ids, 0])
+    assert np.abs(pose.T_cam_view - M).max() < 1e-6
+    assert np.abs(pose.physical(S) - T).max() < 1e-6
+
+
+@pytest.mark.parametrize("rig", ["90", "136", "180", "direct"])
+def test_noise_free_recovers_intrinsics(rig):
+    cc = calibrate_camera(observations(rig))
+    gt = session(rig).rig.camera
+    assert rel_err(cc.camera.K, gt.K) < 2e-6
+    assert np.abs(cc.camera.dist - gt.dist).max() < 1e-5
+    assert cc.rms_px < 1e-3 and not cc.precalibrated
+    assert cc.n_views == len(cc.per_view) == len(cc.poses)
+    assert cc.std_intrinsics is not None and cc.std_intrinsics.size >= 9
+
+
+def test_mirrored_views_alone_give_the_real_camera():
+    """Only views through the mirror (no direct view at all): the intrinsics are the real camera's,
+    not the flipped one's (cx is not mirrored to W-1-cx)."""
+    obs = replace_obs(observations("136"), mirror_views=())
+    assert all(v.board.mirrored for v in obs.projector_views)
+    cc = calibrate_camera(obs)
+    gt = session("136").rig.camera
+    assert cc.camera.cx == pytest.approx(gt.cx, abs=1e-3)
+    assert rel_err(cc.camera.K, gt.K) < 2e-6
+    # the reported poses are those of the virtual board, proper rotations
+    for pose in cc.poses.values():
+        assert pose.mirrored and np.linalg.det(pose.T_cam_view[:3, :3]) == pytest.approx(1.0)
+
+
+def test_noisy_observations_give_paper_order_errors():
+    gt = session("136").rig.camera
+    errs = []
+    for seed in range(3):
+        cc = calibrate_camera(observations("136", 0.2, seed))
+        errs.append(np.linalg.norm(cc.camera.K - gt.K))
+        assert 0.2 < cc.rms_px < 0.35  # 0.2 px per axis -> ~0.28 px in 2D
+        assert np.linalg.norm(cc.camera.dist - gt.dist) < 0.03
+    assert np.mean(errs) < 6.0
+
+
+def test_precalibrated_camera_skips_estimation():
+    gt = session("136").rig.camera
+    cc = calibrate_camera(observations("136", 0.2, 1), camera=gt)
+    assert cc.precalibrated and cc.camera is gt
+    assert 0.2 < cc.rms_px < 0.35
+    assert cc.std_intrinsics is None
+    with pytest.raises(CalibrationError, match="session's images"):
+        calibrate_camera(observations("136"), camera=gt.with_params().__class__(640, 400, gt.K, gt.dist))
+
+
+def test_views_with_too_few_corners_are_skipped():
+    obs = observations("136")
+    v = obs.projector_views[0]
+    few = BoardObservation(v.board.ids[:4], v.board.corners_px[:4], True)
+    pv = (ProjectorView(v.capture_id, few, v.pattern_cam_px, v.pattern_proj_px, 0),) + obs.projector_views[1:]
+    cc = calibrate_camera(replace_obs(obs, projector_views=pv))
+    reasons = [s for s in cc.skipped if s["capture_id"] == v.capture_id]
+    assert len(reasons) == 1 and "only 4 ChArUco corners" in reasons[0]["reason"]
+    assert v.capture_id not in cc.poses
+
+
+def test_a_misdetected_view_is_rejected(rng):
+    obs = observations("136", 0.2, 2)
+    v = obs.projector_views[3]
+    bad = BoardObservation(v.board.ids, v.board.corners_px + rng.normal(0, 15, v.board.corners_px.shape), True)
+    pv = list(obs.projector_views)
+    pv[3] = ProjectorView(v.capture_id, bad, v.pattern_cam_px, v.pattern_proj_px, v.pattern_position)
+    cc = calibrate_camera(replace_obs(obs, projector_views=tuple(pv)))
+    assert any(s["capture_id"] == v.capture_id and "misdetection" in s["reason"] for s in cc.skipped)
+    assert np.linalg.norm(cc.camera.K - session("136").rig.camera.K) < 8.0
+
+
+def test_too_few_views_is_an_actionable_error():
+    obs = observations("136")
+    obs = replace_obs(obs, projector_views=obs.projector_views[:2], mirror_views=())
+    with pytest.raises(CalibrationError, match=r"only 2 usable board view.*--camera-intrinsics"):
+        calibrate_camera(obs)
