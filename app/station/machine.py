@@ -50,6 +50,9 @@ STATE_TITLES = {
 ACTIONS = ("start", "choose_mirror_method", "capture", "delete", "retake", "proceed", "back", "skip_camera",
            "use_camera_calibration", "calibrate", "verify", "finish")
 
+_OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake", "mirror_method",
+                   "camera_intrinsics", "plan", "calibrated", "result_stale", "verified", "updated_unix_s")
+
 CALIBRATION_FILE = "calibration.json"
 CALIBRATION_YAML = "calibration.yaml"
 
@@ -129,11 +132,21 @@ class Event:
 
 
 def load_intrinsics(path, camera_size: tuple[int, int] | None = None) -> CameraModel:
-    """A camera model from a file: a calibration.json (its `camera`) or a bare camera object
-    {"width", "height", "K", "dist"}. FormatError when unreadable or of another image size."""
+    """A camera model from a file (the calibration core's reader: calibration.json or OpenCV YAML);
+    FormatError when unreadable or made for another image size."""
+    path = Path(path)
+    try:
+        from calib.pipeline import load_camera_intrinsics
+    except ImportError:
+        load_camera_intrinsics = None
+    if load_camera_intrinsics is not None:
+        cam = load_camera_intrinsics(path, camera_size)
+        if camera_size is not None and tuple(cam.size) != tuple(camera_size):
+            raise FormatError(path, "camera", f"is for a {cam.width}x{cam.height} camera, this camera is "
+                                              f"{camera_size[0]}x{camera_size[1]}")
+        return cam
     import json
 
-    path = Path(path)
     try:
         data = json.loads(path.read_text())
     except OSError as e:
@@ -179,6 +192,8 @@ class SessionMachine:
         st = store.manifest.state or {}
         self.mirror_method: str | None = store.manifest.mirror_method or st.get("mirror_method")
         self.camera_intrinsics: str | None = st.get("camera_intrinsics")
+        # keys of the saved state that the machine does not own (the station's rig request...) are kept
+        self.extra_state: dict = {k: v for k, v in st.items() if k not in _OWN_STATE_KEYS}
         self.state: str = initial
         self._machine = Machine(model=self, states=list(STATES), initial=initial, auto_transitions=False,
                                 model_attribute="state", after_state_change="_state_changed")
@@ -676,6 +691,7 @@ class SessionMachine:
     def state_dict(self) -> dict:
         tgt = self.target
         return {
+            **self.extra_state,
             "step": self.state,
             "pattern_position": None if tgt is None else tgt.pattern_position,
             "pose_index": None if tgt is None else tgt.pose_index,
@@ -698,8 +714,8 @@ class SessionMachine:
         del self.events[:-200]
 
 
-def default_calibrate(folder, camera_intrinsics, progress=None) -> CalibrationResult:
+def default_calibrate(folder, camera_intrinsics, progress=None, workers: int = 2) -> CalibrationResult:
     """The calibration core's pipeline on the session folder."""
     from calib.pipeline import calibrate_session
 
-    return calibrate_session(folder, camera_intrinsics=camera_intrinsics, progress=progress)
+    return calibrate_session(folder, camera_intrinsics=camera_intrinsics, workers=workers, progress=progress)

@@ -1,0 +1,198 @@
+"""`procam session`: a whole guided session without the browser, start to finish.
+
+With `--auto` on the simulated rig the station asks the simulated operator for every board pose,
+auto-captures, calibrates and verifies: the README's run command. On a real rig a person moves the
+board, reading the instructions printed in the terminal, and auto-capture takes the frames.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+NAME = "session"
+HELP = "run a guided capture-and-calibrate session headless (--rig sim --auto: fully simulated)"
+DESCRIPTION = (
+    "Runs the station's session (rig check, mirror capture, projector capture at every pattern position, "
+    "calibration, verification) without the browser panel, printing progress and a final summary. "
+    "DIR ends holding the captures, session.json, calibration.json, verification.json and, on the "
+    "simulated rig, ground_truth.json. A killed session continues with --resume DIR."
+)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--rig", choices=("sim", "realsense"), default=None,
+                   help="rig to use (default: realsense when one is connected, else sim)")
+    p.add_argument("--auto", action="store_true",
+                   help="the station leads the whole session itself (on the simulated rig the simulated "
+                        "operator moves the board)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--out", metavar="DIR", help="new session folder")
+    g.add_argument("--resume", metavar="DIR", help="continue the session in DIR where it stopped")
+    p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
+    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
+    p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
+    p.add_argument("--poses-per-position", type=int, default=None,
+                   help="board poses per pattern position (default 4)")
+    p.add_argument("--mirror-captures", type=int, default=None,
+                   help="mirror captures to take (default 6 real-virtual, 3 real-mirror)")
+    p.add_argument("--mirror-method", choices=("real-virtual", "real-mirror"), default=None,
+                   help="mirror calibration method (default: the scenario's, else real-virtual)")
+    p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
+                   help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
+    p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
+    p.add_argument("--mirror-board", default=None, help="real rig: mirror board spec (default: --board)")
+    p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
+    p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
+    p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
+
+
+def plan_from_args(args, base=None):
+    from app.station.machine import Plan
+
+    plan = base or Plan()
+    kw = plan.to_dict()
+    if getattr(args, "poses_per_position", None):
+        kw["poses_per_position"] = args.poses_per_position
+    if getattr(args, "mirror_captures", None):
+        kw["real_virtual_captures"] = kw["real_mirror_captures"] = args.mirror_captures
+        kw["min_real_virtual"] = min(kw["min_real_virtual"], args.mirror_captures)
+        kw["min_real_mirror"] = min(kw["min_real_mirror"], args.mirror_captures)
+    return Plan(**kw)
+
+
+def open_session(args, log=print):
+    """(rig, store, machine, request) for --out (new) or --resume (existing) from the arguments."""
+    from app.station.setup import (
+        DEFAULT_SCENARIO, RigRequest, check_same_rig, create_session, default_rig_kind, make_machine, open_rig,
+        resume_request,
+    )
+    from calib.boards import CharucoSpec
+    from calib.errors import SessionError
+    from calib.observations import VIEW_DIRECT, VIEW_MIRROR
+    from calib.session import SessionStore
+
+    if args.resume:
+        folder = Path(args.resume)
+        req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
+        rig = open_rig(req)
+        store = SessionStore.open(folder)
+        check_same_rig(store, rig)
+        plan = None
+        if args.poses_per_position or args.mirror_captures:
+            from app.station.machine import Plan
+
+            plan = plan_from_args(args, Plan.from_dict((store.manifest.state or {}).get("plan")))
+        machine = make_machine(store, rig, plan, resume=True, workers=args.workers)
+        c = machine.counts()
+        log(f"resuming {folder}: {len(store.manifest.captures)} captures on disk "
+            f"(mirror {c['mirror']}, projector {c['projector']}), step '{machine.state}'")
+    else:
+        folder = Path(args.out)
+        kind = args.rig or default_rig_kind()
+        req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
+        if kind != "sim" and not args.board:
+            raise SessionError("a real rig needs the board spec: --board COLSxROWS:DICT:SQUARE[:MARKER]")
+        rig = open_rig(req)
+        kw = {}
+        if kind != "sim":
+            board = CharucoSpec.parse(args.board, args.units)
+            kw = dict(board=board, mirror_board=CharucoSpec.parse(args.mirror_board, args.units)
+                      if args.mirror_board else None, view=VIEW_DIRECT if args.direct else VIEW_MIRROR)
+        plan = plan_from_args(args)
+        store = create_session(folder, rig, req, plan, **kw)
+        machine = make_machine(store, rig, plan, workers=args.workers)
+        what = f"simulated rig '{req.scenario}' (seed {req.seed})" if kind == "sim" else f"{kind} rig"
+        log(f"new session in {folder} on the {what}")
+    if args.camera_intrinsics:
+        machine.skip_camera(args.camera_intrinsics)
+    return rig, store, machine, req
+
+
+def summary(machine, folder, elapsed_s: float) -> str:
+    from app.station.setup import load_ground_truth
+
+    lines = []
+    c = machine.counts()
+    lines.append(f"session {folder}: {STATE(machine)} after {elapsed_s:.1f} s")
+    lines.append(f"  captures: mirror {c['mirror']} ({machine.mirror_method or 'none'}), projector {c['projector']} "
+                 f"at {c['positions_done']}/{c['positions']} pattern positions")
+    res = machine.result
+    if res is not None:
+        rms = ", ".join(f"{k} {v:.3f}" for k, v in res.rms.items() if isinstance(v, (int, float)))
+        lines.append(f"  calibration ({res.method}): RMS {rms}")
+        t = res.T_cam_proj[:3, 3]
+        lines.append(f"  projector position in the camera frame: [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}] {res.units}")
+        if res.mirror is not None:
+            n = res.mirror.normal
+            lines.append(f"  mirror: normal [{n[0]:.4f}, {n[1]:.4f}, {n[2]:.4f}], d {res.mirror.d:.2f} {res.units}")
+        gt = load_ground_truth(folder)
+        if gt is not None:
+            try:
+                from calib.metrics import compare
+
+                mt = compare(res, gt)
+                lines.append(f"  vs ground truth: distance {mt.distance:.2f} {mt.units}, angle {mt.angle_deg:.3f} deg, "
+                             f"CamK {mt.cam_k_px:.2f} px, ProjK {mt.proj_k_px:.2f} px"
+                             + (f", mirror {mt.mirror_angle_deg:.3f} deg / {mt.mirror_offset:.2f} {mt.units}"
+                                if mt.mirror_angle_deg is not None else ""))
+            except (ImportError, ValueError) as e:
+                lines.append(f"  (no comparison with the ground truth: {e})")
+    if machine.report is not None:
+        r = machine.report
+        verdict = "PASSED" if getattr(r, "passed", False) else "FAILED"
+        lines.append(f"  verification {verdict}: mean {getattr(r, 'mean_px', float('nan')):.2f} px, worst "
+                     f"{getattr(r, 'worst_px', float('nan')):.2f} px (threshold {getattr(r, 'threshold_px', float('nan')):.2f} px)")
+    files = [p.name for p in sorted(Path(folder).iterdir()) if p.is_file()]
+    lines.append(f"  files: {', '.join(files)}")
+    return "\n".join(lines)
+
+
+def STATE(machine) -> str:
+    from app.station.machine import STATE_TITLES
+
+    return STATE_TITLES[machine.state].lower()
+
+
+def run(args) -> int:
+    from app.station.machine import DONE
+    from app.station.station import Station, StationOptions
+    from calib.errors import SessionError
+
+    t0 = time.monotonic()
+
+    def log(text):
+        print(f"[{time.monotonic() - t0:6.1f} s] {text}", flush=True)
+
+    rig, store, machine, req = open_session(args, log)
+    if req.kind == "sim" and not args.auto:
+        raise SessionError("the simulated rig has nobody to move the board: add --auto, or operate it from "
+                           "the browser with `procam station --rig sim`")
+    opts = StationOptions(auto=True, mirror_method=args.mirror_method, follow_operator=True)
+    if req.kind != "sim":  # a person needs time, and a pose too close to another is never kept
+        opts.max_frames_per_target = 10**9
+        opts.accept_similar_after = 10**9
+    station = Station(rig, machine, opts, log=log)
+    last_event = len(machine.events)
+    last_hint = ""
+    try:
+        while machine.state != DONE:
+            station.tick()
+            for ev in machine.events[last_event:]:
+                if not ev.text.startswith("captured"):  # the station logs captures with their place
+                    log(ev.text)
+            last_event = len(machine.events)
+            if req.kind != "sim":
+                hint = station.instruction()
+                if hint != last_hint:
+                    print(hint, flush=True)
+                    last_hint = hint
+    finally:
+        close = getattr(rig, "close", None)
+        if callable(close):
+            close()
+    print(summary(machine, store.folder, time.monotonic() - t0), flush=True)
+    if machine.report is not None and not getattr(machine.report, "passed", True):
+        return 1
+    return 0

@@ -1,0 +1,194 @@
+"""Opening a rig and a session for the station: new session folders, resuming, ground truth, and the
+calibration / verification callables the state machine runs."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from app.station.machine import Plan, SessionMachine
+from calib.boards import CharucoSpec
+from calib.errors import SessionError
+from calib.observations import VIEW_DIRECT, VIEW_MIRROR
+from calib.pattern import PatternSpec
+from calib.session import MANIFEST, RigInfo, SessionManifest, SessionStore
+
+GROUND_TRUTH_FILE = "ground_truth.json"
+DEFAULT_SCENARIO = "nonoverlap-136"
+
+
+@dataclass(frozen=True)
+class RigRequest:
+    """What the user asked for on the command line; recorded in the session state for --resume."""
+
+    kind: str = "sim"
+    scenario: str = DEFAULT_SCENARIO
+    seed: int = 0
+    quality: str = "live"
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "scenario": self.scenario, "seed": self.seed, "quality": self.quality}
+
+    @classmethod
+    def from_dict(cls, d: dict | None, **defaults) -> "RigRequest":
+        d = dict(d or {})
+        kw = {k: d[k] for k in ("kind", "scenario", "seed", "quality") if k in d}
+        kw.update({k: v for k, v in defaults.items() if v is not None})
+        return cls(**kw)
+
+
+def default_rig_kind() -> str:
+    """'realsense' when a RealSense camera is connected, else 'sim'."""
+    try:
+        from drivers.factory import default_rig_kind as factory_default
+
+        return factory_default()
+    except ImportError:
+        pass
+    try:
+        from drivers.realsense import list_realsense_devices
+
+        return "realsense" if list_realsense_devices() else "sim"
+    except Exception:  # no librealsense, no USB access: the simulated rig it is
+        return "sim"
+
+
+def open_rig(req: RigRequest, **options):
+    """The rig the request names: the simulated rig (scenario, seed) or the real devices."""
+    if req.kind == "sim":
+        from drivers.sim.rig import open_sim_rig
+
+        rig = open_sim_rig(req.scenario, seed=req.seed, quality=req.quality)
+        if not hasattr(rig, "kind"):
+            try:
+                rig.kind = "sim"
+            except AttributeError:
+                pass
+        return rig
+    from drivers.factory import open_rig as factory_open
+
+    return factory_open(req.kind, **options)
+
+
+def _attr(obj, *names, default=None):
+    for n in names:
+        if obj is not None and hasattr(obj, n):
+            return getattr(obj, n)
+    return default
+
+
+def sim_specs(rig) -> dict:
+    """Board, pattern and mirror specs of a simulated rig's scenario."""
+    sc = rig.scenario
+    layout = _attr(sc, "layout")
+    board = _attr(layout, "charuco") or _attr(sc, "board", "projector_board")
+    mirror_board = _attr(sc, "mirror_board")
+    pattern = _attr(sc, "pattern")
+    method = _attr(sc, "mirror_method")
+    thickness = _attr(sc, "thickness", "board_thickness", "thickness_mm", default=0.0) or 0.0
+    view = _attr(sc, "view")
+    if view is None:
+        srig = _attr(sc, "rig")
+        view = _attr(srig, "view") or (VIEW_MIRROR if mirror_board is not None else VIEW_DIRECT)
+    return {"board": board, "mirror_board": mirror_board if view == VIEW_MIRROR else None, "pattern": pattern,
+            "mirror_method": method if view == VIEW_MIRROR else None, "thickness": float(thickness), "view": view}
+
+
+def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_board: CharucoSpec | None = None,
+                 pattern: PatternSpec | None = None, view: str | None = None, thickness: float = 0.0) -> SessionManifest:
+    """The manifest of a new session on `rig`: specs from the simulated scenario, or as given."""
+    cam_size = tuple(rig.camera.size)
+    proj_size = tuple(rig.projector.size)
+    if kind == "sim":
+        s = sim_specs(rig)
+        board, mirror_board, pattern, view = s["board"], s["mirror_board"], s["pattern"], s["view"]
+        thickness = s["thickness"] if s["mirror_method"] == "real-mirror" else 0.0
+    if board is None:
+        raise SessionError("give the projector board spec (--board COLSxROWS:DICT:SQUARE[:MARKER])")
+    view = view or VIEW_MIRROR
+    if view == VIEW_MIRROR and mirror_board is None:
+        mirror_board = board
+    pattern = pattern or PatternSpec.default_for(*proj_size)
+    try:
+        settings = dict(rig.camera.settings())
+    except Exception:  # settings are informative; a driver without them still records a session
+        settings = {}
+    info = RigInfo(cam_size, proj_size, view, settings, kind)
+    return SessionManifest(info, board, pattern, mirror_board if view == VIEW_MIRROR else None, None,
+                           float(thickness))
+
+
+def create_session(folder, rig, req: RigRequest, plan: Plan | None = None, **manifest_kw) -> SessionStore:
+    folder = Path(folder)
+    if (folder / MANIFEST).exists():
+        raise SessionError(f"{folder} already holds a session; continue it with --resume {folder}")
+    man = new_manifest(rig, req.kind, **manifest_kw)
+    store = SessionStore.create(folder, man)
+    store.update(state={"step": "check_rig", "rig_request": req.to_dict(),
+                        "plan": (plan or Plan()).to_dict()})
+    if req.kind == "sim" and hasattr(rig, "ground_truth"):
+        rig.ground_truth().save_json(folder / GROUND_TRUTH_FILE)
+    return store
+
+
+def resume_request(folder, **overrides) -> RigRequest:
+    """The rig a session was captured with (recorded in its state), overridden by explicit options."""
+    store = SessionStore.open(folder)
+    st = store.manifest.state or {}
+    req = RigRequest.from_dict(st.get("rig_request") or {"kind": store.manifest.rig.driver}, **overrides)
+    return req
+
+
+def check_same_rig(store: SessionStore, rig) -> None:
+    man = store.manifest
+    if tuple(rig.camera.size) != tuple(man.rig.camera_size) or tuple(rig.projector.size) != tuple(man.rig.projector_size):
+        raise SessionError(
+            f"the rig ({rig.camera.size[0]}x{rig.camera.size[1]} camera, {rig.projector.size[0]}x"
+            f"{rig.projector.size[1]} projector) is not the one this session was captured with "
+            f"({man.rig.camera_size[0]}x{man.rig.camera_size[1]}, {man.rig.projector_size[0]}x"
+            f"{man.rig.projector_size[1]})")
+
+
+def make_verify_fn(rig, folder):
+    """The verification callable for the state machine, or None when the verification module is absent."""
+    try:
+        from app import verification as V
+    except ImportError:
+        return None
+    verify = getattr(V, "verify", None)
+    if verify is None:
+        return None
+
+    def run(result, **kw):
+        return verify(rig.camera, rig.projector, rig.operator, result, session_dir=Path(folder), **kw)
+
+    return run
+
+
+def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: bool = False,
+                 workers: int = 2) -> SessionMachine:
+    from app.station.machine import default_calibrate
+
+    def calibrate(folder, intrinsics, progress):
+        return default_calibrate(folder, intrinsics, progress, workers=workers)
+
+    verify_fn = make_verify_fn(rig, store.folder)
+    if resume:
+        m = SessionMachine.from_store(store, plan, calibrate_fn=calibrate, verify_fn=verify_fn)
+    else:
+        m = SessionMachine(store, plan or Plan.from_dict((store.manifest.state or {}).get("plan")),
+                           calibrate_fn=calibrate, verify_fn=verify_fn)
+    m._persist()
+    return m
+
+
+def load_ground_truth(folder):
+    from calib.result import CalibrationResult
+
+    p = Path(folder) / GROUND_TRUTH_FILE
+    return CalibrationResult.load_json(p) if p.exists() else None
+
+
+def read_state(folder) -> dict:
+    return json.loads((Path(folder) / MANIFEST).read_text()).get("state", {})

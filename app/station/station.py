@@ -1,0 +1,505 @@
+"""The station controller: drives a rig (camera, projector, operator) through a session.
+
+One `tick()` is one camera frame: keep the projector showing what the current target needs, ask the
+operator for the target's pose when the station leads the operator, detect what the step needs, feed
+auto-capture, and write a capture when it says so. `procam session --auto` calls `tick()` in a loop;
+`procam station` calls it from a background thread while the panel shows `live` and calls the
+operator's actions (which go through the SessionMachine, so refusals carry their reasons).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from app.station.autocapture import (
+    AutoCapture,
+    AutoCaptureSettings,
+    Decision,
+    LiveDetection,
+    PoseFeatures,
+    approximate_camera,
+    detect_for_step,
+)
+from app.station.machine import (
+    CALIBRATION,
+    CAPTURE_STATES,
+    CHECK_RIG,
+    DONE,
+    MIRROR_CAPTURE,
+    PROJECTOR_CAPTURE,
+    STATE_TITLES,
+    VERIFICATION,
+    ActionRefused,
+    RigCheck,
+    SessionMachine,
+    Target,
+)
+from calib.errors import ProcamError, SessionError, SpecError
+from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_MIRROR
+from drivers.errors import DeviceError
+
+
+@dataclass
+class StationOptions:
+    auto: bool = False  # the station runs the whole session itself (the simulated operator moves the board)
+    auto_capture: bool = True  # capture when the board is detected, still and in a new pose
+    follow_operator: bool | None = None  # ask the operator for each new pose (None: real rigs, or auto)
+    mirror_method: str | None = None  # auto: the method to choose (None: the scenario's, else real-virtual)
+    settle_frames: int | None = None  # frames to skip after the projector or the board changed (None: by rig)
+    frame_timeout_s: float = 3.0
+    max_frames_per_target: int = 40  # auto: frames without a usable detection before giving up on a target
+    accept_similar_after: int = 6  # auto: still-but-similar frames after which the asked pose is accepted
+    autocapture: AutoCaptureSettings = field(default_factory=AutoCaptureSettings)
+
+
+@dataclass(frozen=True, eq=False)
+class LiveView:
+    """The newest frame with what was detected in it, for the panel."""
+
+    image: np.ndarray
+    frame_number: int
+    timestamp_s: float
+    detection: LiveDetection | None
+    decision: Decision | None
+    target: Target | None
+    fps: float
+
+
+class Station:
+    def __init__(self, rig, machine: SessionMachine, options: StationOptions | None = None,
+                 log: Callable[[str], None] | None = None):
+        self.rig = rig
+        self.machine = machine
+        self.options = options or StationOptions()
+        self.kind = getattr(rig, "kind", "sim")
+        self.is_sim = self.kind == "sim"
+        self.log = log or (lambda text: None)
+        if self.options.follow_operator is None:
+            self.options.follow_operator = self.options.auto or not self.is_sim
+        if self.options.settle_frames is None:
+            self.options.settle_frames = 0 if self.is_sim else 2
+        cam = self.rig.camera
+        factory = None
+        try:
+            factory = cam.factory_intrinsics()
+        except Exception:  # a device that cannot report intrinsics is judged with an approximate model
+            factory = None
+        self.camera_model = approximate_camera(tuple(cam.size), factory)
+        self.autocap = AutoCapture(self.options.autocapture)
+        self.live: LiveView | None = None
+        self.operator_says: str = ""
+        self.device_problem: str | None = None
+        self._shown = None
+        self._requested: Target | None = None
+        self._autocap_target = object()
+        self._last_frame = -1
+        self._min_frame = -1
+        self._frames_on_target = 0
+        self._similar_frames = 0
+        self._tick_times: list[float] = []
+        self._pattern_cache: dict[int, np.ndarray] = {}
+        self._worker: threading.Thread | None = None
+        self._worker_error: str | None = None
+        self._stop = threading.Event()
+        self._loop_thread: threading.Thread | None = None
+        self.started_s = time.monotonic()
+
+    # ---- devices --------------------------------------------------------------------------------
+    @property
+    def projector_size(self) -> tuple[int, int]:
+        return tuple(self.machine.manifest.rig.projector_size)
+
+    def _black(self) -> np.ndarray:
+        w, h = self.projector_size
+        return np.zeros((h, w), np.uint8)
+
+    def pattern_image(self, position: int) -> np.ndarray:
+        if position not in self._pattern_cache:
+            w, h = self.projector_size
+            self._pattern_cache[position] = self.machine.manifest.pattern.render(w, h, position)[0]
+        return self._pattern_cache[position]
+
+    def _show(self, image: np.ndarray) -> None:
+        ticket = self.rig.projector.show(image)
+        self.rig.projector.wait_presented(ticket, timeout_s=self.options.frame_timeout_s)
+
+    def _changed(self) -> None:
+        """The projector image or the board changed: older frames no longer count."""
+        self._min_frame = self._last_frame + self.options.settle_frames
+        self.autocap.reset()
+        self._frames_on_target = 0
+        self._similar_frames = 0
+
+    def check_rig(self) -> list[RigCheck]:
+        """Camera streaming, projector window presenting, board and pattern specs usable."""
+        man = self.machine.manifest
+        checks = []
+        try:
+            f = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s)
+            h, w = f.image.shape[:2]
+            ok = (w, h) == tuple(man.rig.camera_size)
+            checks.append(RigCheck("camera", ok, f"{w}x{h} frames streaming" if ok else
+                                   f"frames are {w}x{h}, the session expects {man.rig.camera_size[0]}x"
+                                   f"{man.rig.camera_size[1]}"))
+            self._last_frame = max(self._last_frame, f.frame_number)
+        except DeviceError as e:
+            checks.append(RigCheck("camera", False, str(e)))
+        try:
+            self._show(self._black())
+            self._shown = ("black",)
+            pw, ph = self.rig.projector.size
+            ok = (pw, ph) == tuple(man.rig.projector_size)
+            checks.append(RigCheck("projector", ok, f"{pw}x{ph} window presents images" if ok else
+                                   f"window is {pw}x{ph}, the session expects {man.rig.projector_size}"))
+        except (DeviceError, ProcamError) as e:
+            checks.append(RigCheck("projector", False, str(e)))
+        checks.append(RigCheck("projector board", True, str(man.projector_board)))
+        if man.rig.view == VIEW_MIRROR:
+            checks.append(RigCheck("mirror board", man.mirror_board is not None,
+                                   str(man.mirror_board) if man.mirror_board else "no mirror board given"))
+        try:
+            man.pattern.offsets(*man.rig.projector_size)
+            p = man.pattern
+            checks.append(RigCheck("pattern", True, f"{p.cols}x{p.rows} {p.kind}, {p.positions} positions"))
+        except SpecError as e:
+            checks.append(RigCheck("pattern", False, str(e)))
+        self.machine.set_rig_checks(checks)
+        return checks
+
+    # ---- one frame ------------------------------------------------------------------------------
+    def _sync_projector(self, state: str, target: Target | None) -> None:
+        want = None
+        if state == PROJECTOR_CAPTURE and target is not None:
+            want = ("pattern", target.pattern_position)
+        elif state == MIRROR_CAPTURE:
+            want = ("black",)
+        if want is None or want == self._shown:
+            return
+        self._show(self.pattern_image(want[1]) if want[0] == "pattern" else self._black())
+        self._shown = want
+        self._changed()
+
+    def request_pose(self, target: Target | None = None) -> str:
+        """Ask the operator for the target's board pose (on the simulated rig: the board moves)."""
+        target = target or self.machine.target
+        if target is None:
+            raise ActionRefused("move the board", "no capture is asked for now")
+        text = self.rig.operator.request_pose(target.step, target.pattern_position, target.pose_index)
+        self.operator_says = text or ""
+        self._requested = target
+        self._changed()
+        return self.operator_says
+
+    def _grab(self):
+        try:
+            frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
+                                              newer_than=self._last_frame if self._last_frame >= 0 else None)
+        except DeviceError as e:
+            self.device_problem = f"camera: {e}; waiting for it to come back"
+            time.sleep(0.2)
+            return None
+        self.device_problem = None
+        self._last_frame = frame.frame_number
+        return frame
+
+    def taken_for(self, target: Target | None) -> list[tuple[str, PoseFeatures]]:
+        """Features of the captured poses a new capture for `target` must differ from."""
+        if target is None:
+            return []
+        out = []
+        for c in self.machine.manifest.captures_of(target.step):
+            if target.step == STEP_PROJECTOR and c.pattern_position != target.pattern_position:
+                continue
+            f = PoseFeatures.from_dict(c.meta.get("pose")) if isinstance(c.meta.get("pose"), dict) else None
+            if f is not None:
+                out.append((c.id, f))
+        return out
+
+    def tick(self) -> LiveView | None:
+        m = self.machine
+        if m.busy == "verifying":  # the verification drives camera and projector itself
+            time.sleep(0.05)
+            return None
+        state = m.state
+        target = m.target if state in CAPTURE_STATES and not m.busy else None
+        try:
+            self._sync_projector(state, target)
+            if target is not None and self.options.follow_operator and target != self._requested:
+                self.request_pose(target)
+        except DeviceError as e:
+            self.device_problem = f"projector: {e}"
+            time.sleep(0.2)
+            return None
+        if target != self._autocap_target:
+            self.autocap.reset(self.taken_for(target))
+            self._autocap_target = target
+            self._frames_on_target = 0
+            self._similar_frames = 0
+        if m.busy:
+            time.sleep(0.2)  # leave the processor to the calibration; the live view slows down
+        frame = self._grab()
+        if frame is None:
+            return None
+        now = time.monotonic()
+        self._tick_times.append(now)
+        del self._tick_times[:-20]
+        fps = 0.0
+        if len(self._tick_times) > 1:
+            fps = (len(self._tick_times) - 1) / max(self._tick_times[-1] - self._tick_times[0], 1e-6)
+        det, decision = None, None
+        if target is not None:
+            det = detect_for_step(frame.image, target.step, m.manifest, self.camera_model, frame.frame_number)
+            if frame.frame_number > self._min_frame:
+                decision = self.autocap.update(det)
+                self._frames_on_target += 1
+        self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, fps)
+        if decision is not None and target is not None:
+            take = decision.capture and self.options.auto_capture
+            if self.options.auto and decision.still and det.ok and not decision.novel:
+                self._similar_frames += 1
+                if self._similar_frames >= self.options.accept_similar_after:
+                    take = True  # the operator placed the pose it was asked for; keep it
+                    self.log(f"accepted a pose close to {decision.similar_to} (it is the pose asked for)")
+            if take:
+                try:
+                    self._capture(frame, det, decision, "auto")
+                except ActionRefused:
+                    pass  # the target changed under us (a button action); the next tick follows it
+            elif self.options.auto and self._frames_on_target > self.options.max_frames_per_target:
+                raise SessionError(
+                    f"no usable frame for {target.step} (pattern position {target.pattern_position}, pose "
+                    f"{target.pose_index}) in {self._frames_on_target} frames: {decision.message}")
+        if self.options.auto:
+            self._drive()
+        return self.live
+
+    def _capture(self, frame, det: LiveDetection, decision: Decision | None, how: str):
+        meta = {"how": how, "frame_number": int(frame.frame_number), "timestamp_ms": float(frame.timestamp_ms)}
+        if det.features is not None:
+            meta["pose"] = det.features.to_dict()
+        if det.board is not None:
+            meta["corners"] = int(len(det.board.ids))
+        if det.virtual is not None:
+            meta["virtual_corners"] = int(len(det.virtual.ids))
+        if decision is not None and decision.motion_px is not None:
+            meta["motion_px"] = round(float(decision.motion_px), 4)
+        if decision is not None and decision.similar_to:
+            meta["similar_to"] = decision.similar_to
+        cap = self.machine.record_capture(frame.image, meta)
+        self.log(f"captured {cap.id}: {self._describe(cap)}")
+        self._changed()
+        return cap
+
+    def _describe(self, cap) -> str:
+        m = self.machine
+        k = cap.meta.get("pose_index", 0) + 1
+        if cap.step == STEP_PROJECTOR:
+            c = m.counts()
+            return (f"pattern position {cap.pattern_position + 1}/{m.positions}, pose {k}/"
+                    f"{m.plan.poses_per_position} ({c['projector']}/{c['projector_total']})")
+        c = m.counts()
+        return f"{cap.step}, pose {k} ({c['mirror']}/{c['mirror_total']})"
+
+    def capture_now(self):
+        """The operator's capture button: the newest frame, if what the step needs is detected in it."""
+        live = self.live
+        m = self.machine
+        reason = m.why_not("capture")
+        if reason:
+            raise ActionRefused("capture", reason)
+        if live is None or live.detection is None or live.target != m.target:
+            raise ActionRefused("capture", "no camera frame for the current step yet; wait a moment")
+        if live.frame_number <= self._min_frame:
+            raise ActionRefused("capture", "the projector or the board just changed; wait for a new frame")
+        if not live.detection.ok:
+            raise ActionRefused("capture", f"the current frame is not usable: {live.detection.failure}")
+
+        class _F:  # the frame the detection was made on
+            image = live.image
+            frame_number = live.frame_number
+            timestamp_ms = live.timestamp_s * 1000.0
+
+        return self._capture(_F, live.detection, live.decision, "button")
+
+    # ---- the station leads a whole session --------------------------------------------------------
+    def _default_mirror_method(self) -> str:
+        if self.options.mirror_method:
+            return self.options.mirror_method
+        sc = getattr(self.rig, "scenario", None)
+        method = getattr(sc, "mirror_method", None)
+        return method or "real-virtual"
+
+    def _drive(self) -> None:
+        """Auto mode: take the step the guideline asks for next."""
+        m = self.machine
+        if m.busy:
+            return
+        s = m.state
+        if s == CHECK_RIG:
+            checks = self.check_rig()
+            self.log("rig check: " + "; ".join(f"{c.name} {'ok' if c.ok else 'FAILED'} ({c.detail})" for c in checks))
+            m.start_session(checks)
+        elif s == MIRROR_CAPTURE:
+            if m.mirror_method is None:
+                m.choose_mirror_method(self._default_mirror_method())
+            elif m.target is None:
+                m.proceed()
+        elif s == PROJECTOR_CAPTURE:
+            if m.target is None:
+                self.run_long("calibrate", self.calibrate)
+        elif s == CALIBRATION:
+            if m.result is not None and not m.result_stale:
+                if m.why_not("verify") is None:
+                    self.run_long("verify", self.verify)
+                elif m.why_not("finish") is None:
+                    m.finish()
+            elif m.calibration_error is None and m.why_not("calibrate") is None:
+                self.run_long("calibrate", self.calibrate)
+        elif s == VERIFICATION:
+            if m.why_not("finish") is None:
+                m.finish()
+            elif m.report is None and m.verification_error is None and m.why_not("verify") is None:
+                self.run_long("verify", self.verify)
+
+    # ---- long actions -----------------------------------------------------------------------------
+    background_long_actions = False
+
+    def run_long(self, name: str, fn: Callable[[], object]):
+        """Calibration and verification: inline (headless) or in a worker thread (panel)."""
+        if not self.background_long_actions:
+            return fn()
+        if self._worker is not None and self._worker.is_alive():
+            raise ActionRefused(name, "another long action is running")
+        self._worker_error = None
+
+        def work():
+            try:
+                fn()
+            except ProcamError as e:
+                self._worker_error = str(e)
+                self.log(f"{name} failed: {e}")
+
+        self._worker = threading.Thread(target=work, name=f"station-{name}", daemon=True)
+        self._worker.start()
+        return None
+
+    def calibrate(self):
+        self._shown = None  # the projector is free again after the captures
+        return self.machine.calibrate(progress=None)
+
+    def verify(self):
+        self._shown = None
+        return self.machine.verify()
+
+    # ---- background loop (panel) ------------------------------------------------------------------
+    def start_loop(self) -> None:
+        self.background_long_actions = True
+
+        def loop():
+            while not self._stop.is_set():
+                try:
+                    self.tick()
+                except ProcamError as e:
+                    self.device_problem = str(e)
+                    self.log(str(e))
+                    time.sleep(0.5)
+
+        self._loop_thread = threading.Thread(target=loop, name="station-loop", daemon=True)
+        self._loop_thread.start()
+
+    def stop_loop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        if self._loop_thread is not None:
+            self._loop_thread.join(timeout_s)
+
+    # ---- what to do next ----------------------------------------------------------------------------
+    def instruction(self) -> str:
+        """What the person at the rig should do next, in plain words."""
+        m = self.machine
+        s = m.state
+        live = self.live
+        if self.device_problem:
+            return f"Device problem: {self.device_problem}."
+        if m.busy == "calibrating":
+            return "Calibrating the captures. This takes a little while."
+        if m.busy == "verifying":
+            return "Verifying: the projector draws epipolar lines and the camera checks where they land."
+        if s == CHECK_RIG:
+            bad = [c for c in m.rig_checks if not c.ok]
+            if not m.rig_checks:
+                return "Check the rig: the camera must stream and the projector window must be up. Press Check rig."
+            if bad:
+                return "Fix the rig: " + "; ".join(f"{c.name}: {c.detail}" for c in bad) + ". Then press Check rig."
+            return "The rig is ready. Press Start to begin the captures."
+        if s == MIRROR_CAPTURE:
+            if m.mirror_method is None:
+                return ("Choose how to calibrate the mirror: real-virtual (hold the small board between camera "
+                        "and mirror, seen directly and in the mirror) or real-mirror (lay it flat on the mirror).")
+            tgt = m.target
+            c = m.counts()
+            if tgt is None:
+                return f"All {c['mirror_total']} mirror captures are taken. Press Next to go on to the projector."
+            if m.mirror_method == "real-virtual":
+                what = ("Hold the mirror board between the camera and the mirror so that the camera sees it "
+                        "both directly and in the mirror; change its place and tilt from the last capture.")
+            else:
+                what = "Lay the mirror board flat on the mirror, at a new place or angle."
+            head = f"Mirror capture {c['mirror'] + 1} of {c['mirror_total']}: {what}"
+            return head + self._live_hint(live)
+        if s == PROJECTOR_CAPTURE:
+            tgt = m.target
+            c = m.counts()
+            if tgt is None:
+                return f"All {c['projector_total']} projector captures are taken. Press Calibrate."
+            where = (f"The projector shows the pattern at position {tgt.pattern_position + 1} of {m.positions}. "
+                     f"Pose {tgt.pose_index + 1} of {m.plan.poses_per_position}: hold the board so the pattern "
+                     "falls on its blank part")
+            where += " and the camera sees the board in the mirror" if not m.direct else ""
+            where += "; tilt it differently from the poses already taken."
+            return where + self._live_hint(live)
+        if s == CALIBRATION:
+            if m.calibration_error:
+                return f"The calibration failed: {m.calibration_error}. Retake or add captures, then calibrate again."
+            if m.result is None:
+                return "The captures are complete. Press Calibrate."
+            if m.result_stale:
+                return "The captures changed since the last calibration. Press Calibrate to re-run it."
+            if m.why_not("verify") is None:
+                return "Calibrated. Press Verify to check the calibration with epipolar lines."
+            return "Calibrated. Press Finish to end the session."
+        if s == VERIFICATION:
+            if m.verification_error:
+                return f"The verification could not run: {m.verification_error}."
+            if m.report is None:
+                return "Press Verify to check the calibration."
+            if getattr(m.report, "passed", False):
+                return "The calibration passed the verification. Press Finish."
+            return ("The calibration failed the verification. Go back, retake captures that look wrong, "
+                    "and calibrate again.")
+        return f"The session is complete. The calibration is in {Path(m.store.folder) / 'calibration.json'}."
+
+    def _live_hint(self, live: LiveView | None) -> str:
+        if live is None or live.decision is None:
+            return ""
+        d = live.decision
+        if d.capture:
+            return ""
+        msg = d.message
+        if not msg:
+            return ""
+        return f" Now: {msg}."
+
+    def status_line(self) -> str:
+        m = self.machine
+        c = m.counts()
+        parts = [STATE_TITLES[m.state]]
+        if m.mirror_method:
+            parts.append(f"mirror {c['mirror']}/{c['mirror_total']}")
+        parts.append(f"projector {c['projector']}/{c['projector_total']}")
+        return " | ".join(parts)
