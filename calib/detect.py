@@ -69,12 +69,66 @@ def _flip_x(pts: np.ndarray, width: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _charuco_detector(spec: CharucoSpec) -> cv2.aruco.CharucoDetector:
+def _detectors(spec: CharucoSpec, legacy: bool = False):
+    """(ArucoDetector, CharucoDetector, {marker id: (4, 2) board corners}) for a board spec."""
     params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE  # ChArUco corners are refined anyway
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE  # ChArUco corners are refined later
+    board = spec.cv_board()
+    if legacy:  # boards printed by OpenCV < 4.6 with an even number of rows
+        board = cv2.aruco.CharucoBoard((spec.cols, spec.rows), spec.square_length, spec.marker_length,
+                                       board.getDictionary())
+        board.setLegacyPattern(True)
     cparams = cv2.aruco.CharucoParameters()
-    cparams.tryRefineMarkers = True
-    return cv2.aruco.CharucoDetector(spec.cv_board(), cparams, params)
+    cparams.tryRefineMarkers = False
+    aruco = cv2.aruco.ArucoDetector(board.getDictionary(), params)
+    charuco = cv2.aruco.CharucoDetector(board, cparams, params)
+    obj = {int(i): np.asarray(p, float)[:, :2] for i, p in zip(board.getIds().ravel(), board.getObjPoints())}
+    return aruco, charuco, obj
+
+
+def _consistent_markers(corners, ids, obj: dict):
+    """Drop markers that do not belong to the board's plane layout: markers of the mirror image of the
+    board (a mirrored marker can decode as another id of the dictionary), duplicates, strays. RANSAC
+    homography board -> image over all marker corners; a marker stays if 3 of its 4 corners agree."""
+    if ids is None or len(ids) == 0:
+        return [], None
+    ids = np.asarray(ids, int).ravel()
+    pts = [np.asarray(c, np.float64).reshape(4, 2) for c in corners]
+    keep = [k for k in range(len(ids)) if int(ids[k]) in obj]
+    if len(keep) >= 2:
+        src = np.concatenate([obj[int(ids[k])] for k in keep])
+        dst = np.concatenate([pts[k] for k in keep])
+        side = np.median([np.linalg.norm(pts[k][1] - pts[k][0]) for k in keep])
+        H, mask = cv2.findHomography(src, dst, cv2.RANSAC, max(3.0, 0.3 * float(side)), maxIters=500)
+        if H is not None:
+            proj = cv2.perspectiveTransform(src.reshape(-1, 1, 2), H).reshape(-1, 4, 2)
+            err = np.linalg.norm(proj - dst.reshape(-1, 4, 2), axis=2)
+            good = (mask.reshape(-1, 4).sum(axis=1) >= 3)
+            best: dict[int, tuple[float, int]] = {}
+            for j, k in enumerate(keep):
+                if good[j] and (int(ids[k]) not in best or err[j].mean() < best[int(ids[k])][0]):
+                    best[int(ids[k])] = (float(err[j].mean()), k)
+            keep = sorted(k for _, k in best.values())
+    if not keep:
+        return [], None
+    return [pts[k].astype(np.float32).reshape(1, 4, 2) for k in keep], ids[keep].reshape(-1, 1).astype(np.int32)
+
+
+def _charuco_in(img: np.ndarray, spec: CharucoSpec, legacy: bool = False):
+    """(corners (N, 2) or None, ids (N,) or None, number of board markers) in `img`."""
+    aruco, charuco, obj = _detectors(spec, legacy)
+    mcorners, mids, rejected = aruco.detectMarkers(img)
+    mcorners, mids = _consistent_markers(mcorners, mids, obj)
+    if mids is None:
+        return None, None, 0
+    if len(rejected) and len(mids) < len(obj):
+        # recover markers missed by the first pass, where the board layout says they must be
+        mcorners, mids, _, _ = aruco.refineDetectedMarkers(img, charuco.getBoard(), list(mcorners), mids, rejected)
+        mcorners = [np.asarray(c, np.float32).reshape(1, 4, 2) for c in mcorners]
+    corners, ids, _, _ = charuco.detectBoard(img, markerCorners=mcorners, markerIds=mids)
+    if ids is None or len(ids) == 0:
+        return None, None, len(mids)
+    return np.asarray(corners, float).reshape(-1, 2), np.asarray(ids, int).reshape(-1), len(mids)
 
 
 # ---- the board ---------------------------------------------------------------------------------------
@@ -95,19 +149,22 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
         # re-refined at full resolution, so accuracy does not suffer. Incomplete -> full resolution.
         h2, w2 = h // 2, w // 2
         small = cv2.resize(img[: 2 * h2, : 2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)
-        corners, ids, _, _ = _charuco_detector(spec).detectBoard(small)
+        corners, ids, _ = _charuco_in(small, spec)
         if ids is not None and len(ids) == spec.n_corners:
-            found = (np.asarray(corners, float).reshape(-1, 2) * 2.0 + 0.5, np.asarray(ids, int).reshape(-1), len(ids))
+            found = (corners * 2.0 + 0.5, ids)
     if found is None:
-        corners, ids, _, marker_ids = _charuco_detector(spec).detectBoard(img)
-        n_markers = 0 if marker_ids is None else len(marker_ids)
+        corners, ids, n_markers = _charuco_in(img, spec)
         n = 0 if ids is None else len(ids)
+        if n < min_corners and n_markers >= 2 and spec.rows % 2 == 0:
+            lc, lids, _ = _charuco_in(img, spec, legacy=True)
+            if lids is not None and len(lids) > n:
+                corners, ids, n = lc, lids, len(lids)
         if n == 0 and n_markers == 0:
             return DetectionFailure("board not found")
         if n < min_corners:
             return DetectionFailure(f"only {n} ChArUco corners (need {min_corners})")
-        found = (np.asarray(corners, float).reshape(-1, 2), np.asarray(ids, int).reshape(-1), n)
-    corners, ids, _ = found
+        found = (corners, ids)
+    corners, ids = found
     corners = _refine_corners(img, corners, ids, spec)
     if mirrored:
         corners = _flip_x(corners, gray.shape[1])

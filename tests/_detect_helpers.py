@@ -211,3 +211,25 @@ def blank_region_proj_homography(spec: CharucoSpec, pattern: PatternSpec, proj_s
     # keep the pattern centre where it was meant to be after the perspective term
     c = apply_H(H, qc[None])[0]
     return np.array([[1, 0, target[0] - c[0]], [0, 1, target[1] - c[1]], [0, 0, 1]]) @ H
+
+
+def synthetic_homographies(ss, index: int):
+    """(H_img_board, H_board_proj, position) of projector capture `index` of a calib.synthetic session,
+    for distortion-free camera and projector (homographies cannot carry lens distortion). For a mirrored
+    rig H_img_board contains the reflection S: the board is imaged left-handed, as through the mirror."""
+    from calib.transforms import invert_T
+
+    rig = ss.rig
+    pos, T = ss.projector_T_cam_board[index]
+    H_img_board = homography_from_pose(rig.camera.K, rig.S() @ T)
+    T_proj_board = invert_T(rig.T_cam_proj) @ T
+    H_proj_board = homography_from_pose(rig.projector.K, T_proj_board)
+    return H_img_board, np.linalg.inv(H_proj_board), pos
+
+
+def pinhole_rig(angle_deg: float = 136.0):
+    """calib.synthetic.make_rig with distortion-free camera and projector (so homographies are exact)."""
+    from calib.synthetic import d455_camera, make_rig, portable_projector
+
+    cam, proj = d455_camera(), portable_projector()
+    return make_rig(angle_deg, camera=cam.with_params(dist=np.zeros(5)), projector=proj.with_params(dist=np.zeros(5)))
