@@ -171,35 +171,39 @@ def projector_poses(rig: SyntheticRig, layout: BoardLayout, pattern: PatternSpec
     """Board poses meeting the paper's protocol: for every pattern position, `per_position` poses that
     put the pattern on the board's blank region, tilted like a person would. [(position, T_cam_board)]."""
     rng = np.random.default_rng(seed)
+    poses = []
+    for pos in range(pattern.positions):
+        for k in range(per_position):
+            poses.append((pos, projector_pose(rig, layout, pattern, pos, rng, max_tilt_deg)))
+    return poses
+
+
+def projector_pose(rig: SyntheticRig, layout: BoardLayout, pattern: PatternSpec, position: int,
+                   rng: np.random.Generator, max_tilt_deg: float = 28.0) -> np.ndarray:
+    """One board pose (T_cam_board) for pattern `position`, drawn with `rng` (see projector_poses)."""
     proj, T_cp = rig.projector, rig.T_cam_proj
     P = T_cp[:3, 3]
     V = transform_points(rig.S(), np.zeros((1, 3)))[0]  # (virtual) camera centre
-    poses = []
-    for pos in range(pattern.positions):
-        q = pattern.points_px(proj.width, proj.height, pos)
-        ray = T_cp[:3, :3] @ proj.rays(q.mean(axis=0, keepdims=True))[0]
-        for k in range(per_position):
-            for attempt in range(400):
-                D = rig.projector_distance_mm * rng.uniform(0.85, 1.15)
-                C = P + D * ray
-                to_p = (P - C) / np.linalg.norm(P - C)
-                to_v = (V - C) / np.linalg.norm(V - C)
-                face = to_p + to_v
-                R = _frame_from_normal(face, T_cp[:3, 0])
-                R = _tilted(R, rng, max_tilt_deg, min_tilt_deg=8.0 if attempt < 200 else 0.0)
-                # a person keeps the printed part in view: near the edges of the projector's field of
-                # view the board is held turned by 180 degrees, the printed part towards the centre
-                flip = 180.0 if (attempt % 2 == 1) else 0.0
-                inplane = rotation_about(R[:, 2], rng.uniform(-10, 10) + flip)
-                R = inplane @ R
-                T = make_T(R, C - R @ layout.blank_centre)
-                T[:3, 3] += R @ np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), 0])
-                if _projector_pose_ok(rig, layout, pattern, pos, T):
-                    poses.append((pos, T))
-                    break
-            else:
-                raise RuntimeError(f"no valid board pose found for pattern position {pos}")
-    return poses
+    q = pattern.points_px(proj.width, proj.height, position)
+    ray = T_cp[:3, :3] @ proj.rays(q.mean(axis=0, keepdims=True))[0]
+    for attempt in range(400):
+        D = rig.projector_distance_mm * rng.uniform(0.85, 1.15)
+        C = P + D * ray
+        to_p = (P - C) / np.linalg.norm(P - C)
+        to_v = (V - C) / np.linalg.norm(V - C)
+        face = to_p + to_v
+        R = _frame_from_normal(face, T_cp[:3, 0])
+        R = _tilted(R, rng, max_tilt_deg, min_tilt_deg=8.0 if attempt < 200 else 0.0)
+        # a person keeps the printed part in view: near the edges of the projector's field of
+        # view the board is held turned by 180 degrees, the printed part towards the centre
+        flip = 180.0 if (attempt % 2 == 1) else 0.0
+        inplane = rotation_about(R[:, 2], rng.uniform(-10, 10) + flip)
+        R = inplane @ R
+        T = make_T(R, C - R @ layout.blank_centre)
+        T[:3, 3] += R @ np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), 0])
+        if _projector_pose_ok(rig, layout, pattern, position, T):
+            return T
+    raise RuntimeError(f"no valid board pose found for pattern position {position}")
 
 
 def _projector_pose_ok(rig, layout, pattern, pos, T_cam_board) -> bool:

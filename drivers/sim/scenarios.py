@@ -1,0 +1,279 @@
+"""Named simulated rigs with exact ground truth (the paper's evaluation set-ups).
+
+A Scenario is a frozen description: the rig (camera, projector, mirror), the boards, the pattern, the
+mirror-calibration method, render settings, and the seed from which every board pose follows
+deterministically (calib.synthetic: the paper's protocol, 13 pattern positions x 4 poses, plus the
+mirror-calibration placements). `get_scenario(name, seed)`; `list_scenarios()`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+
+import numpy as np
+
+from calib.boards import CharucoSpec
+from calib.errors import SpecError
+from calib.pattern import PatternSpec
+from calib.result import CalibrationResult
+from calib.synthetic import (
+    BoardLayout,
+    SyntheticRig,
+    _frame_from_normal,
+    _projector_pose_ok,
+    make_direct_rig,
+    make_rig,
+    mirror_poses,
+    portable_projector,
+    projector_pose,
+    projector_poses,
+)
+from calib.transforms import make_T, rotation_about, transform_points
+from drivers.sim.render import RenderSettings
+
+DEFAULT_SCENARIO = "nonoverlap-136"
+STEP_PROJECTOR = "projector"
+STEP_REAL_VIRTUAL = "mirror-real-virtual"
+STEP_REAL_MIRROR = "mirror-real-mirror"
+STEP_VERIFICATION = "verification"
+OPERATOR_STEPS = (STEP_PROJECTOR, STEP_REAL_VIRTUAL, STEP_REAL_MIRROR, STEP_VERIFICATION)
+
+
+def default_projector_board() -> CharucoSpec:
+    """The board the projector lights: 8 x 6 squares of 50 mm, DICT_4X4_50 markers of 37.5 mm (big
+    cells, so that they decode at the distances of a mirrored view)."""
+    return CharucoSpec(8, 6, "DICT_4X4_50", 50.0, 37.5, "mm")
+
+
+def default_mirror_board() -> CharucoSpec:
+    """The small board used to calibrate the mirror (held between camera and mirror, or laid on it)."""
+    return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 16.5, "mm")
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    name: str
+    description: str
+    rig: SyntheticRig
+    layout: BoardLayout  # the projector-calibration board (ChArUco + blank region)
+    mirror_board: CharucoSpec | None
+    pattern: PatternSpec
+    mirror_method: str | None  # "real-virtual" | "real-mirror" | None (direct rig)
+    board_thickness_mm: float = 0.0  # real-mirror: printed face above the mirror surface
+    render: RenderSettings = field(default_factory=RenderSettings)
+    seed: int = 0
+    per_position: int = 4
+    mirror_count: int = 7
+
+    @property
+    def projector_board(self) -> CharucoSpec:
+        return self.layout.charuco
+
+    @property
+    def units(self) -> str:
+        return self.rig.units
+
+    @property
+    def view(self) -> str:
+        return self.rig.view
+
+    def ground_truth(self) -> CalibrationResult:
+        return self.rig.ground_truth()
+
+    def with_seed(self, seed: int) -> "Scenario":
+        return replace(self, seed=int(seed))
+
+    # ---- poses (deterministic in the seed) ----------------------------------------------------------
+    @cached_property
+    def projector_poses(self) -> list[tuple[int, np.ndarray]]:
+        """[(pattern_position, T_cam_board)], `per_position` per position, position-major."""
+        return projector_poses(self.rig, self.layout, self.pattern, self.per_position, self.seed)
+
+    @cached_property
+    def mirror_poses(self) -> list[np.ndarray]:
+        if self.mirror_method is None:
+            return []
+        return self.mirror_poses_for(self.mirror_method, self.mirror_count)
+
+    def mirror_poses_for(self, method: str, count: int, seed: int | None = None) -> list[np.ndarray]:
+        """`count` mirror-calibration placements for `method` ('real-virtual' / 'real-mirror')."""
+        if self.rig.mirror is None:
+            raise SpecError(f"scenario '{self.name}' has no mirror to calibrate")
+        board = self.mirror_board or default_mirror_board()
+        thick = self.board_thickness_mm if method == "real-mirror" else 0.0
+        if method == "real-mirror" and thick == 0.0:
+            thick = 3.0
+        s = self.seed + 1 if seed is None else seed
+        if method == "real-mirror":
+            return mirror_poses(self.rig, board, method, count, s, thick)
+        # real-virtual: keep the placements where the board and its reflection are well apart in the
+        # image (a person would not hold the board where it touches its own reflection)
+        poses = []
+        for k in range(400):
+            cand = mirror_poses(self.rig, board, method, 1, s * 1009 + k, thick)[0]
+            if _apart_in_image(self.rig, board, cand):
+                poses.append(cand)
+                if len(poses) == count:
+                    return poses
+        raise RuntimeError(f"found only {len(poses)} of {count} real-virtual placements for '{self.name}'")
+
+    def extra_projector_pose(self, position: int, index: int) -> np.ndarray:
+        """A further valid pose for `position`, beyond the scripted ones (deterministic)."""
+        rng = np.random.default_rng([self.seed, 7001, position, index])
+        return projector_pose(self.rig, self.layout, self.pattern, position, rng)
+
+    @cached_property
+    def centre_position(self) -> int:
+        """The pattern position nearest the projector's centre."""
+        proj = self.rig.projector
+        c = np.array([(proj.width - 1) / 2, (proj.height - 1) / 2])
+        d = [np.linalg.norm(self.pattern.points_px(proj.width, proj.height, p).mean(axis=0) - c)
+             for p in range(self.pattern.positions)]
+        return int(np.argmin(d))
+
+    @cached_property
+    def verification_pose(self) -> np.ndarray:
+        return self.verification_pose_for(0)
+
+    def verification_pose_for(self, index: int) -> np.ndarray:
+        """A calm board pose, frontal to the projector, its blank region on the projector's central
+        ray (for epipolar checks); index > 0 gives small deterministic variations."""
+        rig, proj = self.rig, self.rig.projector
+        T_cp = rig.T_cam_proj
+        P = T_cp[:3, 3]
+        centre = np.array([[(proj.width - 1) / 2, (proj.height - 1) / 2]])
+        ray = T_cp[:3, :3] @ proj.rays(centre)[0]
+        V = transform_points(rig.S(), np.zeros((1, 3)))[0]
+        rng = np.random.default_rng([self.seed, 9001, index])
+        for attempt in range(300):
+            jitter = 0.0 if (index == 0 and attempt == 0) else 1.0
+            D = rig.projector_distance_mm * (1.0 + jitter * rng.uniform(-0.08, 0.08))
+            C = P + D * ray
+            to_p = (P - C) / np.linalg.norm(P - C)
+            to_v = (V - C) / np.linalg.norm(V - C)
+            # mostly frontal to the projector, turned a little towards the (virtual) camera
+            w = 0.25 + 0.1 * attempt / 300
+            R = _frame_from_normal((1 - w) * to_p + w * to_v, T_cp[:3, 0])
+            if jitter:
+                R = rotation_about(R[:, 0], rng.uniform(-4, 4)) @ rotation_about(R[:, 1], rng.uniform(-4, 4)) @ R
+            if attempt % 2 == 1:
+                R = rotation_about(R[:, 2], 180.0) @ R
+            T = make_T(R, C - R @ self.layout.blank_centre)
+            if _projector_pose_ok(rig, self.layout, self.pattern, self.centre_position, T):
+                return T
+        raise RuntimeError(f"no valid verification pose for scenario '{self.name}'")
+
+    # ---- description ---------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        rig = self.rig
+        d = {
+            "name": self.name,
+            "description": self.description,
+            "seed": self.seed,
+            "units": self.units,
+            "view": self.view,
+            "angle_deg": rig.angle_deg,
+            "camera": rig.camera.to_dict(),
+            "projector": rig.projector.to_dict(),
+            "T_cam_proj": rig.T_cam_proj.tolist(),
+            "mirror": None if rig.mirror is None else rig.mirror.to_dict(),
+            "mirror_rect": None if rig.mirror_rect is None else {
+                "centre": rig.mirror_rect.centre.tolist(), "axis_u": rig.mirror_rect.axis_u.tolist(),
+                "axis_v": rig.mirror_rect.axis_v.tolist(), "size_mm": list(rig.mirror_rect.size)},
+            "projector_board": self.layout.charuco.to_dict(),
+            "board_layout": {"blank_width": self.layout.blank_width, "gap": self.layout.gap,
+                             "blank_rect": list(self.layout.blank_rect), "outline": list(self.layout.outline)},
+            "mirror_board": None if self.mirror_board is None else self.mirror_board.to_dict(),
+            "pattern": self.pattern.to_dict(),
+            "mirror_method": self.mirror_method,
+            "board_thickness_mm": self.board_thickness_mm,
+            "per_position": self.per_position,
+            "mirror_count": self.mirror_count,
+            "render": self.render.to_dict(),
+        }
+        return d
+
+
+def _apart_in_image(rig: SyntheticRig, board: CharucoSpec, T: np.ndarray, gap_px: int = 12) -> bool:
+    """The board's outline (with its white border) and its reflection's are `gap_px` apart in the image."""
+    import cv2
+
+    from calib.synthetic import BoardLayout as _BL
+
+    x0, y0, x1, y1 = _BL(board, 0.0, 0.0).outline
+    t = np.linspace(0, 1, 12)
+    edge = np.concatenate([np.column_stack([x0 + (x1 - x0) * t, np.full_like(t, y0)]),
+                           np.column_stack([np.full_like(t, x1), y0 + (y1 - y0) * t]),
+                           np.column_stack([x1 - (x1 - x0) * t, np.full_like(t, y1)]),
+                           np.column_stack([np.full_like(t, x0), y1 - (y1 - y0) * t])])
+    X = np.column_stack([edge, np.zeros(len(edge))])
+    cam = rig.camera
+    masks = []
+    for TT in (T, rig.S() @ T):
+        uv = cam.project(transform_points(TT, X))
+        if not np.all(np.isfinite(uv)):
+            return False
+        m = np.zeros((cam.height, cam.width), np.uint8)
+        cv2.fillPoly(m, [np.round(uv).astype(np.int32)], 1)
+        masks.append(m)
+    grown = cv2.dilate(masks[0], np.ones((2 * gap_px + 1, 2 * gap_px + 1), np.uint8))
+    return not np.any(grown & masks[1])
+
+
+# ---- the library ---------------------------------------------------------------------------------
+def _mirrored(name, description, angle_deg=136.0, projector=None, kind="circles", method="real-virtual",
+              thickness_mm=0.0, seed=0) -> Scenario:
+    rig = make_rig(angle_deg, projector=projector)
+    layout = BoardLayout(default_projector_board())
+    pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height, kind=kind)
+    return Scenario(name, description, rig, layout, default_mirror_board(), pattern, method, thickness_mm,
+                    RenderSettings(), seed)
+
+
+def _direct(seed=0) -> Scenario:
+    rig = make_direct_rig()
+    layout = BoardLayout(default_projector_board())
+    pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height)
+    return Scenario("direct", "overlapping control: camera and projector side by side, no mirror", rig, layout,
+                    None, pattern, None, 0.0, RenderSettings(), seed)
+
+
+_BUILDERS = {
+    "direct": _direct,
+    "nonoverlap-90": lambda seed=0: _mirrored(
+        "nonoverlap-90", "non-overlapping 90 deg, seen through a mirror, real-virtual mirror calibration", 90.0,
+        seed=seed),
+    "nonoverlap-136": lambda seed=0: _mirrored(
+        "nonoverlap-136", "non-overlapping 136 deg (the paper's Unreal set-up), real-virtual; the default", 136.0,
+        seed=seed),
+    "nonoverlap-180": lambda seed=0: _mirrored(
+        "nonoverlap-180", "non-overlapping 180 deg (projector facing the camera's back), real-virtual", 180.0,
+        seed=seed),
+    "nonoverlap-136-realmirror": lambda seed=0: _mirrored(
+        "nonoverlap-136-realmirror", "136 deg, mirror calibrated with a 3 mm board lying on the mirror (real-mirror)",
+        136.0, method="real-mirror", thickness_mm=3.0, seed=seed),
+    "nonoverlap-136-720p": lambda seed=0: _mirrored(
+        "nonoverlap-136-720p", "136 deg with a 1280x720 projector, real-virtual", 136.0,
+        projector=portable_projector(1280, 720), seed=seed),
+    "nonoverlap-136-chessboard": lambda seed=0: _mirrored(
+        "nonoverlap-136-chessboard", "136 deg, projected chessboard pattern instead of circles, real-virtual",
+        136.0, kind="chessboard", seed=seed),
+}
+
+
+def list_scenarios() -> list[tuple[str, str]]:
+    """[(name, description)] of every named scenario, the default first."""
+    names = [DEFAULT_SCENARIO] + [n for n in _BUILDERS if n != DEFAULT_SCENARIO]
+    return [(n, get_scenario(n).description) for n in names]
+
+
+def scenario_names() -> list[str]:
+    return [DEFAULT_SCENARIO] + [n for n in _BUILDERS if n != DEFAULT_SCENARIO]
+
+
+def get_scenario(name: str = DEFAULT_SCENARIO, seed: int = 0) -> Scenario:
+    if name not in _BUILDERS:
+        raise SpecError(f"unknown scenario '{name}' (one of: {', '.join(scenario_names())}; "
+                        "`procam simulate --list` describes them)")
+    return _BUILDERS[name](seed=int(seed))
