@@ -150,7 +150,7 @@ def _undistort_exact(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
     convergence, checked by re-projection; points it leaves off by > 1e-6 px get Newton steps."""
     if camera.dist.size == 0 or not np.any(camera.dist):
         return camera.undistort_normalized(uv)
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 80, 1e-13)
+    crit = (cv2.TERM_CRITERIA_COUNT, 10, 0.0)  # converges to ~1e-11 px for lens-like distortion
     out = np.empty_like(uv)
     step = 1 << 20
     for a in range(0, len(uv), step):
@@ -259,8 +259,7 @@ class Renderer:
             return st
         nx, ny = normalized_grid(self.camera, s)
         st = {"nx": nx, "ny": ny}
-        st["bg"] = _background(nx, ny, np.ones_like(nx), self.settings.background_level) if self.settings.background \
-            else np.full(nx.shape, self.settings.background_level, np.float32)
+        st["bg"] = self._background_grid(nx, ny, None)
         if self.mirror is not None:
             n, d = self.mirror.normal.astype(np.float32), np.float32(self.mirror.d)
             den = n[0] * nx + n[1] * ny + n[2]
@@ -279,10 +278,7 @@ class Renderer:
                 y0, y1, x0, x1 = box
                 sub = (slice(y0, y1), slice(x0, x1))
                 cx, cy = nx[sub], ny[sub]
-                dn = n[0] * cx + n[1] * cy + n[2]
-                rx, ry, rz = cx - 2 * dn * n[0], cy - 2 * dn * n[1], 1 - 2 * dn * n[2]
-                bgr = _background(rx, ry, rz, self.settings.background_level) if self.settings.background \
-                    else np.full(cx.shape, self.settings.background_level, np.float32)
+                bgr = self._background_grid(cx, cy, n)
                 st["mirror"] = {"box": box, "mask": mask[sub].copy(), "lam": np.where(mask, lam, np.inf)[sub].astype(np.float32),
                                 "bg": bgr}
             else:
@@ -291,6 +287,21 @@ class Renderer:
             st["mirror"] = None
         self._static[s] = st
         return st
+
+    def _background_grid(self, nx, ny, n) -> np.ndarray:
+        """The background seen along the rays of a grid (reflected by the plane of normal n, if given).
+        It is smooth: computed on a 4x coarser grid and interpolated."""
+        if not self.settings.background:
+            return np.full(nx.shape, self.settings.background_level, np.float32)
+        cx, cy = nx[::4, ::4], ny[::4, ::4]
+        if n is None:
+            rx, ry, rz = cx, cy, np.ones_like(cx)
+        else:
+            dn = n[0] * cx + n[1] * cy + n[2]
+            rx, ry, rz = cx - 2 * dn * n[0], cy - 2 * dn * n[1], 1 - 2 * dn * n[2]
+        small = _background(rx, ry, rz, self.settings.background_level)
+        big = cv2.resize(small, (small.shape[1] * 4, small.shape[0] * 4), interpolation=cv2.INTER_LINEAR)
+        return np.ascontiguousarray(big[: nx.shape[0], : nx.shape[1]])
 
     def warm_up(self) -> None:
         """Compute the cached rays etc. now rather than on the first frame."""

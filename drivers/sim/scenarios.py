@@ -51,6 +51,11 @@ def default_mirror_board() -> CharucoSpec:
     return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 16.5, "mm")
 
 
+def default_render() -> RenderSettings:
+    """A plausible camera: slight optical blur, read noise and shot noise (about 2 levels at mid-grey)."""
+    return RenderSettings(blur_sigma_px=0.5, read_noise_dn=0.8, electrons_per_dn=40.0)
+
+
 @dataclass(frozen=True, eq=False)
 class Scenario:
     name: str
@@ -228,7 +233,7 @@ def _mirrored(name, description, angle_deg=136.0, projector=None, kind="circles"
     layout = BoardLayout(default_projector_board())
     pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height, kind=kind)
     return Scenario(name, description, rig, layout, default_mirror_board(), pattern, method, thickness_mm,
-                    RenderSettings(), seed)
+                    default_render(), seed)
 
 
 def _direct(seed=0) -> Scenario:
@@ -236,7 +241,7 @@ def _direct(seed=0) -> Scenario:
     layout = BoardLayout(default_projector_board())
     pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height)
     return Scenario("direct", "overlapping control: camera and projector side by side, no mirror", rig, layout,
-                    None, pattern, None, 0.0, RenderSettings(), seed)
+                    None, pattern, None, 0.0, default_render(), seed)
 
 
 _BUILDERS = {

@@ -1,0 +1,214 @@
+"""`procam simulate SCENARIO --out DIR`: render a complete capture session of a simulated rig.
+
+Writes DIR as a live capture would (session.json + images/*.png, via calib.session.SessionStore), plus
+DIR/ground_truth.json (the true calibration, CalibrationResult schema) and DIR/scene.json (the full
+scene: devices, mirror rectangle, board poses per capture, render settings).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+NAME = "simulate"
+HELP = "render a capture session of a simulated rig (with ground truth), or --list the scenarios"
+DESCRIPTION = (
+    "Renders every capture of the paper's protocol (mirror calibration, then 13 pattern positions x 4 "
+    "board poses) for a named simulated rig and writes a session folder in the format live captures use, "
+    "plus ground_truth.json and scene.json. `procam simulate --list` lists the scenarios."
+)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="scenario name (see --list)")
+    p.add_argument("--list", action="store_true", help="print the scenarios, one per line, and exit")
+    p.add_argument("--out", metavar="DIR", help="session folder to create")
+    p.add_argument("--seed", type=int, default=0, help="seed of the board poses and the noise (default 0)")
+    p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
+                   help="read noise sigma in 8-bit levels (default: the scenario's); 0 turns all noise off "
+                        "unless --shot is given")
+    p.add_argument("--shot", type=float, default=None, metavar="E_PER_DN",
+                   help="shot noise: photo-electrons per 8-bit level (default: the scenario's; 0 = off)")
+    p.add_argument("--blur", type=float, default=None, metavar="SIGMA", help="optical blur sigma in pixels")
+    p.add_argument("--quality", choices=("live", "session"), default="session",
+                   help="anti-aliasing: session = 3x3 samples per pixel (default), live = 1")
+    p.add_argument("--per-position", type=int, default=None, metavar="N",
+                   help="board poses per pattern position (default: the scenario's, 4 as in the paper)")
+    p.add_argument("--mirror-count", type=int, default=None, metavar="N",
+                   help="mirror-calibration captures (default: the scenario's, 7)")
+    p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
+    p.add_argument("--force", action="store_true", help="write into DIR even if it holds a session")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    from calib.errors import SpecError
+    from drivers.sim.scenarios import get_scenario, list_scenarios
+
+    if args.list:
+        for name, desc in list_scenarios():
+            print(f"{name}  {desc}")
+        return 0
+    if not args.scenario:
+        raise SpecError("name a scenario (procam simulate --list shows them), e.g. procam simulate nonoverlap-136 --out DIR")
+    if not args.out:
+        raise SpecError("give the session folder to write with --out DIR")
+    scenario = get_scenario(args.scenario, args.seed)
+    changes = {}
+    if args.per_position is not None:
+        if args.per_position < 1:
+            raise SpecError("--per-position must be >= 1")
+        changes["per_position"] = args.per_position
+    if args.mirror_count is not None:
+        if args.mirror_count < 1:
+            raise SpecError("--mirror-count must be >= 1")
+        changes["mirror_count"] = args.mirror_count
+    settings = {}
+    if args.noise is not None:
+        if args.noise < 0:
+            raise SpecError("--noise must be >= 0")
+        settings["read_noise_dn"] = args.noise
+        if args.noise == 0 and args.shot is None:
+            settings["electrons_per_dn"] = 0.0
+    if args.shot is not None:
+        if args.shot < 0:
+            raise SpecError("--shot must be >= 0")
+        settings["electrons_per_dn"] = args.shot
+    if args.blur is not None:
+        if args.blur < 0:
+            raise SpecError("--blur must be >= 0")
+        settings["blur_sigma_px"] = args.blur
+    if settings:
+        changes["render"] = replace(scenario.render, **settings)
+    if changes:
+        scenario = replace(scenario, **changes)
+    simulate_session(scenario, args.out, quality=args.quality, workers=args.workers, force=args.force,
+                     progress=not args.no_progress)
+    print(f"wrote {args.out}: session.json, images/, ground_truth.json, scene.json", file=sys.stderr)
+    return 0
+
+
+# ---- the work ------------------------------------------------------------------------------------------
+def capture_plan(scenario) -> list[dict]:
+    """Every capture of a session, in order: mirror calibration first, then the projector step."""
+    jobs = []
+    if scenario.mirror_method is not None:
+        step = "mirror-real-virtual" if scenario.mirror_method == "real-virtual" else "mirror-real-mirror"
+        for k in range(len(scenario.mirror_poses)):
+            jobs.append({"step": step, "position": None, "index": k})
+    count: dict[int, int] = {}
+    for pos, _ in scenario.projector_poses:
+        k = count.get(pos, 0)
+        count[pos] = k + 1
+        jobs.append({"step": "projector", "position": pos, "index": k})
+    for i, j in enumerate(jobs):
+        j["key"] = i
+    return jobs
+
+
+_worker_rig = None
+
+
+def _init_worker(scenario, quality):
+    global _worker_rig
+    from drivers.sim.rig import SimRig
+
+    _worker_rig = SimRig(scenario, quality)
+    _worker_rig.renderer.warm_up()
+
+
+def _render_job(job: dict):
+    """Place the board, show the pattern (or black), render: (key, image, T_cam_board, points or None)."""
+    rig = _worker_rig
+    sc = rig.scenario
+    W, H = sc.rig.projector.size
+    rig.operator.request_pose(job["step"], job["position"], job["index"])
+    pts = None
+    if job["step"] == "projector":
+        img, pts = sc.pattern.render(W, H, job["position"])
+    else:
+        img = np.zeros((H, W), np.uint8)
+    rig.projector.show(img)
+    image = rig.render_still(job["key"])
+    return job["key"], image, rig.board.T_cam_board.copy(), pts
+
+
+def simulate_session(scenario, out, quality: str = "session", workers: int = 2, force: bool = False,
+                     progress: bool = True):
+    """Render the scenario's session into folder `out`; returns the SessionStore."""
+    from calib.session import RigInfo, SessionManifest, SessionStore
+    from drivers.sim.rig import SimRig
+
+    out = Path(out)
+    jobs = capture_plan(scenario)
+    probe = SimRig(scenario, quality)
+    rig = scenario.rig
+    manifest = SessionManifest(
+        rig=RigInfo(rig.camera.size, rig.projector.size, rig.view, probe.camera.settings(), "sim"),
+        projector_board=scenario.projector_board,
+        pattern=scenario.pattern,
+        mirror_board=scenario.mirror_board if scenario.mirror_method else None,
+        mirror_method=scenario.mirror_method,
+        board_thickness=float(scenario.board_thickness_mm) if scenario.mirror_method == "real-mirror" else 0.0,
+        state={"simulated": True, "scenario": scenario.name, "seed": scenario.seed},
+    )
+    store = SessionStore.create(out, manifest, exist_ok=force)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), desc=f"simulate {scenario.name}", unit="img", file=sys.stderr, dynamic_ncols=True)
+    results: dict[int, tuple] = {}
+    scene_caps = []
+    next_key = 0
+
+    def flush():
+        nonlocal next_key
+        while next_key in results:
+            key, image, T, pts = results.pop(next_key)
+            job = jobs[key]
+            cap = store.add_capture(job["step"], image, job["position"], pts,
+                                    meta={"sim_pose_index": job["index"]})
+            scene_caps.append({"id": cap.id, "step": job["step"], "image": cap.image,
+                               "pattern_position": job["position"], "pose_index": job["index"],
+                               "T_cam_board": T.tolist()})
+            next_key += 1
+            if bar is not None:
+                bar.update(1)
+
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        ctx = mp.get_context("fork")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(scenario, quality)) as ex:
+            for res in ex.map(_render_job, jobs, chunksize=1):
+                results[res[0]] = res
+                flush()
+    else:
+        _init_worker(scenario, quality)
+        for job in jobs:
+            res = _render_job(job)
+            results[res[0]] = res
+            flush()
+    if bar is not None:
+        bar.close()
+    scenario.ground_truth().save_json(out / "ground_truth.json")
+    scene = scenario.to_dict()
+    scene.update({
+        "format": "procam-sim-scene",
+        "version": 1,
+        "quality": quality,
+        "render_used": probe.settings.to_dict(),
+        "captures": scene_caps,
+        "verification_T_cam_board": scenario.verification_pose.tolist(),
+    })
+    from calib.fileio import atomic_write_text
+
+    atomic_write_text(out / "scene.json", json.dumps(scene, indent=1) + "\n")
+    return store
