@@ -433,6 +433,10 @@ class RealSenseCamera:
         if self._locked is not None:
             self._apply_lock(**self._locked)
 
+    @property
+    def running(self) -> bool:
+        return self._running
+
     def stop(self) -> None:
         """Stop streaming and release the device (safe to call twice or after a disconnect)."""
         self._stop_evt.set()

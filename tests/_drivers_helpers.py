@@ -229,6 +229,7 @@ class ScreenCamera:
         self._latest: Frame | None = None
         self._stop = threading.Event()
         self._thread = None
+        self.grab_durations_s: list[float] = []
         first = self._grab()
         self._size = (first.shape[1], first.shape[0])
 
@@ -258,10 +259,13 @@ class ScreenCamera:
         while not self._stop.is_set():
             t0 = time.monotonic()
             img = self._grab()
+            t1 = time.monotonic()
             n += 1
+            self.grab_durations_s.append(t1 - t0)
             with self._cond:
-                # the frame shows the screen at least as it was when the grab began
-                self._latest = Frame(img, n, t0 * 1000.0, {"host_time_s": t0})
+                # like a real camera: the frame shows the screen of some moment during the grab and
+                # counts from when it arrived
+                self._latest = Frame(img, n, t1 * 1000.0, {"host_time_s": t1, "grab_start_s": t0})
                 self._cond.notify_all()
 
     def get_frame(self, timeout_s=2.0, newer_than=None):
@@ -289,6 +293,28 @@ def run_python(code: str, display: str | None, timeout=120, args=()) -> subproce
     env.pop("DISPLAY", None)
     if display is not None:
         env["DISPLAY"] = display
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(REPO / "tests"), env.get("PYTHONPATH", "")])
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env,
                           timeout=timeout, cwd=str(REPO))
+
+
+def send_key(projector_window, keysym: str = "Escape") -> None:
+    """Deliver a key press to a ProjectorWindow's X window through the X server (XSendEvent), as if
+    typed: the window sees it in its event loop."""
+    import ctypes
+
+    from pyglet.libs.x11 import xlib
+
+    win = projector_window._window
+    d = win._x_display
+    ev = xlib.XEvent()
+    ev.xkey.type = xlib.KeyPress
+    ev.xkey.display = d
+    ev.xkey.window = win._window
+    ev.xkey.root = xlib.XDefaultRootWindow(d)
+    ev.xkey.time = xlib.CurrentTime
+    ev.xkey.same_screen = 1
+    ev.xkey.keycode = xlib.XKeysymToKeycode(d, xlib.XStringToKeysym(keysym.encode()))
+    if not xlib.XSendEvent(d, win._window, 1, xlib.KeyPressMask, ctypes.byref(ev)):
+        raise RuntimeError("XSendEvent failed")
+    xlib.XFlush(d)

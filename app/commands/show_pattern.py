@@ -1,0 +1,103 @@
+"""`procam show-pattern`: the calibration pattern fullscreen on a screen, to check a projector set-up
+(focus, keystone, that the pattern reaches the corners) before a session."""
+
+from __future__ import annotations
+
+import time
+
+NAME = "show-pattern"
+HELP = "show the projector pattern fullscreen on a screen (Esc or q quits)"
+DESCRIPTION = (
+    "Opens a fullscreen, pixel-exact window on screen N (see `procam devices`) and shows the circle "
+    "grid or chessboard at one pattern position, or cycles through all positions. Esc or q quits."
+)
+
+
+def _size(text: str) -> tuple[int, int]:
+    import argparse
+
+    try:
+        w, h = text.lower().split("x")
+        size = (int(w), int(h))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WxH, e.g. 1920x1080, got '{text}'") from None
+    if size[0] <= 0 or size[1] <= 0:
+        raise argparse.ArgumentTypeError(f"size must be positive, got '{text}'")
+    return size
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--screen", type=int, default=None, metavar="N",
+                   help="screen index from `procam devices` (default: the last screen)")
+    p.add_argument("--pattern", choices=("circles", "chessboard"), default="circles")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--position", type=int, default=0, metavar="K", help="pattern position (0-based, default 0)")
+    g.add_argument("--cycle", type=float, default=None, metavar="SECONDS",
+                   help="show every position in turn, SECONDS each")
+    p.add_argument("--size", type=_size, default=None, metavar="WxH",
+                   help="image size (default: the screen's); a smaller size opens a borderless window at "
+                        "the screen's top-left corner instead of going fullscreen")
+    p.add_argument("--cols", type=int, default=None, help="pattern columns (OpenCV pattern size)")
+    p.add_argument("--rows", type=int, default=None, help="pattern rows")
+    p.add_argument("--spacing", type=float, default=None, metavar="PX", help="point spacing in projector pixels")
+    p.add_argument("--positions", type=int, default=None, help="number of pattern positions (default 13)")
+    p.add_argument("--duration", type=float, default=None, metavar="SECONDS",
+                   help="quit by itself after SECONDS (default: wait for Esc or q)")
+
+
+def run(args) -> int:
+    from calib.pattern import PatternSpec
+    from drivers.errors import DeviceError
+    from drivers.projector_window import ProjectorWindow, list_screens, run_projector_loop
+
+    screens = list_screens()
+    idx = len(screens) - 1 if args.screen is None else args.screen
+    if not 0 <= idx < len(screens):
+        raise DeviceError(f"no screen {idx}: `procam devices` lists {len(screens)} screen(s)")
+    screen_size = (screens[idx]["width"], screens[idx]["height"])
+    size = args.size or screen_size
+    # build the pattern before opening the window so a bad spec fails without flashing a window
+    kw = {k: v for k, v in (("cols", args.cols), ("rows", args.rows), ("positions", args.positions)) if v is not None}
+    spec = PatternSpec.default_for(size[0], size[1], args.pattern, **kw)
+    if args.spacing is not None:
+        from dataclasses import replace
+
+        radius = round(0.3 * args.spacing, 1) if spec.kind == "circles" else spec.radius_px
+        spec = replace(spec, spacing_px=float(args.spacing), radius_px=radius)
+    spec.offsets(size[0], size[1])  # raises SpecError when the pattern does not fit
+    positions = list(range(spec.positions)) if args.cycle is not None else [args.position]
+    for k in positions:
+        spec.points_px(size[0], size[1], k)  # range check
+    images = {}
+
+    window = ProjectorWindow(idx, size=size, fullscreen=(size == screen_size))
+    print(f"screen {idx}: {size[0]}x{size[1]} {spec.kind} {spec.cols}x{spec.rows}, spacing {spec.spacing_px:g} px, "
+          f"{spec.positions} positions; Esc or q quits", flush=True)
+
+    def worker():
+        t_end = None if args.duration is None else time.monotonic() + args.duration
+        i = 0
+        while True:
+            k = positions[i % len(positions)]
+            if k not in images:
+                images[k] = spec.render(size[0], size[1], k)[0]
+            try:
+                window.wait_presented(window.show(images[k]), 5.0)
+            except DeviceError:
+                if window.closed:  # Esc / q while the image was on its way
+                    return 0
+                raise
+            print(f"showing position {k} ({k + 1} of {spec.positions})", flush=True)
+            t_next = None if args.cycle is None else time.monotonic() + args.cycle
+            while not window.closed:
+                now = time.monotonic()
+                if t_end is not None and now >= t_end:
+                    return 0
+                if t_next is not None and now >= t_next:
+                    break
+                time.sleep(0.02)
+            if window.closed:
+                return 0
+            i += 1
+
+    return int(run_projector_loop(window, worker) or 0)
