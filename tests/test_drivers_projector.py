@@ -255,5 +255,5 @@ def test_settle_time_measured_with_a_camera_filming_the_screen():
     assert len(m["samples_s"]) == 3 and out["restored"] == pytest.approx(0.123)
     assert m["changed_fraction"] > 0.99  # the whole screen turned white
     for s in m["samples_s"]:
-        assert 0.0 < s <= 2 * out["grab_max_s"] + 0.05
+        assert 0.0 < s <= 2 * out["grab_max_s"] + 0.15  # + scheduling slack on a busy machine
     assert m["settle_s"] >= max(m["samples_s"])

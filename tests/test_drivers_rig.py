@@ -191,7 +191,7 @@ def test_show_pattern_shows_the_pattern_pixel_exact():
         assert np.array_equal(screenshot(display), np.repeat(expected[:, :, None], 3, 2))
         assert run.finish()[0] == 0
 
-        run = Running(["--screen", "0", "--pattern", "chessboard", "--cycle", "0.6", "--duration", "2.2"], display)
+        run = Running(["--screen", "0", "--pattern", "chessboard", "--cycle", "1.0", "--duration", "3.5"], display)
         for k in range(3):
             assert run.wait_line("showing") == f"showing position {k} ({k + 1} of 13)"
             expected = chess.render(W, H, k)[0]
