@@ -43,7 +43,10 @@ class CurveDetection:
     """The centre line of a detected stripe: `centre_px` (M, 2) ordered along the scan direction
     ('cols': by x, 'rows': by y), `peak` (M,) the signal at each centre (fraction of full white when a
     white frame was given, else of 255), `width_px` the median stripe width (area / peak, across the
-    scan lines), `reason` None when detected, else why not."""
+    scan lines), `reason` None when detected, else why not. `cross_section_px`: the integral of the
+    normalised signal across the curve (median over scan lines; NaN without a white frame), which is
+    the drawn stroke's width as the camera sees it, whatever the blur: drawn `w` projector pixels wide,
+    the stroke shows the local scale, cross_section_px / w camera pixels per projector pixel."""
 
     centre_px: np.ndarray
     peak: np.ndarray
@@ -52,6 +55,7 @@ class CurveDetection:
     noise: float
     threshold: float
     reason: str | None = None
+    cross_section_px: float = float("nan")
 
     @property
     def ok(self) -> bool:
@@ -154,25 +158,32 @@ def detect_projected_curve(frame_on, frame_off, frame_white=None, *, channel: in
         s_t, v_t, m_t = s.T, valid.T, mask.T
     else:
         s_t, v_t, m_t = s, valid, mask
-    pts, peaks, widths = _scan_columns(s_t, v_t, m_t, level_fraction, max_width_px)
+    pts, aux = _scan_columns(s_t, v_t, m_t, level_fraction, max_width_px)
     if len(pts) == 0:
         return _failed("a bright stroke is visible but no clean stripe profile was found across it "
                        f"(wider than {max_width_px:g} px, or cut by dark or unlit areas)", noise, thr)
-    pts, peaks, widths = _select_curve(pts, peaks, widths)
-    pts, peaks, widths = _drop_outliers(pts, peaks, widths)
+    pts, aux, slope = _select_curve(pts, aux)
+    pts, aux, slope = _drop_outliers(pts, aux, slope)
     if len(pts) < min_points:
         return _failed(f"only {len(pts)} points of the curve found (need {min_points}); "
                        "is the curve on the board?", noise, thr)
     if scan == "rows":
         pts = pts[:, ::-1]
-    return CurveDetection(pts, peaks, scan, float(np.median(widths)), noise, thr, None)
+    # the integral across a scan line, times cos(angle between the curve and the scan line's normal),
+    # is the integral across the curve: with a normalised signal, its width in camera pixels
+    cross = aux[:, 2] / np.sqrt(1.0 + slope**2)
+    cross = cross[np.isfinite(cross)]
+    cross_px = float(np.median(cross)) if frame_white is not None and len(cross) >= min_points else float("nan")
+    return CurveDetection(pts, aux[:, 0], scan, float(np.median(aux[:, 1])), noise, thr, None, cross_px)
 
 
 def _scan_columns(s, valid, mask, level_fraction, max_width_px):
-    """Every clean stripe profile crossing each column: (K, 2) centres (x, y), peaks, widths."""
+    """Every clean stripe profile crossing each column: (K, 2) centres (x, y), and (K, 3) peaks,
+    widths (area / peak) and integrals of the signal across the stripe (tails included; NaN when the
+    wider window leaves the valid pixels)."""
     H, W = s.shape
     cols = np.flatnonzero(mask.any(axis=0))
-    pts, peaks, widths = [], [], []
+    pts, aux = [], []
     for x in cols:
         col_m = mask[:, x]
         col = s[:, x]
@@ -197,17 +208,21 @@ def _scan_columns(s, valid, mask, level_fraction, max_width_px):
             wts = col[lo : hi + 1] - level
             y = np.arange(lo, hi + 1)
             pts.append((float(x), float(np.sum(wts * y) / np.sum(wts))))
-            peaks.append(peak)
-            widths.append(float(np.sum(col[lo : hi + 1]) / peak))
-    return np.array(pts, float).reshape(-1, 2), np.array(peaks, float), np.array(widths, float)
+            ext = max(3, (hi - lo + 1) // 2)
+            a2, b2 = lo - ext, hi + ext + 1
+            integral = float(np.sum(col[a2:b2])) if a2 >= 0 and b2 <= H and valid[a2:b2, x].all() else np.nan
+            aux.append((peak, float(np.sum(col[lo : hi + 1]) / peak), integral))
+    return np.array(pts, float).reshape(-1, 2), np.array(aux, float).reshape(-1, 3)
 
 
-def _select_curve(pts, peaks, widths, degree: int = 3, tol_px: float = 3.0, iterations: int = 300):
+def _select_curve(pts, aux, degree: int = 3, tol_px: float = 3.0, iterations: int = 300):
     """The one smooth curve among the candidate centres: RANSAC of a polynomial y(x) (weighted by the
-    peaks), then per column the candidate nearest to it. Deterministic."""
+    peaks), then per column the candidate nearest to it. Deterministic. Returns the kept centres, their
+    aux rows and the slope dy/dx of the fit at each."""
     n = len(pts)
+    peaks = aux[:, 0]
     if n <= degree + 1:
-        return pts, peaks, widths
+        return pts, aux, np.zeros(n)
     x, y = pts[:, 0], pts[:, 1]
     xm, xs = x.mean(), max(np.ptp(x), 1.0)
     t = (x - xm) / xs
@@ -223,7 +238,7 @@ def _select_curve(pts, peaks, widths, degree: int = 3, tol_px: float = 3.0, iter
         if score > best_score:
             best, best_score = inl, score
     if best is None:
-        return pts, peaks, widths
+        return pts, aux, np.zeros(n)
     for _ in range(3):  # refit on the inliers and re-collect
         coef = np.polyfit(t[best], y[best], min(degree, int(best.sum()) - 1))
         res = np.abs(np.polyval(coef, t) - y)
@@ -235,13 +250,14 @@ def _select_curve(pts, peaks, widths, degree: int = 3, tol_px: float = 3.0, iter
     first = np.concatenate([[True], xo[1:] != xo[:-1]])
     keep = order[first & np.isfinite(res[order])]
     keep = np.sort(keep)
-    return pts[keep], peaks[keep], widths[keep]
+    slope = np.polyval(np.polyder(coef), t[keep]) / xs if len(coef) > 1 else np.zeros(len(keep))
+    return pts[keep], aux[keep], slope
 
 
-def _drop_outliers(pts, peaks, widths, half_window: int = 7, max_dev_px: float = 1.5):
+def _drop_outliers(pts, aux, slope, half_window: int = 7, max_dev_px: float = 1.5):
     """Drop centres more than max_dev_px from the running median of their neighbours (by scan order)."""
     if len(pts) < 3:
-        return pts, peaks, widths
+        return pts, aux, slope
     y = pts[:, 1]
     n = len(y)
     keep = np.ones(n, bool)
@@ -252,7 +268,7 @@ def _drop_outliers(pts, peaks, widths, half_window: int = 7, max_dev_px: float =
         near = np.abs(np.concatenate([pts[j0:i, 0], pts[i + 1 : j1, 0]]) - pts[i, 0]) <= 3 * half_window
         if near.sum() >= 2 and abs(y[i] - np.median(neigh[near])) > max_dev_px:
             keep[i] = False
-    return pts[keep], peaks[keep], widths[keep]
+    return pts[keep], aux[keep], slope[keep]
 
 
 # ---- distance of a pixel to the detected curve ------------------------------------------------------

@@ -125,3 +125,15 @@ def test_lit_region_and_roi():
     det = detect_projected_curve(on, off, white, roi=roi)
     assert det.ok and det.centre_px[:, 0].min() >= 319
     assert distance_to_polyline(det.centre_px, poly).distance.max() < 0.15
+
+
+@pytest.mark.parametrize("angle,width,blur", [(8, 3.0, 0.8), (33, 5.0, 1.2), (70, 2.5, 0.6)])
+def test_cross_section_is_the_stroke_width_whatever_the_blur_and_angle(angle, width, blur):
+    poly, _, _ = _line(angle)
+    on, off, white = stripe_frames(SIZE, poly, width_px=width, blur_px=blur, albedo=checker_albedo(SIZE),
+                                   noise_dn=0.5, seed=11)
+    det = detect_projected_curve(on, off, white)
+    assert det.ok
+    assert det.cross_section_px == pytest.approx(width, rel=0.06)
+    # without a white frame there is no scale to measure
+    assert np.isnan(detect_projected_curve(on, off).cross_section_px)
