@@ -123,15 +123,19 @@ def calibrate_paper(obs: SessionObservations, camera: CameraModel | None = None,
 #: name -> function(obs, camera, progress) -> CalibrationResult
 METHODS: dict[str, Method] = {"paper": calibrate_paper}
 
+from calib.joint import calibrate_joint  # noqa: E402  (paper first, then one joint refinement: docs/JOINT.md)
+
+METHODS["joint"] = calibrate_joint
+
 
 def calibrate_observations(obs: SessionObservations, method: str = "paper", camera: CameraModel | None = None,
-                           progress: Progress | None = None) -> CalibrationResult:
+                           progress: Progress | None = None, method_options: dict | None = None) -> CalibrationResult:
     """Calibrate from detected observations with a registered method; `camera` skips the camera stage."""
     fn = METHODS.get(method)
     if fn is None:
         raise CalibrationError(f"unknown calibration method '{method}' (available: {', '.join(sorted(METHODS))})")
     t0 = time.perf_counter()
-    result = fn(obs, camera, progress)
+    result = fn(obs, camera, progress, **method_options) if method_options else fn(obs, camera, progress)
     diag = dict(result.diagnostics)
     timing = dict(diag.get("timing_s", {}))
     timing["total"] = round(time.perf_counter() - t0, 4)
@@ -139,8 +143,9 @@ def calibrate_observations(obs: SessionObservations, method: str = "paper", came
     return result.with_(diagnostics=diag)
 
 
-def calibrate_session(folder, method: str = "paper", camera_intrinsics=None, workers: int = 2,
-                      progress: Progress | None = None, detect_progress: Progress | None = None) -> CalibrationResult:
+def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, workers: int = 2,
+                      progress: Progress | None = None, detect_progress: Progress | None = None,
+                      method_options: dict | None = None) -> CalibrationResult:
     """Detect and calibrate a session folder. `camera_intrinsics`: None, a CameraModel, or a file
     (calibration.json or OpenCV YAML, see load_camera_intrinsics). `detect_progress` (default:
     `progress`) follows detection, `progress` the calibration stages."""
@@ -154,7 +159,7 @@ def calibrate_session(folder, method: str = "paper", camera_intrinsics=None, wor
     camera = camera_intrinsics
     if camera is not None and not isinstance(camera, CameraModel):
         camera = load_camera_intrinsics(camera, obs.camera_size)
-    result = calibrate_observations(obs, method, camera, progress)
+    result = calibrate_observations(obs, method, camera, progress, method_options)
     images = {c.id: c.image for c in store.manifest.captures}
     skipped = []
     for s in result.skipped:

@@ -356,8 +356,13 @@ def make_session(rig: SyntheticRig, layout: BoardLayout | None = None, pattern: 
                             thickness_mm if method == "real-mirror" else 0.0)
 
 
-def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0) -> SessionObservations:
-    """Exact (or Gaussian-noised) observations of a synthetic session, as detection would report them."""
+def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0,
+            circle_centroids: bool = False) -> SessionObservations:
+    """Exact (or Gaussian-noised) observations of a synthetic session, as detection would report them.
+
+    circle_centroids: report each projected circle (of a circle pattern) where a blob detector sees it,
+    at the area centroid of its image (its boundary mapped point by point through the exact model),
+    instead of at the image of its centre; the two differ by the perspective bias (GEOMETRY.md)."""
     rng = np.random.default_rng(seed)
     rig, cam = ss.rig, ss.rig.camera
     S = rig.S()
@@ -374,6 +379,8 @@ def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0) -> Sessi
         q = ss.pattern.points_px(rig.projector.width, rig.projector.height, pos)
         Xb = projector_points_on_board(rig, T, q)
         uv = cam.project(transform_points(S @ T, Xb))
+        if circle_centroids and ss.pattern.kind == "circles":
+            uv = imaged_circle_centroids(rig, T, q, ss.pattern.radius_px)
         pviews.append(ProjectorView(f"p{i:04d}", obs, noisy(uv), q, pos))
     mviews = []
     for i, T in enumerate(ss.mirror_T_cam_board):
@@ -390,3 +397,20 @@ def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0) -> Sessi
         pattern=ss.pattern, projector_views=tuple(pviews), mirror_board=ss.mirror_board,
         mirror_views=tuple(mviews), board_thickness=ss.board_thickness_mm,
     )
+
+
+def imaged_circle_centroids(rig: SyntheticRig, T_cam_board: np.ndarray, q_px: np.ndarray, radius_px: float,
+                            n_boundary: int = 256) -> np.ndarray:
+    """(N, 2) area centroids, in the camera image, of circles of `radius_px` drawn by the projector
+    around `q_px` on the board at T_cam_board (seen through the mirror when the rig has one)."""
+    q = np.asarray(q_px, float).reshape(-1, 2)
+    th = 2.0 * np.pi * np.arange(n_boundary) / n_boundary
+    ring = radius_px * np.column_stack([np.cos(th), np.sin(th)])
+    B = (q[:, None, :] + ring[None]).reshape(-1, 2)
+    Xb = projector_points_on_board(rig, T_cam_board, B)
+    uv = rig.camera.project(transform_points(rig.S() @ T_cam_board, Xb)).reshape(len(q), n_boundary, 2)
+    x, y = uv[..., 0], uv[..., 1]
+    x1, y1 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    c = x * y1 - x1 * y
+    a6 = 3.0 * c.sum(axis=1)
+    return np.column_stack([((x + x1) * c).sum(axis=1) / a6, ((y + y1) * c).sum(axis=1) / a6])

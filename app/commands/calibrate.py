@@ -18,8 +18,14 @@ DESCRIPTION = (
 
 def add_arguments(p) -> None:
     p.add_argument("session", metavar="SESSION", help="session folder (with session.json)")
-    p.add_argument("--method", default="paper",
-                   help="calibration method (default: paper, the method of Vanherck et al.)")
+    p.add_argument("--method", default="joint",
+                   help="calibration method: joint (default: the paper's pipeline, then one joint maximum-likelihood "
+                        "refinement, docs/JOINT.md) or paper (the method of Vanherck et al.)")
+    models = ("auto", "none", "k1", "k1k2", "5coef", "rational")
+    p.add_argument("--camera-model", choices=models, default=None,
+                   help="joint method: camera distortion model (default auto: selected by significance tests)")
+    p.add_argument("--projector-model", choices=models, default=None,
+                   help="joint method: projector distortion model (default auto)")
     p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
                    help="pre-calibrated camera: a calibration.json or an OpenCV YAML with camera_matrix and "
                         "distortion_coefficients; skips the camera stage")
@@ -69,8 +75,13 @@ def run(args) -> int:
         raise SessionError("--workers must be at least 1")
     bars = _Bars(not args.no_progress)
     try:
+        opts = {k: v for k, v in (("camera_model", args.camera_model), ("projector_model", args.projector_model))
+                if v is not None}
+        if opts and args.method != "joint":
+            raise SessionError("--camera-model / --projector-model apply to --method joint only")
         result = calibrate_session(session, args.method, args.camera_intrinsics, args.workers,
-                                   progress=bars.callback("calibrate"), detect_progress=bars.callback("detect"))
+                                   progress=bars.callback("calibrate"), detect_progress=bars.callback("detect"),
+                                   method_options=opts or None)
     finally:
         bars.close()
     out = Path(args.out) if args.out else session / "calibration.json"

@@ -1,0 +1,262 @@
+"""Distortion model selection per device: none / k1 / k1k2 / 5coef / rational (calib.joint.DIST_MODELS).
+
+The paper always uses 5 coefficients. Starting from that, a device's model is
+
+* simplified to the simplest of none / k1 / k1k2 that is NOT significantly worse than 5coef: a
+  likelihood-ratio (Wald) test, W = (RSS_simple - RSS_5) / sigma^2 ~ chi2(dropped coefficients), keeps
+  the simpler model when its p-value is above `alpha_drop` (0.05) -- so a coefficient that the data do
+  show (even a k3 of -0.02 under 0.3 px noise) is kept, because dropping it biases everything else;
+* enriched to rational only when the three extra coefficients are highly significant: W = (RSS_5 -
+  RSS_rational) / sigma^2 with p-value below `alpha_add` (0.001). The rational terms are nearly
+  degenerate with k1..k3, so they need strong evidence; on Brown-Conrady data they are picked with
+  probability 0.001.
+
+sigma^2 = RSS_5 / (N - P) from the 5-coefficient fit. The BIC (N ln(RSS/N) + P ln N) of every candidate
+is reported too, and selection="bic" uses it instead (more parsimonious: it drops small real
+coefficients under noise).
+
+How the RSS of each candidate is obtained: the joint problem is solved once with 5 coefficients per
+device. Around that solution the least-squares problem is quadratic to first order, with the board
+poses eliminated by the Schur complement; the Jacobian is taken with the rational model's 8
+coefficients (the extra three at 0). For every pair (camera model, projector model) the RSS is the
+minimum of that quadratic model with the coefficients the candidate does not have held at zero (a
+Wald test for simpler models, a score test for the rational one; exact for a linear problem). The
+chosen pair is then fitted for real (full nonlinear adjustment) and the test repeated on the actual
+RSS; if it no longer holds, the 5-coefficient model is kept. A model forced by the user is kept.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from scipy.stats import chi2
+
+from calib.joint import DIST_MODELS, MODEL_NAMES, normal_blocks, solve
+
+RSS_FLOOR_PX2 = 1e-6
+ALPHA_DROP = 0.05
+ALPHA_ADD = 0.001
+
+
+def _n_extra(rich, base) -> int:
+    return sum(len(DIST_MODELS[a]) - len(DIST_MODELS[b]) for a, b in ((rich.cam_model, base.cam_model),
+                                                                       (rich.proj_model, base.proj_model)))
+
+
+def bic(rss: float, n: int, p: int) -> float:
+    return float(n * np.log(max(rss / n, RSS_FLOOR_PX2)) + p * np.log(n))
+
+
+def _reduced_system(prob, x):
+    """(S, g): Schur-reduced J^T J and J^T r over the global parameters at x (poses eliminated)."""
+    Jg, Jl = prob.jacobian_blocks(x)
+    r = prob.residuals(x)
+    A, B, D, g_g, g_p = normal_blocks(prob, Jg, Jl, np.ones_like(r), r)
+    Dinv = np.linalg.inv(D)
+    E = np.einsum("vij,vjg->vig", Dinv, B)
+    S = A - np.einsum("vkg,vkh->gh", B, E)
+    g = g_g - np.einsum("vkg,vk->g", E, g_p)
+    return S, g, float(r @ r), r.size
+
+
+def _quadratic_rss(S, g, rss0, theta0, constrained):
+    """Minimum of rss0 + 2 g.D + D^T S D with D_c = -theta0_c for the constrained indices c."""
+    n = len(g)
+    c = np.asarray(sorted(constrained), int)
+    f = np.setdiff1d(np.arange(n), c)
+    dc = -theta0[c]
+    gf = g[f] + S[np.ix_(f, c)] @ dc
+    s = np.sqrt(np.clip(np.diag(S)[f], 1e-300, None))
+    Sff = S[np.ix_(f, f)] / s[:, None] / s[None, :]
+    df = -np.linalg.lstsq(Sff, gf / s, rcond=1e-13)[0] / s
+    val = rss0 + 2 * g[c] @ dc + dc @ S[np.ix_(c, c)] @ dc + gf @ df
+    return float(max(val, 0.0))
+
+
+def select_models(prob, options) -> dict:
+    """Choose the distortion models of prob's camera and projector (prob is left fitted with the
+    chosen pair). Returns the report stored in result.diagnostics["model_selection"]."""
+    report = {"criterion": "BIC = N ln(RSS/N) + P ln N on the joint residuals (squared loss, inliers)",
+              "method": "RSS of each candidate from the quadratic model of the joint problem around the "
+                        "5-coefficient solution (Wald / score test), chosen pair refitted to confirm"}
+    auto = {"camera": options.camera_model == "auto" and not prob.fix_camera,
+            "projector": options.projector_model == "auto"}
+    base = prob.state.copy()
+    if not any(auto.values()):
+        for dev in ("camera", "projector"):
+            report[dev] = {"chosen": base.cam_model if dev == "camera" else base.proj_model, "forced": True,
+                           "reason": "camera intrinsics given and held fixed" if dev == "camera" and prob.fix_camera
+                           else "forced by the user"}
+        return report
+    # the richest parametrisation for the devices being selected
+    rich = base.copy()
+    if auto["camera"]:
+        rich.cam_model = "rational"
+    if auto["projector"]:
+        rich.proj_model = "rational"
+    prob.set_state(rich)
+    x_rich = prob.x0()
+    S, g, rss0, n = _reduced_system(prob, x_rich)
+    names = prob.global_names
+    idx = {nm: i for i, nm in enumerate(names)}
+    n_pose = prob.n_params - prob.n_global
+
+    def constrained_for(cm, pm):
+        c = []
+        for prefix, model, full in (("cam", cm, rich.cam_model), ("proj", pm, rich.proj_model)):
+            for i in DIST_MODELS[full]:
+                if i not in DIST_MODELS[model]:
+                    c.append(idx[f"{prefix}.dist{i}"])
+        return c
+
+    cam_opts = MODEL_NAMES if auto["camera"] else (base.cam_model,)
+    proj_opts = MODEL_NAMES if auto["projector"] else (base.proj_model,)
+    table = {}
+    for cm, pm in itertools.product(cam_opts, proj_opts):
+        c = constrained_for(cm, pm)
+        rss = _quadratic_rss(S, g, rss0, x_rich[:prob.n_global], c)
+        p = prob.n_global - len(c) + n_pose
+        table[(cm, pm)] = {"rss_px2": rss, "n_params": p, "bic": bic(rss, n, p)}
+    sigma2 = max(rss0 / max(n - (prob.n_global - _n_extra(rich, base) + n_pose), 1), RSS_FLOOR_PX2)
+    report["sigma_px"] = float(np.sqrt(sigma2))
+    report["alpha_drop"], report["alpha_add"] = ALPHA_DROP, ALPHA_ADD
+
+    def lrt_choice(dev, other):
+        """The LRT rule above for one device, the other device's model fixed."""
+        def key(name):
+            return (name, other) if dev == "camera" else (other, name)
+
+        ref = table[key("5coef")]["rss_px2"]
+        tests = {}
+        for name in ("none", "k1", "k1k2"):
+            k = 5 - len(DIST_MODELS[name])
+            W = max(table[key(name)]["rss_px2"] - ref, 0.0) / sigma2
+            tests[name] = (W, k, float(chi2.sf(W, k)))
+        W = max(ref - table[key("rational")]["rss_px2"], 0.0) / sigma2
+        tests["rational"] = (W, 3, float(chi2.sf(W, 3)))
+        for name in ("none", "k1", "k1k2"):
+            if tests[name][2] > ALPHA_DROP:
+                return name, tests
+        return ("rational" if tests["rational"][2] < ALPHA_ADD else "5coef"), tests
+
+    if options.selection == "bic":
+        best = min(table, key=lambda k: table[k]["bic"])
+        tests_by_dev = {}
+    else:
+        cm, pm = base.cam_model, base.proj_model
+        tests_by_dev = {}
+        if auto["camera"]:
+            cm, tests_by_dev["camera"] = lrt_choice("camera", pm)
+        if auto["projector"]:
+            pm, tests_by_dev["projector"] = lrt_choice("projector", cm)
+        if auto["camera"]:  # the camera's choice with the projector at its final model
+            cm, tests_by_dev["camera"] = lrt_choice("camera", pm)
+        best = (cm, pm)
+
+    def device_report(dev):
+        if not auto[dev]:
+            why = "camera intrinsics given and held fixed" if dev == "camera" and prob.fix_camera else "forced by the user"
+            return {"chosen": best[0] if dev == "camera" else best[1], "forced": True, "reason": why}
+        other = best[1] if dev == "camera" else best[0]
+        cands = []
+        for name in MODEL_NAMES:
+            key = (name, other) if dev == "camera" else (other, name)
+            t = table[key]
+            cands.append({"model": name, "n_coeffs": len(DIST_MODELS[name]), "rss_px2": t["rss_px2"],
+                          "rms_px": float(np.sqrt(2 * t["rss_px2"] / n)), "bic": t["bic"]})
+            if dev in tests_by_dev and name in tests_by_dev[dev]:
+                W, k, pv = tests_by_dev[dev][name]
+                cands[-1].update({"lrt_W": W, "lrt_dof": k, "p_value": pv})
+        chosen = best[0] if dev == "camera" else best[1]
+        bbic = min(c["bic"] for c in cands)
+        for c in cands:
+            c["delta_bic"] = c["bic"] - bbic
+        ch = next(c for c in cands if c["model"] == chosen)
+        if options.selection == "bic":
+            why = [f"'{chosen}' has the lowest BIC"]
+            simpler = [c for c in cands if c["n_coeffs"] < ch["n_coeffs"]]
+            richer = [c for c in cands if c["n_coeffs"] > ch["n_coeffs"]]
+            if simpler:
+                s_ = max(simpler, key=lambda c: c["n_coeffs"])
+                why.append(f"the simpler '{s_['model']}' leaves more residual (RSS {s_['rss_px2']:.5g} vs "
+                           f"{ch['rss_px2']:.5g} px^2: dBIC +{s_['delta_bic']:.1f})")
+            if richer:
+                c = min(richer, key=lambda c: c["n_coeffs"])
+                why.append(f"the richer '{c['model']}' lowers the RSS by only {ch['rss_px2'] - c['rss_px2']:.3g} "
+                           f"px^2 for {c['n_coeffs'] - ch['n_coeffs']} more coefficient(s) (dBIC +{c['delta_bic']:.1f})")
+        else:
+            tests = tests_by_dev[dev]
+            why = []
+            for name in ("none", "k1", "k1k2"):
+                W, k, pv = tests[name]
+                if name == chosen:
+                    why.append(f"'{name}' is not significantly worse than 5coef (W = {W:.2f} on {k} dof, "
+                               f"p = {pv:.3g} > {ALPHA_DROP})")
+                    break
+                why.append(f"'{name}' is significantly worse than 5coef (W = {W:.1f} on {k} dof, p = {pv:.2g})")
+            if chosen in ("5coef", "rational"):
+                W, k, pv = tests["rational"]
+                if chosen == "rational":
+                    why.append(f"the rational terms are highly significant (W = {W:.1f} on 3 dof, p = {pv:.2g} "
+                               f"< {ALPHA_ADD})")
+                else:
+                    why.append(f"the rational terms are not needed (W = {W:.2f} on 3 dof, p = {pv:.3g} >= "
+                               f"{ALPHA_ADD})")
+        return {"chosen": chosen, "forced": False, "reason": "; ".join(why), "candidates": cands}
+
+    report["camera"] = device_report("camera")
+    report["projector"] = device_report("projector")
+    # confirm by a real fit of the chosen pair
+    base_key = (base.cam_model, base.proj_model)
+    if best != base_key:
+        st = base.copy()
+        st.cam_model, st.proj_model = best
+        for key, model in (("cam_d", best[0]), ("proj_d", best[1])):
+            d = getattr(st, key)
+            mask = np.ones(8, bool)
+            mask[list(DIST_MODELS[model])] = False
+            d[mask] = 0.0
+        prob.set_state(st)
+        x, info = solve(prob, "linear", 1.0, options.max_nfev, options.tol, options.solver)
+        fitted = prob.state.copy()
+        r = prob.residuals(x)
+        rss_fit = float(r @ r)
+        bic_fit = bic(rss_fit, r.size, prob.n_params)
+        prob.set_state(base)
+        r0 = prob.residuals(prob.x0())
+        bic_base = bic(float(r0 @ r0), r0.size, prob.n_params)
+        k_drop = k_add = 0
+        for a_, b_ in ((best[0], base.cam_model), (best[1], base.proj_model)):
+            diff = len(DIST_MODELS[a_]) - len(DIST_MODELS[b_])
+            k_add += max(diff, 0)
+            k_drop += max(-diff, 0)
+        refit = {"models": list(best), "rss_px2": rss_fit, "bic": bic_fit, "base_models": list(base_key),
+                 "base_rss_px2": float(r0 @ r0), "base_bic": bic_base}
+        if options.selection == "bic" or (k_add and k_drop):
+            keep = bic_fit <= bic_base
+            refit["test"] = "BIC of the refit vs the 5-coefficient fit"
+        elif k_drop:
+            W = max(rss_fit - float(r0 @ r0), 0.0) / sigma2
+            pv = float(chi2.sf(W, k_drop))
+            keep = pv > ALPHA_DROP
+            refit["test"] = f"refit W = {W:.2f} on {k_drop} dof, p = {pv:.3g} (keep if > {ALPHA_DROP})"
+        else:
+            W = max(float(r0 @ r0) - rss_fit, 0.0) / sigma2
+            pv = float(chi2.sf(W, k_add))
+            keep = pv < ALPHA_ADD
+            refit["test"] = f"refit W = {W:.2f} on {k_add} dof, p = {pv:.3g} (keep if < {ALPHA_ADD})"
+        report["refit"] = refit
+        if keep:
+            prob.set_state(fitted)
+            refit["kept"] = True
+        else:
+            refit["kept"] = False
+            for dev, m in (("camera", base.cam_model), ("projector", base.proj_model)):
+                if report[dev]["chosen"] != m:
+                    report[dev]["reason"] += f"; but the refit does not confirm it ({refit['test']}), so '{m}' is kept"
+                    report[dev]["chosen"] = m
+    else:
+        prob.set_state(base)
+    return report
