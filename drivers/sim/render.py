@@ -187,8 +187,13 @@ def _board_texture(charuco: CharucoSpec, blank_width: float, gap: float, texels_
         xs = (np.arange(ja, jb)[:, None] + sub).ravel() - cx
         ys = (np.arange(ia, ib)[:, None] + sub).ravel() - cy
         cover = ((ys[:, None] ** 2 + xs[None, :] ** 2) <= rr * rr).reshape(ib - ia, 4, jb - ja, 4).mean(axis=(1, 3))
-        patch = tex[ia:ib, ja:jb].astype(float)
-        tex[ia:ib, ja:jb] = np.round(patch * (1 - cover) + 255 * a * cover).astype(np.uint8)
+        ca, cb = max(ia, 0), min(ib, tex.shape[0])
+        ra, rb = max(ja, 0), min(jb, tex.shape[1])
+        if ca >= cb or ra >= rb:
+            continue
+        cover = cover[ca - ia : cb - ia, ra - ja : rb - ja]
+        patch = tex[ca:cb, ra:rb].astype(float)
+        tex[ca:cb, ra:rb] = np.round(patch * (1 - cover) + 255 * a * cover).astype(np.uint8)
     tex = tex.astype(np.float32) / 255.0
     tex.setflags(write=False)
     return tex, s, x0

@@ -41,14 +41,14 @@ OPERATOR_STEPS = (STEP_PROJECTOR, STEP_REAL_VIRTUAL, STEP_REAL_MIRROR, STEP_VERI
 
 
 def default_projector_board() -> CharucoSpec:
-    """The board the projector lights: 8 x 6 squares of 50 mm, DICT_4X4_50 markers of 37.5 mm (big
+    """The board the projector lights: 8 x 6 squares of 50 mm, DICT_4X4_50 markers of 30 mm (big
     cells, so that they decode at the distances of a mirrored view)."""
-    return CharucoSpec(8, 6, "DICT_4X4_50", 50.0, 37.5, "mm")
+    return CharucoSpec(8, 6, "DICT_4X4_50", 50.0, 30.0, "mm")
 
 
 def default_mirror_board() -> CharucoSpec:
     """The small board used to calibrate the mirror (held between camera and mirror, or laid on it)."""
-    return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 16.5, "mm")
+    return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 13.2, "mm")
 
 
 def default_render() -> RenderSettings:
