@@ -10,6 +10,7 @@ reason a person can read, never an exception.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -575,6 +576,17 @@ def _init_worker():
     cv2.setNumThreads(1)
 
 
+def _pool_context():
+    """Workers come from a fork server, never from a plain fork of this process: OpenCV's thread pool
+    (and any GUI/server thread of the caller) does not survive a fork and the children would hang."""
+    try:
+        ctx = multiprocessing.get_context("forkserver")
+        multiprocessing.set_forkserver_preload(["calib.detect"])
+        return ctx
+    except ValueError:  # platforms without fork servers
+        return multiprocessing.get_context("spawn")
+
+
 def detect_session(store, workers: int = 2, progress=None) -> SessionObservations:
     """Detect every capture of a session (SessionStore) -> SessionObservations.
 
@@ -598,7 +610,8 @@ def detect_session(store, workers: int = 2, progress=None) -> SessionObservation
             if progress is not None:
                 progress(i + 1, total, cid)
     else:
-        with ProcessPoolExecutor(max_workers=min(workers, total), initializer=_init_worker) as ex:
+        with ProcessPoolExecutor(max_workers=min(workers, total), initializer=_init_worker,
+                                 mp_context=_pool_context()) as ex:
             futures = [ex.submit(_run_job, job) for job in jobs]
             for i, fut in enumerate(as_completed(futures)):
                 cid, res = fut.result()
