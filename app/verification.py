@@ -410,7 +410,10 @@ def region_mask(shape, lit: np.ndarray, board_region=None, close_px: int | None 
                 raise VerificationError(f"board_region mask must be {W}x{H}")
             mask &= br
         else:
-            a = np.asarray(br, float)
+            try:
+                a = np.asarray(br, float)
+            except (TypeError, ValueError):
+                a = np.zeros(0)
             m = np.zeros((H, W), np.uint8)
             if a.shape == (4,):
                 x0, y0, x1, y1 = a

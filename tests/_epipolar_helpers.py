@@ -76,3 +76,23 @@ def stripe_frames(size=(640, 400), polyline=None, width_px=3.0, blur_px=0.8, alb
         return np.repeat(img[:, :, None], 3, axis=2)
 
     return frame(cover), frame(np.zeros((h, w))), frame(np.ones((h, w)))
+
+
+def make_sim_session(folder, scenario: str = "nonoverlap-136", seed: int = 0, calibration=None, driver: str = "sim"):
+    """A session folder as a simulated station session leaves it, without captures: session.json whose
+    rig names the simulated scenario, plus `calibration` (a CalibrationResult) as calibration.json."""
+    from calib.session import RigInfo, SessionManifest, SessionStore
+    from drivers.sim.scenarios import get_scenario
+
+    sc = get_scenario(scenario, seed)
+    settings = {"driver": driver, "scenario": scenario, "seed": seed} if driver == "sim" else {}
+    manifest = SessionManifest(
+        rig=RigInfo(sc.rig.camera.size, sc.rig.projector.size, sc.rig.view, settings, driver),
+        projector_board=sc.projector_board, pattern=sc.pattern,
+        mirror_board=sc.mirror_board if sc.mirror_method else None, mirror_method=sc.mirror_method,
+        state={"simulated": True, "scenario": scenario, "seed": seed} if driver == "sim" else {},
+    )
+    SessionStore.create(folder, manifest)
+    if calibration is not None:
+        calibration.save_json(folder / "calibration.json")
+    return sc

@@ -1,0 +1,79 @@
+"""`procam verify SESSION --rig sim`: exit codes (0 pass, 1 fail, 2 could not run) and verification.json."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from app.cli import main
+from app.verification import perturbed
+from drivers.sim.scenarios import get_scenario
+from tests._epipolar_helpers import make_sim_session
+
+
+def test_correct_calibration_passes_and_writes_the_report(tmp_path, capsys):
+    sc = get_scenario("nonoverlap-136", 0)
+    make_sim_session(tmp_path, calibration=sc.ground_truth())
+    assert main(["verify", str(tmp_path), "--rig", "sim", "--grid", "3x2"]) == 0
+    out = capsys.readouterr().out
+    assert "PASS" in out and "mean" in out and "worst" in out
+    d = json.loads((tmp_path / "verification.json").read_text())
+    assert d["passed"] is True and d["n_checks"] == 6 and d["n_measured"] == 6
+    assert d["settings"]["grid"] == [3, 2] and d["calibration"]["path"].endswith("calibration.json")
+
+
+def test_perturbed_calibration_fails_with_exit_1(tmp_path, capsys):
+    sc = get_scenario("nonoverlap-136", 0)
+    make_sim_session(tmp_path, calibration=perturbed(sc.ground_truth(), principal_shift_px=(5.0, 0.0)))
+    assert main(["verify", str(tmp_path), "--rig", "sim", "--grid", "3x1"]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL" in out
+    d = json.loads((tmp_path / "verification.json").read_text())
+    assert d["passed"] is False and d["mean_proj_px"] > 1.5
+    # a looser threshold lets the same calibration pass, and --out puts the report elsewhere
+    other = tmp_path / "other.json"
+    assert main(["verify", str(tmp_path), "--rig", "sim", "--grid", "3x1", "--threshold", "8", "--out", str(other)]) == 0
+    assert json.loads(other.read_text())["threshold_px"] == 8.0
+
+
+def test_could_not_run_exits_2(tmp_path, capsys):
+    sc = get_scenario("nonoverlap-136", 0)
+    no_cal = tmp_path / "no_cal"
+    make_sim_session(no_cal)
+    assert main(["verify", str(no_cal), "--rig", "sim"]) == 2
+    assert "procam calibrate" in capsys.readouterr().err
+    real = tmp_path / "real"
+    make_sim_session(real, calibration=sc.ground_truth(), driver="realsense")
+    assert main(["verify", str(real), "--rig", "sim"]) == 2
+    assert "--scenario" in capsys.readouterr().err
+    # ... unless the scenario is named
+    assert main(["verify", str(real), "--rig", "sim", "--scenario", "nonoverlap-136", "--grid", "3x1"]) == 0
+    assert main(["verify", str(tmp_path / "missing"), "--rig", "sim"]) == 2
+    # a calibration of another rig's size
+    other = tmp_path / "other"
+    make_sim_session(other, "nonoverlap-136-720p", calibration=sc.ground_truth())
+    assert main(["verify", str(other), "--rig", "sim"]) == 2
+    assert "differs" in capsys.readouterr().err
+
+
+def test_bad_arguments_exit_2(tmp_path):
+    for args in (["--grid", "4"], ["--grid", "0x3"], ["--threshold", "-1"], []):
+        r = subprocess.run([sys.executable, "-m", "app", "verify", str(tmp_path), *args],
+                           capture_output=True, text=True)
+        assert r.returncode == 2, (args, r.stderr)
+
+
+@pytest.mark.slow
+def test_simulate_calibrate_verify_end_to_end(tmp_path):
+    """The whole chain on the simulated rig: a `procam calibrate` result passes `procam verify`."""
+    folder = tmp_path / "s"
+    run = lambda *a: subprocess.run([sys.executable, "-m", "app", *a], capture_output=True, text=True)  # noqa: E731
+    r = run("simulate", "nonoverlap-136", "--out", str(folder), "--quality", "live", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    r = run("calibrate", str(folder), "--no-progress")
+    assert r.returncode == 0, r.stderr
+    r = run("verify", str(folder), "--rig", "sim")
+    assert r.returncode == 0, r.stdout + r.stderr
+    d = json.loads((folder / "verification.json").read_text())
+    assert d["passed"] and d["n_measured"] >= 10 and d["mean_proj_px"] < 0.5

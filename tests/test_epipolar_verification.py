@@ -1,0 +1,178 @@
+"""The epipolar verification (app.verification): verdict logic, report files, pixel picking, and the
+check end to end on the simulated rig (correct calibrations pass, perturbed ones are flagged)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from app.verification import (
+    DEFAULT_THRESHOLD_PX,
+    PixelCheck,
+    VerificationError,
+    VerificationReport,
+    grid_pixels,
+    judge,
+    perturbed,
+    region_mask,
+    verify,
+    verify_pixel,
+)
+from calib.epipolar import distance_to_polyline
+from calib.errors import FormatError
+from drivers.sim.rig import open_sim_rig
+
+
+def _check(d_cam, scale=0.25, reason=None, pixel=(10.0, 20.0)):
+    if reason is not None:
+        return PixelCheck(pixel, np.zeros((3, 2)), np.zeros((0, 2)), None, None, None, None, None, 12.0, None, reason)
+    line = np.array([[0.0, 20.0 + d_cam], [100.0, 20.0 + d_cam]])
+    return PixelCheck(pixel, np.ones((5, 2)), line, None, d_cam, d_cam, d_cam / scale, scale, 12.0, 0.05)
+
+
+# ---- verdict and report ------------------------------------------------------------------------------
+def test_verdict_on_mean_and_worst_in_projector_pixels():
+    good = judge([_check(0.05), _check(0.1), _check(0.2)])
+    assert good.passed and good.n_failed_detection == 0
+    assert good.mean_px == pytest.approx(0.35 / 3) and good.worst_px == pytest.approx(0.2)
+    assert good.worst_proj_px == pytest.approx(0.8) and good.threshold_px == DEFAULT_THRESHOLD_PX
+    # a systematic offset: mean 2 projector px > 1.5
+    shifted = judge([_check(0.5), _check(0.5), _check(0.5)])
+    assert not shifted.passed and "on average" in shifted.verdict
+    # one bad pixel: mean fine, worst 3.2 > 2 x 1.5
+    one_bad = judge([_check(0.0), _check(0.0), _check(0.0), _check(0.0), _check(0.8)])
+    assert one_bad.mean_proj_px < 1.5 and not one_bad.passed and "worst" in one_bad.verdict
+    # the threshold is the caller's
+    assert judge([_check(0.5)] * 3, threshold_px=2.5).passed
+
+
+def test_unmeasured_pixels_are_reported_never_passed():
+    checks = [_check(0.0), _check(0.0), _check(0.0), _check(0, reason="no projected curve visible")]
+    rep = judge(checks)
+    assert rep.passed and rep.n_failed_detection == 1 and rep.n_measured == 3
+    assert "not measured" in rep.verdict
+    # too few measured: fails, with the reasons
+    rep = judge([_check(0.0), _check(0, reason="curve off the board"), _check(0, reason="curve off the board")])
+    assert not rep.passed and "only 1 of 3" in rep.verdict and "curve off the board" in rep.verdict
+    rep = judge([_check(0, reason="nothing")] * 12)
+    assert not rep.passed and rep.mean_px is None and rep.n_failed_detection == 12
+    # a check without its own scale borrows the others'
+    no_scale = PixelCheck((1.0, 1.0), np.ones((2, 2)), np.ones((2, 2)), None, 0.5, 0.5, None, None, 12.0, 0.1)
+    rep = judge([_check(0.1, scale=0.25), _check(0.1, scale=0.25), no_scale])
+    assert rep.worst_proj_px == pytest.approx(2.0)
+
+
+def test_report_json_roundtrip_and_errors(tmp_path):
+    rep = judge([_check(0.1), _check(0.2), _check(0.1), _check(0, reason="hidden")], calibration={"method": "paper"})
+    path = tmp_path / "verification.json"
+    rep.save_json(path)
+    assert [p.name for p in tmp_path.iterdir()] == ["verification.json"]  # no temporary file left
+    d = json.loads(path.read_text())
+    assert d["schema"] == "procam-verification" and d["passed"] is True and d["n_failed_detection"] == 1
+    assert d["threshold_unit"] == "projector px" and d["calibration"]["method"] == "paper"
+    back = VerificationReport.from_json(path)
+    assert back.passed == rep.passed and back.verdict == rep.verdict
+    assert back.mean_proj_px == pytest.approx(rep.mean_proj_px)
+    assert len(back.checks) == 4 and back.checks[3].reason == "hidden" and not back.checks[3].ok
+    assert np.allclose(back.checks[0].detected_curve, rep.checks[0].detected_curve)
+    path.write_text("{not json")
+    with pytest.raises(FormatError, match="not valid JSON"):
+        VerificationReport.from_json(path)
+    d["threshold_px"] = -1
+    path.write_text(json.dumps(d))
+    with pytest.raises(FormatError, match="threshold_px"):
+        VerificationReport.from_json(path)
+
+
+def test_grid_pixels_spread_over_the_region():
+    lit = np.zeros((400, 600), bool)
+    lit[100:300, 150:450] = True
+    lit[190:206, 262:278] = False  # a dark square inside: closed over, but avoided when possible
+    region = region_mask(lit.shape, lit)
+    assert region[200, 270] and not region[50, 50]
+    pts = grid_pixels(region, (4, 3), prefer=lit)
+    assert len(pts) == 12
+    assert np.all(lit[pts[:, 1].astype(int), pts[:, 0].astype(int)])
+    assert pts[:, 0].min() < 220 and pts[:, 0].max() > 380 and pts[:, 1].min() < 150 and pts[:, 1].max() > 250
+    assert len(np.unique(pts, axis=0)) == 12
+    # a box restricts the region
+    box = region_mask(lit.shape, lit, (300, 0, 599, 399))
+    assert box[:, :300].sum() == 0 and box.any()
+    with pytest.raises(VerificationError):
+        grid_pixels(region, (0, 3))
+    with pytest.raises(VerificationError):
+        region_mask(lit.shape, lit, "everywhere")
+
+
+# ---- on the simulated rig ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def sim():
+    rig = open_sim_rig("nonoverlap-136", seed=0, quality="live")
+    rig.camera.start()
+    rig.operator.request_pose("verification", None, 0)
+    return rig
+
+
+def test_ground_truth_passes_and_the_detected_curve_is_the_predicted_one(sim):
+    gt = sim.ground_truth()
+    rep = verify(sim.camera, sim.projector, sim.operator, gt, grid=(3, 2), board_pose=sim.board.T_cam_board)
+    assert rep.passed, rep.summary()
+    assert rep.n_measured == 6 and rep.n_failed_detection == 0
+    assert rep.worst_proj_px < 0.5 and rep.worst_px < 0.15
+    for c in rep.checks:
+        assert 0.15 < c.scale < 0.35  # a camera pixel covers about 4 projector pixels on this rig
+        # the calibration's prediction of where the camera sees the stroke (through the board plane)
+        assert distance_to_polyline(c.pixel, c.predicted_curve).distance[0] < 1e-3
+        near = c.detected_curve[np.linalg.norm(c.detected_curve - c.pixel, axis=1) < 150]
+        assert len(near) > 30
+        assert np.median(distance_to_polyline(near, c.predicted_curve).distance) < 0.15
+    # the projector is left dark
+    assert not sim.projector.image.any()
+
+
+@pytest.mark.parametrize("name,kw", [
+    ("rotation 0.5 deg about the projector's x", dict(rotation_deg=0.5, axis=(1, 0, 0))),
+    ("rotation 0.5 deg about the projector's y", dict(rotation_deg=0.5, axis=(0, 1, 0))),
+    ("principal point +5 px in x", dict(principal_shift_px=(5.0, 0.0))),
+    ("principal point +5 px in y", dict(principal_shift_px=(0.0, 5.0))),
+])
+def test_perturbed_calibration_is_flagged(sim, name, kw):
+    bad = perturbed(sim.ground_truth(), **kw)
+    rep = verify(sim.camera, sim.projector, sim.operator, bad, grid=(3, 2))
+    assert rep.n_measured == 6, rep.summary()
+    assert not rep.passed, f"{name}: {rep.summary()}"
+    assert rep.mean_proj_px > DEFAULT_THRESHOLD_PX
+
+
+def test_pixels_off_the_board_are_not_measured(sim):
+    gt = sim.ground_truth()
+    on_board = [(600.0, 360.0), (700.0, 420.0), (640.0, 460.0)]
+    rep = verify(sim.camera, sim.projector, sim.operator, gt, pixels=on_board + [(40.0, 40.0), (1200.0, 700.0)])
+    assert rep.n_measured == 3 and rep.n_failed_detection == 2
+    assert rep.passed and "2 pixel(s) not measured" in rep.verdict
+    for c in rep.checks[3:]:
+        assert not c.ok and c.distance_px is None and c.reason
+    only_off = verify(sim.camera, sim.projector, sim.operator, gt, pixels=[(40.0, 40.0), (1200.0, 700.0), (20, 780)])
+    assert not only_off.passed and only_off.n_measured == 0
+
+
+def test_single_pixel_and_errors(sim):
+    gt = sim.ground_truth()
+    c = verify_pixel(sim.camera, sim.projector, gt, (640.0, 400.0), board_pose=sim.board.T_cam_board)
+    assert c.ok and c.distance_px < 0.1 and c.distance_proj_px < 0.5
+    ov = c.overlay()
+    assert ov["pixel"] == (640.0, 400.0) and len(ov["detected"]) > 50 and len(ov["predicted"]) > 10
+    assert "camera px" in ov["label"]
+    with pytest.raises(VerificationError, match="outside"):
+        verify_pixel(sim.camera, sim.projector, gt, (5000.0, 1.0))
+    wrong_size = gt.with_(projector=gt.projector.__class__(1280, 720, gt.projector.K, gt.projector.dist))
+    with pytest.raises(VerificationError, match="1920x1080"):
+        verify(sim.camera, sim.projector, None, wrong_size)
+
+
+def test_nothing_lit_is_an_error_not_a_verdict():
+    rig = open_sim_rig("nonoverlap-136", seed=0, quality="live")
+    rig.camera.start()
+    rig.operator.move_out()
+    with pytest.raises(VerificationError, match="nothing lit"):
+        verify(rig.camera, rig.projector, None, rig.ground_truth())
