@@ -461,15 +461,33 @@ def grid_pixels(mask: np.ndarray, grid=DEFAULT_GRID, margin_px: int = 12, prefer
     return np.array(out, float).reshape(-1, 2)
 
 
+def estimate_board_pose(image: np.ndarray, board, result: CalibrationResult) -> np.ndarray | None:
+    """T_cam_board of the ChArUco `board` (CharucoSpec) in a camera image, with the calibration's camera
+    model (and mirror: the board is then detected mirrored). None when the board is not found. Used
+    for the predicted-curve overlay only; the measurement never depends on it."""
+    from calib.board_pose import solve_board_pose, usable_reason
+    from calib.detect import detect_board
+
+    img = np.clip(np.asarray(image), 0, 255).astype(np.uint8)
+    obs = detect_board(img, board, mirrored=result.mirror is not None)
+    if not obs or usable_reason(board, obs) is not None:
+        return None
+    pose = solve_board_pose(result.camera, board, obs)
+    return pose.physical(None if result.mirror is None else result.mirror.reflection())
+
+
 def verify(camera, projector, operator, result: CalibrationResult, pixels=None, grid=DEFAULT_GRID,
            threshold_px: float = DEFAULT_THRESHOLD_PX, board_region=None, progress: Progress | None = None, *,
-           board_pose=None, stroke_px: float | None = None, settle_frames: int = 1, average: int = 1,
-           min_measured: int = 3, calibration_info: dict | None = None) -> VerificationReport:
+           board=None, board_pose=None, stroke_px: float | None = None, settle_frames: int = 1, average: int = 1,
+           min_measured: int = 3, calibration_info: dict | None = None, session_dir=None) -> VerificationReport:
     """The automatic epipolar check. `operator` (may be None) is asked for the 'verification' pose
     first. `pixels`: (N, 2) camera pixels to verify, default a `grid` (cols, rows) spread over the
     region the projector lights (within `board_region` when given). One pixel after another; the
     stroke width adapts to TARGET_STROKE_CAM_PX camera pixels once the scale is measured (unless
-    `stroke_px` is given). Returns the report (the projector is left black)."""
+    `stroke_px` is given). `board_pose` (T_cam_board) or `board` (the CharucoSpec, found in the white
+    frame; default the session's projector board when `session_dir` is given) add the predicted curve
+    to each check (overlay only). `session_dir`: write the report there as verification.json. Returns
+    the report (the projector is left black)."""
     if tuple(projector.size) != tuple(result.projector.size):
         raise VerificationError(f"the projector is {projector.size[0]}x{projector.size[1]} but the calibration is for "
                                 f"{result.projector.width}x{result.projector.height}")
@@ -480,6 +498,10 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     if (W, H) != tuple(result.camera.size):
         raise VerificationError(f"the camera delivers {W}x{H} frames but the calibration is for "
                                 f"{result.camera.width}x{result.camera.height}")
+    if board_pose is None and board is None and session_dir is not None:
+        board = _session_board(session_dir)
+    if board_pose is None and board is not None:
+        board_pose = estimate_board_pose(refs.white, board, result)
     if pixels is None:
         region = region_mask((H, W), refs.lit, board_region)
         if not region.any():
@@ -507,8 +529,21 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
         progress(len(pts), len(pts), "done")
     info = {"method": result.method, "units": result.units, **(calibration_info or {})}
     settings = {"grid": list(grid) if pixels is None else None, "settle_frames": settle_frames, "average": average,
-                "stroke_px": stroke_px, "min_measured": min_measured}
-    return judge(checks, threshold_px, min_measured, info, settings)
+                "stroke_px": stroke_px, "min_measured": min_measured, "board_pose_known": board_pose is not None}
+    report = judge(checks, threshold_px, min_measured, info, settings)
+    if session_dir is not None:
+        report.save_json(Path(session_dir) / "verification.json")
+    return report
+
+
+def _session_board(folder):
+    """The projector board of the session in `folder`, or None when it cannot be read."""
+    from calib.session import SessionStore
+
+    try:
+        return SessionStore.open(folder).manifest.projector_board
+    except ProcamError:
+        return None
 
 
 def perturbed(result: CalibrationResult, rotation_deg: float = 0.0, axis=(0.0, 1.0, 0.0),

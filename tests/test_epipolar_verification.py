@@ -176,3 +176,32 @@ def test_nothing_lit_is_an_error_not_a_verdict():
     rig.operator.move_out()
     with pytest.raises(VerificationError, match="nothing lit"):
         verify(rig.camera, rig.projector, None, rig.ground_truth())
+
+
+def test_station_call_writes_the_session_report_with_predicted_curves(sim, tmp_path):
+    """The station calls verify(camera, projector, operator, result, session_dir=...): the report lands
+    in the session, and the session's projector board (found in the white frame) gives the overlay."""
+    from tests._epipolar_helpers import make_sim_session
+
+    make_sim_session(tmp_path)
+    gt = sim.ground_truth()
+    rep = verify(sim.camera, sim.projector, sim.operator, gt, session_dir=tmp_path, grid=(2, 2))
+    assert rep.passed and rep.settings["board_pose_known"]
+    back = VerificationReport.from_json(tmp_path / "verification.json")
+    assert back.passed and len(back.checks) == 4
+    for c in back.checks:
+        assert c.predicted_curve is not None and len(c.predicted_curve) > 10
+        assert distance_to_polyline(c.pixel, c.predicted_curve).distance[0] < 0.01
+        assert np.median(distance_to_polyline(c.detected_curve, c.predicted_curve).distance) < 0.2
+
+
+def test_board_pose_from_the_white_frame(sim):
+    from app.verification import capture_references, estimate_board_pose
+    from calib.transforms import invert_T, rotation_angle_deg
+
+    refs = capture_references(sim.camera, sim.projector)
+    gt = sim.ground_truth()
+    T = estimate_board_pose(refs.white, sim.scenario.projector_board, gt)
+    D = invert_T(sim.board.T_cam_board) @ T
+    assert np.linalg.norm(D[:3, 3]) < 5.0 and rotation_angle_deg(D) < 0.5  # mm, degrees
+    assert estimate_board_pose(refs.off * 0, sim.scenario.projector_board, gt) is None
