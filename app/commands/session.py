@@ -172,17 +172,23 @@ def run(args) -> int:
     opts = StationOptions(auto=True, mirror_method=args.mirror_method, follow_operator=True)
     if req.kind != "sim":  # a person needs time, and a pose too close to another is never kept
         opts.max_frames_per_target = 10**9
-        opts.accept_similar_after = 10**9
+        opts.stuck_frames = 10**9
     station = Station(rig, machine, opts, log=log)
-    last_event = len(machine.events)
+    shown = {}
+
+    def progress(done, total, label=""):
+        stage = "detecting captures" if str(label)[:1].isalnum() and str(label)[:1] in "pm" and str(label)[1:2].isdigit() \
+            or str(label).startswith("mr") else f"calibration: {label}"
+        if shown.get(stage) is None or done == total or time.monotonic() - shown[stage] > 5:
+            shown[stage] = time.monotonic()
+            log(f"{stage} {done}/{total}")
+
+    station.on_progress = progress
+    machine.on_event = lambda text: None if text.startswith("captured") else log(text)  # the station logs captures
     last_hint = ""
     try:
         while machine.state != DONE:
             station.tick()
-            for ev in machine.events[last_event:]:
-                if not ev.text.startswith("captured"):  # the station logs captures with their place
-                    log(ev.text)
-            last_event = len(machine.events)
             if req.kind != "sim":
                 hint = station.instruction()
                 if hint != last_hint:

@@ -31,20 +31,24 @@ class PoseFeatures:
     size: float
     tilt_deg: float
     rvec: tuple[float, float, float] | None = None
+    tvec: tuple[float, float, float] | None = None  # board units, same frame as rvec
 
     def to_dict(self) -> dict:
         d = {"centre": [round(self.centre[0], 5), round(self.centre[1], 5)], "size": round(self.size, 5),
              "tilt_deg": round(self.tilt_deg, 3)}
         if self.rvec is not None:
             d["rvec"] = [round(float(v), 6) for v in self.rvec]
+        if self.tvec is not None:
+            d["tvec"] = [round(float(v), 4) for v in self.tvec]
         return d
 
     @classmethod
     def from_dict(cls, d) -> "PoseFeatures | None":
         try:
-            rv = d.get("rvec")
+            rv, tv = d.get("rvec"), d.get("tvec")
             return cls((float(d["centre"][0]), float(d["centre"][1])), float(d["size"]), float(d["tilt_deg"]),
-                       None if rv is None else tuple(float(v) for v in rv))
+                       None if rv is None else tuple(float(v) for v in rv),
+                       None if tv is None else tuple(float(v) for v in tv))
         except (KeyError, TypeError, ValueError, IndexError, AttributeError):
             return None
 
@@ -84,7 +88,8 @@ def pose_features(obs: BoardObservation, spec: CharucoSpec, camera: CameraModel)
     normal = R[:, 2]
     cosang = abs(float(normal @ c) / max(np.linalg.norm(c), 1e-12))
     tilt = float(np.degrees(np.arccos(np.clip(cosang, 0.0, 1.0))))
-    return PoseFeatures(centre, size, tilt, tuple(float(v) for v in np.asarray(rvec).reshape(3)))
+    return PoseFeatures(centre, size, tilt, tuple(float(v) for v in np.asarray(rvec).reshape(3)),
+                        tuple(float(v) for v in t))
 
 
 def pose_distance(a: PoseFeatures, b: PoseFeatures) -> dict:

@@ -189,6 +189,7 @@ class SessionMachine:
         self.retake_target: Target | None = None
         self.last_capture: Capture | None = None
         self.events: list[Event] = []
+        self.on_event: Callable[[str], None] | None = None
         st = store.manifest.state or {}
         self.mirror_method: str | None = store.manifest.mirror_method or st.get("mirror_method")
         self.camera_intrinsics: str | None = st.get("camera_intrinsics")
@@ -712,6 +713,8 @@ class SessionMachine:
     def _log(self, text: str) -> None:
         self.events.append(Event(time.time(), text))
         del self.events[:-200]
+        if self.on_event is not None:
+            self.on_event(text)
 
 
 def default_calibrate(folder, camera_intrinsics, progress=None, workers: int = 2) -> CalibrationResult:

@@ -15,6 +15,7 @@ from calib.pattern import PatternSpec
 from calib.session import MANIFEST, RigInfo, SessionManifest, SessionStore
 
 GROUND_TRUTH_FILE = "ground_truth.json"
+VERIFICATION_FILE = "verification.json"
 DEFAULT_SCENARIO = "nonoverlap-136"
 
 
@@ -59,16 +60,20 @@ def open_rig(req: RigRequest, **options):
     if req.kind == "sim":
         from drivers.sim.rig import open_sim_rig
 
-        rig = open_sim_rig(req.scenario, seed=req.seed, quality=req.quality)
+        rig = open_sim_rig(req.scenario, seed=req.seed, quality=req.quality, **options)
         if not hasattr(rig, "kind"):
             try:
                 rig.kind = "sim"
             except AttributeError:
                 pass
-        return rig
-    from drivers.factory import open_rig as factory_open
+    else:
+        from drivers.factory import open_rig as factory_open
 
-    return factory_open(req.kind, **options)
+        rig = factory_open(req.kind, **options)
+    start = getattr(rig.camera, "start", None)
+    if callable(start) and not getattr(rig.camera, "running", False):
+        start()
+    return rig
 
 
 def _attr(obj, *names, default=None):
@@ -86,7 +91,7 @@ def sim_specs(rig) -> dict:
     mirror_board = _attr(sc, "mirror_board")
     pattern = _attr(sc, "pattern")
     method = _attr(sc, "mirror_method")
-    thickness = _attr(sc, "thickness", "board_thickness", "thickness_mm", default=0.0) or 0.0
+    thickness = _attr(sc, "board_thickness_mm", "board_thickness", "thickness_mm", "thickness", default=0.0) or 0.0
     view = _attr(sc, "view")
     if view is None:
         srig = _attr(sc, "rig")
@@ -161,7 +166,9 @@ def make_verify_fn(rig, folder):
         return None
 
     def run(result, **kw):
-        return verify(rig.camera, rig.projector, rig.operator, result, session_dir=Path(folder), **kw)
+        report = verify(rig.camera, rig.projector, rig.operator, result, **kw)
+        report.save_json(Path(folder) / VERIFICATION_FILE)
+        return report
 
     return run
 

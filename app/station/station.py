@@ -53,8 +53,9 @@ class StationOptions:
     mirror_method: str | None = None  # auto: the method to choose (None: the scenario's, else real-virtual)
     settle_frames: int | None = None  # frames to skip after the projector or the board changed (None: by rig)
     frame_timeout_s: float = 3.0
-    max_frames_per_target: int = 40  # auto: frames without a usable detection before giving up on a target
-    accept_similar_after: int = 6  # auto: still-but-similar frames after which the asked pose is accepted
+    max_frames_per_target: int = 12  # auto: frames without a capture before asking for another pose
+    max_variants: int = 3  # auto: other poses asked for one target before giving up
+    stuck_frames: int = 3  # auto: still frames that are unusable or too similar before asking for another pose
     autocapture: AutoCaptureSettings = field(default_factory=AutoCaptureSettings)
 
 
@@ -102,13 +103,22 @@ class Station:
         self._min_frame = -1
         self._frames_on_target = 0
         self._similar_frames = 0
+        self._failing_frames = 0
         self._tick_times: list[float] = []
         self._pattern_cache: dict[int, np.ndarray] = {}
         self._worker: threading.Thread | None = None
         self._worker_error: str | None = None
         self._stop = threading.Event()
         self._loop_thread: threading.Thread | None = None
+        self._grab_thread: threading.Thread | None = None
+        self._frame_cond = threading.Condition()
+        self.preview = None  # newest camera frame (preview thread)
+        self._preview_times: list[float] = []
+        self._operator_index = 0
+        self._variant = 0  # auto mode: how many times the operator was asked for another pose
         self.started_s = time.monotonic()
+        self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
+        self.on_progress: Callable | None = None
 
     # ---- devices --------------------------------------------------------------------------------
     @property
@@ -135,6 +145,7 @@ class Station:
         self.autocap.reset()
         self._frames_on_target = 0
         self._similar_frames = 0
+        self._failing_frames = 0
 
     def check_rig(self) -> list[RigCheck]:
         """Camera streaming, projector window presenting, board and pattern specs usable."""
@@ -190,13 +201,27 @@ class Station:
         target = target or self.machine.target
         if target is None:
             raise ActionRefused("move the board", "no capture is asked for now")
-        text = self.rig.operator.request_pose(target.step, target.pattern_position, target.pose_index)
+        if target != self._requested and self._requested is not None:
+            self._variant = 0
+        index = target.pose_index + 100 * self._variant  # a variant: another pose for the same slot
+        text = self.rig.operator.request_pose(target.step, target.pattern_position, index)
         self.operator_says = text or ""
         self._requested = target
+        self._operator_index = index
         self._changed()
         return self.operator_says
 
     def _grab(self):
+        """The next frame for detection: from the preview thread when it runs, else from the camera."""
+        if self._grab_thread is not None:
+            with self._frame_cond:
+                self._frame_cond.wait_for(lambda: (self.preview is not None and self.preview.frame_number >
+                                                   self._last_frame) or self._stop.is_set(), timeout=1.0)
+                frame = self.preview
+            if frame is None or frame.frame_number <= self._last_frame:
+                return None
+            self._last_frame = frame.frame_number
+            return frame
         try:
             frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
                                               newer_than=self._last_frame if self._last_frame >= 0 else None)
@@ -207,6 +232,37 @@ class Station:
         self.device_problem = None
         self._last_frame = frame.frame_number
         return frame
+
+    def _grab_loop(self, max_fps: float) -> None:
+        """Preview thread: keep the newest camera frame (for the live image and for detection)."""
+        period = 1.0 / max_fps
+        last_n = -1
+        while not self._stop.is_set():
+            t0 = time.monotonic()
+            if self.machine.busy == "verifying":  # the verification owns the camera meanwhile
+                time.sleep(0.1)
+                continue
+            try:
+                frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
+                                                  newer_than=last_n if last_n >= 0 else None)
+            except DeviceError as e:
+                self.device_problem = f"camera: {e}; waiting for it to come back"
+                time.sleep(0.5)
+                continue
+            if self.device_problem and self.device_problem.startswith("camera"):
+                self.device_problem = None
+            last_n = frame.frame_number
+            with self._frame_cond:
+                self.preview = frame
+                self._preview_times.append(time.monotonic())
+                del self._preview_times[:-30]
+                self._frame_cond.notify_all()
+            time.sleep(max(0.0, period - (time.monotonic() - t0)))
+
+    @property
+    def preview_fps(self) -> float:
+        t = list(self._preview_times)
+        return (len(t) - 1) / max(t[-1] - t[0], 1e-6) if len(t) > 1 else 0.0
 
     def taken_for(self, target: Target | None) -> list[tuple[str, PoseFeatures]]:
         """Features of the captured poses a new capture for `target` must differ from."""
@@ -241,6 +297,7 @@ class Station:
             self._autocap_target = target
             self._frames_on_target = 0
             self._similar_frames = 0
+            self._failing_frames = 0
         if m.busy:
             time.sleep(0.2)  # leave the processor to the calibration; the live view slows down
         frame = self._grab()
@@ -261,20 +318,31 @@ class Station:
         self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, fps)
         if decision is not None and target is not None:
             take = decision.capture and self.options.auto_capture
-            if self.options.auto and decision.still and det.ok and not decision.novel:
-                self._similar_frames += 1
-                if self._similar_frames >= self.options.accept_similar_after:
-                    take = True  # the operator placed the pose it was asked for; keep it
-                    self.log(f"accepted a pose close to {decision.similar_to} (it is the pose asked for)")
+            if not take and self.options.auto:
+                similar = decision.still and det.ok and not decision.novel
+                failing = decision.still and not det.ok  # board still, but the frame is not usable
+                self._similar_frames = self._similar_frames + 1 if similar else 0
+                self._failing_frames = self._failing_frames + 1 if failing else 0
+                stuck = self._similar_frames >= self.options.stuck_frames or \
+                    self._failing_frames >= self.options.stuck_frames or \
+                    self._frames_on_target > self.options.max_frames_per_target
+                if stuck and self._variant < self.options.max_variants:
+                    self.log(f"no capture for this pose ({decision.message}); asking the operator for another pose")
+                    self._variant += 1
+                    self._requested = None
+                    self.request_pose(target)
+                elif stuck and similar:
+                    take = True  # the operator cannot do better: keep the pose it was asked for
+                    self.log(f"keeping a pose close to {decision.similar_to} (no other pose was found)")
+                elif stuck:
+                    raise SessionError(
+                        f"no usable frame for {target.step} (pattern position {target.pattern_position}, pose "
+                        f"{target.pose_index}) in {self._variant + 1} poses: {decision.message}")
             if take:
                 try:
                     self._capture(frame, det, decision, "auto")
                 except ActionRefused:
                     pass  # the target changed under us (a button action); the next tick follows it
-            elif self.options.auto and self._frames_on_target > self.options.max_frames_per_target:
-                raise SessionError(
-                    f"no usable frame for {target.step} (pattern position {target.pattern_position}, pose "
-                    f"{target.pose_index}) in {self._frames_on_target} frames: {decision.message}")
         if self.options.auto:
             self._drive()
         return self.live
@@ -291,6 +359,8 @@ class Station:
             meta["motion_px"] = round(float(decision.motion_px), 4)
         if decision is not None and decision.similar_to:
             meta["similar_to"] = decision.similar_to
+        if self._requested == self.machine.target and self._requested is not None:
+            meta["operator_pose_index"] = int(self._operator_index)
         cap = self.machine.record_capture(frame.image, meta)
         self.log(f"captured {cap.id}: {self._describe(cap)}")
         self._changed()
@@ -391,15 +461,27 @@ class Station:
 
     def calibrate(self):
         self._shown = None  # the projector is free again after the captures
-        return self.machine.calibrate(progress=None)
+        self.progress = None
+
+        def progress(done, total, label=""):
+            self.progress = (int(done), int(total), str(label))
+            if self.on_progress is not None:
+                self.on_progress(done, total, label)
+
+        return self.machine.calibrate(progress=progress)
 
     def verify(self):
         self._shown = None
         return self.machine.verify()
 
     # ---- background loop (panel) ------------------------------------------------------------------
-    def start_loop(self) -> None:
+    def start_loop(self, preview_fps: float = 15.0) -> None:
+        """Run the station in background threads: a preview thread keeping the newest frame and a
+        station thread detecting and capturing on it (the panel only draws)."""
         self.background_long_actions = True
+        self._grab_thread = threading.Thread(target=self._grab_loop, args=(preview_fps,), name="station-preview",
+                                             daemon=True)
+        self._grab_thread.start()
 
         def loop():
             while not self._stop.is_set():
@@ -415,8 +497,11 @@ class Station:
 
     def stop_loop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
-        if self._loop_thread is not None:
-            self._loop_thread.join(timeout_s)
+        with self._frame_cond:
+            self._frame_cond.notify_all()
+        for t in (self._loop_thread, self._grab_thread, self._worker):
+            if t is not None:
+                t.join(timeout_s)
 
     # ---- what to do next ----------------------------------------------------------------------------
     def instruction(self) -> str:
