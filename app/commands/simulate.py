@@ -184,7 +184,8 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
-        ctx = mp.get_context("fork")
+        # not plain fork: a process that has run OpenCV's thread pool can hang in a forked child
+        ctx = mp.get_context("forkserver")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
                                  initargs=(scenario, quality)) as ex:
             for res in ex.map(_render_job, jobs, chunksize=1):

@@ -1,0 +1,275 @@
+"""`procam bench accuracy | render`: accuracy against the simulator's ground truth, and render speed.
+
+accuracy: for every scenario and seed, simulate a session (drivers.sim) into a temporary folder, detect
+once, calibrate with every method registered in calib.pipeline.METHODS (or --methods), compare with the
+ground truth (calib.metrics.compare) and print the paper's metrics beside its headline numbers, with the
+time each stage took.
+render: frames per second of the simulated camera per render mode (see benchmarks/render_speed.py).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+NAME = "bench"
+HELP = "benchmarks on the simulated rig: calibration accuracy vs ground truth, render speed"
+DESCRIPTION = (
+    "`procam bench accuracy` simulates sessions of the named scenarios, calibrates them with each method "
+    "and prints the paper's metrics (errors against the ground truth) beside the paper's headline "
+    "numbers, plus per-stage timings. `procam bench render` prints the simulated camera's frames/s."
+)
+
+#: metrics printed, in order: (key of PaperMetrics, column title, format, key in PAPER_HEADLINE or None)
+COLUMNS = [
+    ("distance", "Dist mm", "{:.2f}", "distance"),
+    ("angle_deg", "Ang deg", "{:.3f}", "angle_deg"),
+    ("proj_k_px", "ProjK px", "{:.2f}", "proj_k_px"),
+    ("proj_d", "ProjD", "{:.4f}", "proj_d"),
+    ("cam_k_px", "CamK px", "{:.2f}", None),
+    ("cam_d", "CamD", "{:.4f}", None),
+    ("mirror_offset", "Mir mm", "{:.2f}", "mirror_offset"),
+    ("mirror_angle_deg", "Mir deg", "{:.3f}", "mirror_angle_deg"),
+    ("proj_rms_px", "ProjRMS", "{:.3f}", None),
+]
+
+
+def add_arguments(p) -> None:
+    sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    a = sub.add_parser("accuracy", help="calibration accuracy on simulated sessions vs ground truth")
+    a.add_argument("--scenarios", nargs="+", default=None, metavar="NAME",
+                   help="scenarios (default: all; `procam simulate --list`)")
+    a.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds 0..N-1 per scenario (default 1)")
+    a.add_argument("--methods", default=None,
+                   help="comma-separated calibration methods (default: every registered method)")
+    a.add_argument("--quality", choices=("live", "session"), default="session", help="render quality (default session)")
+    a.add_argument("--noise", type=float, default=None, metavar="SIGMA", help="read noise override (levels)")
+    a.add_argument("--blur", type=float, default=None, metavar="SIGMA", help="optical blur override (px)")
+    a.add_argument("--keep", metavar="DIR", default=None, help="keep the simulated sessions under DIR")
+    a.add_argument("--json", metavar="FILE", default=None, help="also write every run's numbers to FILE")
+    a.add_argument("--workers", type=int, default=2, help="processes for rendering and detection (default 2)")
+    r = sub.add_parser("render", help="frames per second of the simulated camera per render mode")
+    r.add_argument("--scenario", default="nonoverlap-136")
+    r.add_argument("--frames", type=int, default=20, help="frames per mode (default 20)")
+
+
+# ---- accuracy ---------------------------------------------------------------------------------------------
+def accuracy_runs(scenarios, seeds: int, methods, quality: str = "session", keep=None, noise=None, blur=None,
+                  workers: int = 2, log=print):
+    """Simulate, detect and calibrate; returns a list of dicts (scenario, seed, method, metrics, timings)."""
+    from dataclasses import replace
+
+    from app.commands.simulate import simulate_session
+    from calib.detect import detect_session
+    from calib.errors import ProcamError
+    from calib.metrics import compare
+    from calib.pipeline import calibrate_observations
+    from calib.session import SessionStore
+    from drivers.sim.scenarios import get_scenario
+
+    runs = []
+    tmp = None
+    if keep is None:
+        tmp = tempfile.TemporaryDirectory(prefix="procam-bench-")
+        root = Path(tmp.name)
+    else:
+        root = Path(keep)
+        root.mkdir(parents=True, exist_ok=True)
+    try:
+        for name in scenarios:
+            for seed in range(seeds):
+                sc = get_scenario(name, seed)
+                overrides = {}
+                if noise is not None:
+                    overrides["read_noise_dn"] = noise
+                if blur is not None:
+                    overrides["blur_sigma_px"] = blur
+                if overrides:
+                    sc = replace(sc, render=replace(sc.render, **overrides))
+                folder = root / f"{name}-seed{seed}"
+                t0 = time.perf_counter()
+                simulate_session(sc, folder, quality=quality, workers=workers, force=True, progress=False)
+                t_sim = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                obs = detect_session(SessionStore.open(folder), workers)
+                t_det = time.perf_counter() - t0
+                gt = sc.ground_truth()
+                for method in methods:
+                    row = {"scenario": name, "seed": seed, "method": method, "simulate_s": round(t_sim, 2),
+                           "detection_s": round(t_det, 2), "skipped": len(obs.skipped),
+                           "views": len(obs.projector_views), "mirror_views": len(obs.mirror_views)}
+                    try:
+                        res = calibrate_observations(obs, method)
+                    except ProcamError as e:
+                        row["error"] = str(e)
+                        log(f"  {name} seed {seed} {method}: FAILED: {e}")
+                        runs.append(row)
+                        continue
+                    row["metrics"] = compare(res, gt).to_dict()
+                    row["timing_s"] = {k: v for k, v in (res.diagnostics or {}).get("timing_s", {}).items()
+                                       if isinstance(v, (int, float))}
+                    runs.append(row)
+                    m = row["metrics"]
+                    log(f"  {name} seed {seed} {method}: distance {m['distance']:.2f} mm, angle {m['angle_deg']:.3f} deg, "
+                        f"ProjK {m['proj_k_px']:.2f} px ({row['views']} views, {row['skipped']} skipped)")
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    return runs
+
+
+def _fmt(x, fmt):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return fmt.format(x)
+
+
+def accuracy_table(runs, seeds: int) -> str:
+    """Mean over seeds of each metric, per scenario and method, with the paper's headline row."""
+    from calib.metrics import PAPER_HEADLINE
+
+    head = ["scenario", "method"] + [c[1] for c in COLUMNS] + ["skipped", "time s"]
+    rows = [["paper (synthetic)", "paper"] + [_fmt(PAPER_HEADLINE.get(k), f) if k else "-" for _, _, f, k in COLUMNS]
+            + ["", ""]]
+    keys = []
+    for r in runs:
+        if (r["scenario"], r["method"]) not in keys:
+            keys.append((r["scenario"], r["method"]))
+    for scen, meth in keys:
+        sel = [r for r in runs if r["scenario"] == scen and r["method"] == meth]
+        ok = [r for r in sel if "metrics" in r]
+        row = [scen, meth]
+        for key, _, fmt, _ in COLUMNS:
+            vals = [r["metrics"][key] for r in ok if r["metrics"].get(key) is not None]
+            row.append(_fmt(sum(vals) / len(vals), fmt) if vals else "-")
+        skipped = sum(r["skipped"] for r in sel) / max(len(sel), 1)
+        total = [r["timing_s"].get("total", 0.0) for r in ok]
+        row.append(f"{skipped:.1f}" + ("" if len(ok) == len(sel) else f" ({len(sel) - len(ok)} failed)"))
+        row.append(f"{sum(total) / len(total):.1f}" if total else "-")
+        rows.append(row)
+    widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
+    lines = ["  ".join(h.ljust(w) if i < 2 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths)))]
+    lines.append("  ".join("-" * w for w in widths))
+    for r in rows:
+        lines.append("  ".join(str(v).ljust(w) if i < 2 else str(v).rjust(w) for i, (v, w) in enumerate(zip(r, widths))))
+    note = f"(mean over {seeds} seed{'s' if seeds != 1 else ''}; lengths in mm; paper = its headline numbers, GEOMETRY.md)"
+    return "\n".join(lines) + "\n" + note
+
+
+def timing_table(runs) -> str:
+    """Mean time of each stage (seconds), per scenario and method, plus simulation and detection."""
+    stages = []
+    for r in runs:
+        for k in r.get("timing_s", {}):
+            if k not in stages and k != "total":
+                stages.append(k)
+    stages = [s for s in stages if s != "detection"]
+    head = ["scenario", "method", "simulate", "detection"] + stages + ["total"]
+    keys = []
+    for r in runs:
+        if (r["scenario"], r["method"]) not in keys:
+            keys.append((r["scenario"], r["method"]))
+    rows = []
+    for scen, meth in keys:
+        sel = [r for r in runs if r["scenario"] == scen and r["method"] == meth and "timing_s" in r]
+        if not sel:
+            continue
+
+        def mean(vals):
+            vals = [v for v in vals if v is not None]
+            return f"{sum(vals) / len(vals):.2f}" if vals else "-"
+
+        row = [scen, meth, mean([r["simulate_s"] for r in sel]), mean([r["detection_s"] for r in sel])]
+        row += [mean([r["timing_s"].get(s) for r in sel]) for s in stages]
+        row.append(mean([r["timing_s"].get("total") for r in sel]))
+        rows.append(row)
+    widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
+    lines = ["  ".join(h.ljust(w) if i < 2 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths)))]
+    lines.append("  ".join("-" * w for w in widths))
+    for r in rows:
+        lines.append("  ".join(str(v).ljust(w) if i < 2 else str(v).rjust(w) for i, (v, w) in enumerate(zip(r, widths))))
+    return "\n".join(lines) + "\n(seconds per session; stage times as the methods report them in diagnostics.timing_s)"
+
+
+def run_accuracy(args) -> int:
+    import json
+
+    from calib.errors import SpecError
+    from calib.pipeline import METHODS
+    from drivers.sim.scenarios import get_scenario, scenario_names
+
+    scenarios = args.scenarios or scenario_names()
+    for s in scenarios:
+        get_scenario(s)  # unknown names fail before any work
+    methods = [m.strip() for m in args.methods.split(",")] if args.methods else list(METHODS)
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise SpecError(f"unknown method(s) {', '.join(unknown)} (registered: {', '.join(METHODS)})")
+    if args.seeds < 1:
+        raise SpecError("--seeds must be >= 1")
+    print(f"procam bench accuracy: {len(scenarios)} scenario(s) x {args.seeds} seed(s), methods {', '.join(methods)}",
+          file=sys.stderr)
+    runs = accuracy_runs(scenarios, args.seeds, methods, args.quality, args.keep, args.noise, args.blur,
+                         args.workers, log=lambda s: print(s, file=sys.stderr))
+    print(accuracy_table(runs, args.seeds))
+    print()
+    print(timing_table(runs))
+    if args.json:
+        from calib.fileio import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(runs, indent=1) + "\n")
+    return 0 if all("metrics" in r for r in runs) else 1
+
+
+# ---- render speed -----------------------------------------------------------------------------------------
+MODES = {
+    "live": ("live", {}),
+    "live, noise+blur off": ("live", {"read_noise_dn": 0.0, "electrons_per_dn": 0.0, "blur_sigma_px": 0.0}),
+    "session (3x3 AA)": ("session", {}),
+}
+
+
+def render_speed(scenario: str = "nonoverlap-136", frames: int = 20, modes=None) -> list[tuple[str, float, float]]:
+    """[(mode, frames/s, warm-up s)] of SimCamera.get_frame with the board in view and a pattern shown."""
+    from drivers.sim.rig import open_sim_rig
+
+    out = []
+    for mode in modes or MODES:
+        quality, settings = MODES[mode]
+        rig = open_sim_rig(scenario, quality=quality, **settings)
+        t0 = time.perf_counter()
+        rig.camera.start()
+        warm = time.perf_counter() - t0
+        sc = rig.scenario
+        W, H = rig.projector.size
+        n = max(1, frames if quality == "live" else max(3, frames // 5))
+        t0 = time.perf_counter()
+        for i in range(n):
+            pos = i % sc.pattern.positions
+            if i % 5 == 0:
+                rig.operator.request_pose("projector", pos, 0)
+                rig.projector.show(sc.pattern.render(W, H, pos)[0])
+            rig.camera.get_frame()
+        dt = time.perf_counter() - t0
+        out.append((mode, n / dt, warm))
+    return out
+
+
+def run_render(args) -> int:
+    from drivers.sim.scenarios import get_scenario
+
+    sc = get_scenario(args.scenario)
+    W, H = sc.rig.camera.size
+    print(f"simulated camera {W}x{H}, scenario {args.scenario}, board in view, pattern shown")
+    for mode, fps, warm in render_speed(args.scenario, args.frames):
+        print(f"{mode:<24} {fps:6.1f} frames/s   (first start {warm:.1f} s)")
+    return 0
+
+
+def run(args) -> int:
+    if args.bench == "render":
+        return run_render(args)
+    return run_accuracy(args)
