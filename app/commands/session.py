@@ -165,10 +165,13 @@ def run(args) -> int:
     def log(text):
         print(f"[{time.monotonic() - t0:6.1f} s] {text}", flush=True)
 
-    rig, store, machine, req = open_session(args, log)
-    if req.kind == "sim" and not args.auto:
+    from app.station.setup import default_rig_kind, resume_request
+
+    kind = resume_request(args.resume, kind=args.rig).kind if args.resume else (args.rig or default_rig_kind())
+    if kind == "sim" and not args.auto:
         raise SessionError("the simulated rig has nobody to move the board: add --auto, or operate it from "
                            "the browser with `procam station --rig sim`")
+    rig, store, machine, req = open_session(args, log)
     opts = StationOptions(auto=True, mirror_method=args.mirror_method, follow_operator=True)
     if req.kind != "sim":  # a person needs time, and a pose too close to another is never kept
         opts.max_frames_per_target = 10**9
