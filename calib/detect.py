@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -116,20 +118,39 @@ def _consistent_markers(corners, ids, obj: dict):
 
 
 def _charuco_in(img: np.ndarray, spec: CharucoSpec, legacy: bool = False):
-    """(corners (N, 2) or None, ids (N,) or None, number of board markers) in `img`."""
+    """(corners (N, 2) or None, ids (N,) or None, board markers (M, 4, 2)) found in `img`."""
     aruco, charuco, obj = _detectors(spec, legacy)
     mcorners, mids, rejected = aruco.detectMarkers(img)
     mcorners, mids = _consistent_markers(mcorners, mids, obj)
     if mids is None:
-        return None, None, 0
+        return None, None, np.zeros((0, 4, 2))
     if len(rejected) and len(mids) < len(obj):
         # recover markers missed by the first pass, where the board layout says they must be
         mcorners, mids, _, _ = aruco.refineDetectedMarkers(img, charuco.getBoard(), list(mcorners), mids, rejected)
         mcorners = [np.asarray(c, np.float32).reshape(1, 4, 2) for c in mcorners]
+    markers = np.asarray(mcorners, float).reshape(-1, 4, 2)
     corners, ids, _, _ = charuco.detectBoard(img, markerCorners=mcorners, markerIds=mids)
     if ids is None or len(ids) == 0:
-        return None, None, len(mids)
-    return np.asarray(corners, float).reshape(-1, 2), np.asarray(ids, int).reshape(-1), len(mids)
+        return None, None, markers
+    return np.asarray(corners, float).reshape(-1, 2), np.asarray(ids, int).reshape(-1), markers
+
+
+def _roi_around(markers: np.ndarray, shape, grow: float = 2.5):
+    """(x0, y0, x1, y1) around found markers, grown by `grow` marker sides plus the markers' spread
+    (the rest of the board may lie beyond them), or None when the ROI would not be much smaller."""
+    if len(markers) == 0:
+        return None
+    h, w = shape
+    pts = markers.reshape(-1, 2)
+    side = float(np.median(np.linalg.norm(markers[:, 1] - markers[:, 0], axis=1)))
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = grow * side + 0.6 * (hi - lo) if len(markers) < 4 else grow * side + 0.25 * (hi - lo)
+    x0, y0 = np.floor(lo - pad).astype(int)
+    x1, y1 = np.ceil(hi + pad).astype(int) + 1
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if (x1 - x0) * (y1 - y0) > 0.7 * w * h:
+        return None
+    return (int(x0), int(y0), int(x1), int(y1))
 
 
 # ---- the board ---------------------------------------------------------------------------------------
@@ -145,26 +166,41 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
     img = cv2.flip(gray, 1) if mirrored else gray
     found = None
     h, w = img.shape
-    if min(h, w) >= 700:
-        # large image: find the board at half resolution first (4x less work); the corners are then
-        # re-refined at full resolution, so accuracy does not suffer. Incomplete -> full resolution.
+    x0 = y0 = 0
+    search = img
+    if min(h, w) >= 480:
+        # find the board at half resolution first (4x less work). Complete: its corners are re-refined
+        # at full resolution below, so accuracy does not suffer. Incomplete: search again at full
+        # resolution, only around the markers found (small boards far away), else everywhere.
         h2, w2 = h // 2, w // 2
         small = cv2.resize(img[: 2 * h2, : 2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)
-        corners, ids, _ = _charuco_in(small, spec)
-        if ids is not None and len(ids) == spec.n_corners:
+        corners, ids, markers = _charuco_in(small, spec)
+        if ids is not None and len(ids) == spec.n_corners and \
+                np.min(_margins_px(corners * 2.0 + 0.5, ids, spec)) >= _MIN_REFINE_MARGIN_PX:
             found = (corners * 2.0 + 0.5, ids)
+        else:
+            roi = _roi_around(markers * 2.0 + 0.5, (h, w))
+            if roi is not None:
+                x0, y0, x1, y1 = roi
+                search = img[y0:y1, x0:x1]
     if found is None:
-        corners, ids, n_markers = _charuco_in(img, spec)
+        corners, ids, markers = _charuco_in(search, spec)
         n = 0 if ids is None else len(ids)
-        if n < min_corners and n_markers >= 2 and spec.rows % 2 == 0:
+        if search is not img and n < spec.n_corners:  # the ROI guess missed part of the board
+            corners2, ids2, markers2 = _charuco_in(img, spec)
+            if ids2 is not None and len(ids2) > n:
+                corners, ids, markers, n = corners2, ids2, markers2, len(ids2)
+                x0 = y0 = 0
+        if n < min_corners and len(markers) >= 2 and spec.rows % 2 == 0:
             lc, lids, _ = _charuco_in(img, spec, legacy=True)
             if lids is not None and len(lids) > n:
                 corners, ids, n = lc, lids, len(lids)
-        if n == 0 and n_markers == 0:
+                x0 = y0 = 0
+        if n == 0 and len(markers) == 0:
             return DetectionFailure("board not found")
         if n < min_corners:
             return DetectionFailure(f"only {n} ChArUco corners (need {min_corners})")
-        found = (corners, ids)
+        found = (corners + [x0, y0], ids)
     corners, ids = found
     corners = _refine_corners(img, corners, ids, spec)
     if mirrored:
@@ -176,40 +212,52 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
 
 
+_MIN_REFINE_MARGIN_PX = 3.5
+
+
+def _margins_px(corners: np.ndarray, ids: np.ndarray, spec: CharucoSpec) -> np.ndarray:
+    """Per corner: pixels from the corner to the nearest marker edge (the clean X-junction around it),
+    from the local scale of the board -> image homography. Infinite when it cannot be estimated."""
+    n = len(ids)
+    if n < 4:
+        return np.full(n, np.inf)
+    obj = spec.corner_points()[ids, :2]
+    H, _ = cv2.findHomography(obj, corners, 0)
+    if H is None:
+        return np.full(n, np.inf)
+    sq = spec.square_length
+    probe = np.concatenate([obj, obj + [sq, 0.0], obj + [0.0, sq]])
+    m = cv2.perspectiveTransform(probe.reshape(-1, 1, 2), H).reshape(3, n, 2)
+    side_px = np.minimum(np.linalg.norm(m[1] - m[0], axis=1), np.linalg.norm(m[2] - m[0], axis=1))
+    side_px[~np.isfinite(side_px)] = np.inf
+    return side_px * (spec.square_length - spec.marker_length) / (2.0 * spec.square_length)
+
+
 def _refine_corners(img: np.ndarray, corners: np.ndarray, ids: np.ndarray, spec: CharucoSpec) -> np.ndarray:
     """Re-refine ChArUco corners: cornerSubPix on a Gaussian-smoothed copy, with a window that stays
     inside the white margin between the corner and the neighbouring markers.
 
     On sharp images cornerSubPix is pulled towards pixel centres (errors up to ~0.1 px, periodic in
     the sub-pixel phase); an X-junction is point-symmetric, so smoothing does not move it but removes
-    that bias (rendered boards: ~0.05 -> ~0.01 px rms)."""
-    n = len(ids)
-    if n < 4:
+    that bias (rendered boards: ~0.05 -> ~0.01 px rms). Where the margin is under 3.5 px the window
+    would reach the markers; those corners keep OpenCV's own full-resolution refinement."""
+    margin_px = _margins_px(corners, ids, spec)
+    todo = np.isfinite(margin_px) & (margin_px >= _MIN_REFINE_MARGIN_PX)
+    if not todo.any():
         return corners
-    obj = spec.corner_points()[ids, :2]
-    H, _ = cv2.findHomography(obj, corners, 0)
-    if H is None:
-        return corners
-    sq = spec.square_length
-    probe = np.concatenate([obj, obj + [sq, 0.0], obj + [0.0, sq]])
-    m = cv2.perspectiveTransform(probe.reshape(-1, 1, 2), H).reshape(3, n, 2)
-    side_px = np.minimum(np.linalg.norm(m[1] - m[0], axis=1), np.linalg.norm(m[2] - m[0], axis=1))
-    if not np.all(np.isfinite(side_px)):
-        return corners
-    # distance from a corner to the nearest marker edge, in pixels
-    margin_px = side_px * (spec.square_length - spec.marker_length) / (2.0 * spec.square_length)
-    half = np.clip(np.floor(0.65 * margin_px), 2, 10).astype(int)
+    half = np.zeros(len(ids), int)
+    half[todo] = np.clip(np.floor(0.65 * margin_px[todo]), 3, 10).astype(int)
     h, w = img.shape
     out = corners.copy()
     pad = 16
-    for hw in np.unique(half):
-        sel = np.nonzero(half == hw)[0]
+    for hw in np.unique(half[todo]):
+        sel = np.nonzero(todo & (half == hw))[0]
         p = corners[sel]
         x0 = max(int(np.floor(p[:, 0].min())) - hw - pad, 0)
         y0 = max(int(np.floor(p[:, 1].min())) - hw - pad, 0)
         x1 = min(int(np.ceil(p[:, 0].max())) + hw + pad + 1, w)
         y1 = min(int(np.ceil(p[:, 1].max())) + hw + pad + 1, h)
-        sigma = min(2.0, 0.4 * hw)
+        sigma = float(np.clip(0.33 * hw, 1.0, 2.0))
         roi = cv2.GaussianBlur(img[y0:y1, x0:x1].astype(np.float32), (0, 0), sigma)
         start = (p - [x0, y0]).astype(np.float32).reshape(-1, 1, 2)
         ref = cv2.cornerSubPix(roi, start.copy(), (int(hw), int(hw)), (-1, -1), _SUBPIX_CRITERIA).reshape(-1, 2)
@@ -338,49 +386,62 @@ def _stretch(img: np.ndarray) -> np.ndarray:
     return cv2.LUT(img, lut)
 
 
+def _local_contrast(crop: np.ndarray) -> np.ndarray:
+    """Bright detail above the local background, stretched to 0..255: projected circles on a lit board
+    are often only a little brighter than the board, which a global threshold cannot separate."""
+    sm = cv2.GaussianBlur(crop, (0, 0), 1.0)
+    k = int(max(31, min(crop.shape) // 6)) | 1
+    diff = cv2.subtract(sm, cv2.blur(crop, (k, k)))  # saturates at 0
+    return _stretch(diff)
+
+
 def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> np.ndarray:
     """Intensity-weighted centroid of each blob in a disc that excludes its neighbours; the background
     (median of the disc's rim) is subtracted. On anti-aliased blobs this is the blob's area centroid."""
-    out = pts.copy()
-    h, w = gray.shape
     n = len(pts)
+    if n == 0:
+        return pts.copy()
+    h, w = gray.shape
     d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
     d[np.arange(n), np.arange(n)] = np.inf
-    nn = d.min(axis=1)
-    for k in range(n):
-        x, y = pts[k]
-        r = radius[k]
-        R = min(1.35 * r + 2.0, nn[k] - 1.15 * r)
-        if R < r + 0.75:
-            R = r + 0.75
-        Ri = int(np.ceil(R))
-        xi, yi = int(round(x)), int(round(y))
-        x0, x1, y0, y1 = xi - Ri, xi + Ri + 1, yi - Ri, yi + Ri + 1
-        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
-            continue
-        win = gray[y0:y1, x0:x1].astype(np.float64)
-        ys, xs = np.mgrid[y0:y1, x0:x1]
-        rr = np.hypot(xs - x, ys - y)
-        inside = rr <= R
-        rim = inside & (rr > R - 1.5)
-        if not rim.any():
-            continue
-        bg = float(np.median(win[rim]))
-        wgt = np.where(inside, win - bg, 0.0)
-        wgt[wgt < 0] = 0.0
-        s = wgt.sum()
-        if s <= 0:
-            continue
-        cx, cy = (wgt * xs).sum() / s, (wgt * ys).sum() / s
-        if abs(cx - x) < 0.5 * r + 0.5 and abs(cy - y) < 0.5 * r + 0.5:
-            out[k] = (cx, cy)
+    nn = d.min(axis=1) if n > 1 else np.full(n, np.inf)
+    R = np.minimum(1.35 * radius + 2.0, nn - 1.15 * radius)
+    R = np.maximum(R, radius + 0.75)
+    Ri = int(np.ceil(R.max()))
+    off = np.arange(-Ri, Ri + 1)
+    xi = np.round(pts[:, 0]).astype(int)
+    yi = np.round(pts[:, 1]).astype(int)
+    inside_img = (xi - Ri >= 0) & (yi - Ri >= 0) & (xi + Ri < w) & (yi + Ri < h)
+    out = pts.copy()
+    if not inside_img.any():
+        return out
+    sel = np.nonzero(inside_img)[0]
+    X = xi[sel, None, None] + off[None, None, :]  # (m, 1, k)
+    Y = yi[sel, None, None] + off[None, :, None]  # (m, k, 1)
+    win = gray[Y, X].astype(np.float64)  # (m, k, k)
+    rr = np.hypot(X - pts[sel, 0, None, None], Y - pts[sel, 1, None, None])
+    Rs = R[sel, None, None]
+    inside = rr <= Rs
+    rim = inside & (rr > Rs - 1.5)
+    bg = np.array([np.median(win[j][rim[j]]) if rim[j].any() else np.nan for j in range(len(sel))])
+    wgt = np.where(inside, win - bg[:, None, None], 0.0)
+    wgt[wgt < 0] = 0.0
+    s = wgt.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cx = (wgt * X).sum(axis=(1, 2)) / s
+        cy = (wgt * Y).sum(axis=(1, 2)) / s
+    r = radius[sel]
+    ok = (s > 0) & np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx - pts[sel, 0]) < 0.5 * r + 0.5) \
+        & (np.abs(cy - pts[sel, 1]) < 0.5 * r + 0.5)
+    out[sel[ok], 0] = cx[ok]
+    out[sel[ok], 1] = cy[ok]
     return out
 
 
 def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi):
     x0, y0, x1, y1 = roi
     crop = gray[y0:y1, x0:x1]
-    work = _stretch(cv2.GaussianBlur(crop, (0, 0), 1.0))
+    work = _local_contrast(crop)
     max_area = int(work.shape[0] * work.shape[1] * 0.02)
     kps = _blob_detector(max(max_area, 50)).detect(work)
     n_need = pattern.n_points
@@ -603,21 +664,26 @@ def detect_session(store, workers: int = 2, progress=None) -> SessionObservation
                          m.pattern if c.step == STEP_PROJECTOR else None, tuple(m.rig.camera_size)))
     results: dict[str, object] = {}
     total = len(jobs)
-    if workers <= 1 or total <= 1:
-        for i, job in enumerate(jobs):
-            cid, res = _run_job(job)
-            results[cid] = res
-            if progress is not None:
-                progress(i + 1, total, cid)
-    else:
-        with ProcessPoolExecutor(max_workers=min(workers, total), initializer=_init_worker,
-                                 mp_context=_pool_context()) as ex:
-            futures = [ex.submit(_run_job, job) for job in jobs]
-            for i, fut in enumerate(as_completed(futures)):
-                cid, res = fut.result()
-                results[cid] = res
-                if progress is not None:
-                    progress(i + 1, total, cid)
+
+    def done(cid, res):
+        results[cid] = res
+        if progress is not None:
+            progress(len(results), total, cid)
+
+    if workers > 1 and total > 1:
+        try:
+            with ProcessPoolExecutor(max_workers=min(workers, total), initializer=_init_worker,
+                                     mp_context=_pool_context()) as ex:
+                for fut in as_completed([ex.submit(_run_job, job) for job in jobs]):
+                    done(*fut.result())
+        except (BrokenProcessPool, OSError) as e:
+            # workers could not start (e.g. an unguarded __main__ script re-run by the fork server):
+            # finish inline rather than fail the session
+            warnings.warn(f"detection workers failed ({e.__class__.__name__}); detecting in this process",
+                          RuntimeWarning, stacklevel=2)
+    for job in jobs:
+        if job.capture_id not in results:
+            done(*_run_job(job))
 
     pviews, mviews, skipped = [], [], []
     for c in m.captures:
