@@ -78,10 +78,11 @@ class JointOptions:
     max_nfev: int = 60
     tol: float = 1e-9
     uncertainty: bool = True
-    selection: str = "lrt"
+    selection: str = "bic"
     centroid_correction: bool = True
     solver: str = "lm"
     fix_camera: bool = False
+    weighting: str = "class"
 
 
 # ==================================================================================================
@@ -204,6 +205,7 @@ class JointProblem:
         self.centroid_corr = np.zeros((len(self.p["q"]), 2))
         self._xu_cache = None
         self._proj_cache = None
+        self.class_sigma = {}
 
     # ---- layout ---------------------------------------------------------------------------------
     def set_state(self, state: _State) -> None:
@@ -420,13 +422,44 @@ class JointProblem:
         b = Rs @ t_cp + ts
         return A[None] - b[None, :, None] * (n_p / d_p[:, None])[:, None, :]
 
-    def residuals(self, x: np.ndarray) -> np.ndarray:
+    def raw_residuals(self, x: np.ndarray) -> np.ndarray:
+        """Residuals in pixels, [u0, v0, u1, v1, ...] over corners then pattern points."""
         uv_c, uv_p = self.predict(x)
-        r = np.concatenate([(uv_c - self.c["uv"]).reshape(-1), (uv_p - self.p["uv"]).reshape(-1)])
-        return r
+        return np.concatenate([(uv_c - self.c["uv"]).reshape(-1), (uv_p - self.p["uv"]).reshape(-1)])
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Whitened residuals: pixels divided by the noise sigma of each observation's class."""
+        return self.raw_residuals(x) / self.row_scale
+
+    # ---- observation classes and their noise ----------------------------------------------------
+    def class_masks(self) -> dict:
+        """Point masks (over corners + pattern points) of the observation classes."""
+        nc, npat = len(self.c["pose"]), len(self.p["pose"])
+        out = {}
+        for kind, name in ((_KIND_BOARD, "board"), (_KIND_REAL, "mirror_real"), (_KIND_VIRTUAL, "mirror_virtual")):
+            m = np.zeros(nc + npat, bool)
+            m[:nc] = self.c["kind"] == kind
+            if m.any():
+                out[name] = m
+        if npat:
+            m = np.zeros(nc + npat, bool)
+            m[nc:] = True
+            out["pattern"] = m
+        return out
+
+    def set_class_sigmas(self, sig_px: dict) -> None:
+        """Weight every observation by 1 / sigma of its class (pixels)."""
+        self.class_sigma = dict(sig_px)
+        scale = np.ones(len(self.c["pose"]) + len(self.p["pose"]))
+        for name, m in self.class_masks().items():
+            scale[m] = sig_px.get(name, 1.0)
+        nc = len(self.c["pose"])
+        self.c["s"], self.p["s"] = scale[:nc], scale[nc:]
+        self.row_scale = np.repeat(scale, 2)
 
     # ---- Jacobian (complex step, grouped by block structure) ------------------------------------
     def _build_sparsity(self) -> None:
+        self.row_scale = np.repeat(np.concatenate([self.c["s"], self.p["s"]]), 2)
         rows_pose = np.concatenate([self.c["pose"], self.p["pose"]])
         rows_pose = np.repeat(rows_pose, 2)  # two residuals per point
         self.row_pose = rows_pose
@@ -531,6 +564,8 @@ class JointProblem:
             xc.imag[self.pose_start[has] + k] = h
             Jl[:, k] = self._complex_parts(xc, True, True) / h
         Jl[~self._jmask_full] = 0.0
+        Jg /= self.row_scale[:, None]
+        Jl /= self.row_scale[:, None]
         return Jg, Jl
 
     def to_sparse(self, Jg: np.ndarray, Jl: np.ndarray) -> sp.csr_matrix:
@@ -698,6 +733,8 @@ def build_problem(obs: SessionObservations, init: CalibrationResult, options: Jo
     pattern = {"pose": cat(P["pose"], (0,), int), "q": cat(P["q"], (0, 2)), "uv": cat(P["uv"], (0, 2)),
                "mirror": cat(P["mirror"], (0,), bool), "cid": cat(P["cid"], (0,), int),
                "pid": cat(P["pid"], (0,), int)}
+    corners["s"] = np.ones(len(corners["pose"]))
+    pattern["s"] = np.ones(len(pattern["pose"]))
     state = _State(_camera_K4(cam), _dist8(cam.dist), _camera_K4(init.projector), _dist8(init.projector.dist),
                    np.array(init.T_cam_proj[:3, :3]), np.array(init.T_cam_proj[:3, 3]),
                    None if n is None else np.array(n), float(d), np.array(Rs), np.array(ts), np.array(planes),
@@ -754,13 +791,14 @@ def normal_blocks(prob: JointProblem, Jg: np.ndarray, Jl: np.ndarray, w: np.ndar
     G = prob.n_global
     pose = prob.row_pose
     wJg = Jg * w[:, None]
-    A = Jg.T @ wJg
+    # einsum, not BLAS: threaded GEMM stalls on a busy machine, and these products are small
+    A = np.einsum("ni,nj->ij", Jg, wJg)
     wJl = Jl * w[:, None]
     P = prob.pose_sum  # (V, N) sparse: sums rows per pose
     D = np.asarray(P @ (Jl[:, :, None] * wJl[:, None, :]).reshape(-1, 36)).reshape(V, 6, 6)
     B = np.asarray(P @ (wJl[:, :, None] * Jg[:, None, :]).reshape(-1, 6 * G)).reshape(V, 6, G)
     wr = w * r
-    g_g = Jg.T @ wr
+    g_g = np.einsum("ni,n->i", Jg, wr)
     g_p = np.asarray(P @ (Jl * wr[:, None]))
     pad = np.arange(6)[None, :] >= prob.pose_ndof[:, None]  # unused DOF of 3-DOF poses
     D[:, np.arange(6), np.arange(6)] += pad
@@ -813,7 +851,7 @@ def _lm(prob: JointProblem, loss: str, f_scale: float, max_iter: int, tol: float
             step[:G] = dg
             step[idx_p[valid]] = dp[valid]
             # predicted decrease of the (reweighted) quadratic model
-            Jstep = Jg @ dg + np.einsum("nk,nk->n", Jl, dp[prob.row_pose])
+            Jstep = np.einsum("ng,g->n", Jg, dg) + np.einsum("nk,nk->n", Jl, dp[prob.row_pose])
             pred = -2.0 * (w * r) @ Jstep - (w * Jstep) @ Jstep
             if pred <= 1e-12 * cost or cost < 1e-18 * r.size:
                 converged = True
@@ -919,34 +957,34 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     r0 = prob.residuals(x)
     sigma0 = options.noise_px if options.noise_px else max(_robust_sigma(r0), 0.05)
     prob._xu_cache = None
-    x, info1 = solve(prob, options.loss, sigma0, options.max_nfev, max(options.tol, 1e-6), options.solver)
+    x, info1 = solve(prob, options.loss, sigma0, options.max_nfev, max(options.tol, 1e-4), options.solver)
     if prob.pattern_model == "conic" and options.centroid_correction:
         _update_centroid_correction(prob, x)
     tick("joint.robust", t0)
 
-    # ---- outlier rejection ----------------------------------------------------------------------
+    # ---- noise per observation class, outlier rejection, maximum-likelihood solve -------------------
     t0 = time.perf_counter()
     rejected = []
     solves = [info1]
-    for _round in range(options.outlier_rounds):
-        r = prob.residuals(x)
-        sig = _robust_sigma(r)
-        thr = max(options.outlier_sigma * sig, options.min_outlier_px)
-        new = _reject(prob, r, thr, sig, rejected)
-        if not new:
+    prob.set_class_sigmas(_class_sigmas(prob, prob.raw_residuals(x), options, robust=True))
+    for _round in range(max(options.outlier_rounds, 0) + 1):
+        new = _reject(prob, x, options.outlier_sigma, options.min_outlier_px, rejected) \
+            if _round < options.outlier_rounds else 0
+        if _round > 0 and not new:
             break
-        x = prob.x0()
-        x, info = solve(prob, options.loss, max(sig, 1e-3), options.max_nfev, max(options.tol, 1e-6), options.solver)
+        x, info = solve(prob, "linear", 1.0, options.max_nfev, options.tol, options.solver)
         solves.append(info)
-    # final maximum-likelihood solve (squared loss) on the inliers
-    x, info = solve(prob, "linear", 1.0, options.max_nfev, options.tol, options.solver)
-    solves.append(info)
+    # the final weights: per-class RMS of the inlier residuals at the ML solution
+    before = dict(prob.class_sigma)
+    prob.set_class_sigmas(_class_sigmas(prob, prob.raw_residuals(x), options, robust=False))
+    changed = any(abs(prob.class_sigma[k] / before[k] - 1) > 0.05 for k in before)
     if prob.pattern_model == "conic" and options.centroid_correction:
-        before = prob.centroid_corr.copy()
+        old = prob.centroid_corr.copy()
         _update_centroid_correction(prob, x)
-        if before.size and np.abs(prob.centroid_corr - before).max() > 1e-4:
-            x, info = solve(prob, "linear", 1.0, options.max_nfev, options.tol, options.solver)
-            solves.append(info)
+        changed |= bool(old.size and np.abs(prob.centroid_corr - old).max() > 1e-4)
+    if changed:
+        x, info = solve(prob, "linear", 1.0, options.max_nfev, options.tol, options.solver)
+        solves.append(info)
     tick("joint.outliers_and_ml", t0)
 
     # ---- distortion model selection -------------------------------------------------------------
@@ -988,12 +1026,34 @@ def calibrate_joint(obs: SessionObservations, camera: CameraModel | None = None,
     return refine_joint(obs, init, opts, progress)
 
 
-def _reject(prob: JointProblem, r: np.ndarray, thr: float, sigma: float, rejected: list) -> int:
-    """Drop points whose residual norm exceeds thr (and views left with fewer than 6 corners);
-    append a record per dropped point to `rejected`. Returns the number dropped."""
+def _class_sigmas(prob: JointProblem, r_px: np.ndarray, options: JointOptions, robust: bool) -> dict:
+    """Noise sigma (px, per coordinate) of each observation class: robust (MAD) or RMS of the residuals.
+    weighting="none" pools all classes; classes with fewer than 20 points take the pooled value."""
+    floor = 1e-3
+    pooled = _robust_sigma(r_px) if robust else float(np.sqrt(np.mean(r_px ** 2))) if r_px.size else 1.0
+    pooled = max(pooled, floor)
+    out = {}
+    for name, m in prob.class_masks().items():
+        rr = np.stack([r_px[0::2][m], r_px[1::2][m]], axis=1).reshape(-1)
+        if options.weighting == "none" or m.sum() < 20:
+            out[name] = pooled
+        else:
+            v = _robust_sigma(rr) if robust else float(np.sqrt(np.mean(rr ** 2)))
+            out[name] = max(v, floor)
+    return out
+
+
+def _reject(prob: JointProblem, x: np.ndarray, k: float, min_px: float, rejected: list) -> int:
+    """Drop points whose whitened residual norm exceeds k robust sigmas and whose pixel residual exceeds
+    min_px (and views left with fewer than 6 corners); append a record per dropped point to `rejected`.
+    Returns the number of points dropped."""
     nc = len(prob.c["pose"])
-    e = np.hypot(r[0::2], r[1::2])
-    bad = e > thr
+    rw = prob.residuals(x)
+    rp = rw * prob.row_scale
+    sig = max(_robust_sigma(rw), 1e-12)
+    ew = np.hypot(rw[0::2], rw[1::2]) / sig
+    e = np.hypot(rp[0::2], rp[1::2])
+    bad = (ew > k) & (e > min_px)
     if not bad.any():
         return 0
     keep_c = ~bad[:nc]
@@ -1001,14 +1061,17 @@ def _reject(prob: JointProblem, r: np.ndarray, thr: float, sigma: float, rejecte
     # a pose needs at least 6 corners to stay determined; otherwise drop the whole view
     counts = np.bincount(prob.c["pose"][keep_c], minlength=len(prob.poses))
     weak = np.where(prob.on_mirror, counts < 3, counts < 6)
+    scale = np.concatenate([prob.c["s"], prob.p["s"]]) * sig
     for kind, keep, arr in (("corner", keep_c, prob.c), ("pattern", keep_p, prob.p)):
         off = 0 if kind == "corner" else nc
         for i in np.nonzero(~keep)[0]:
-            rec = {"capture_id": prob.captures[arr["cid"][i]],
-                   "kind": _KIND_NAMES[arr["kind"][i]] if kind == "corner" else "pattern",
-                   "point": int(arr["pid"][i]), "residual_px": round(float(e[off + i]), 4),
-                   "reason": f"residual {e[off + i]:.3g} px > {thr:.3g} px ({thr / max(sigma, 1e-12):.1f} robust sigma)"}
-            rejected.append(rec)
+            j = off + i
+            rejected.append({
+                "capture_id": prob.captures[arr["cid"][i]],
+                "kind": _KIND_NAMES[arr["kind"][i]] if kind == "corner" else "pattern",
+                "point": int(arr["pid"][i]), "residual_px": round(float(e[j]), 4),
+                "reason": f"residual {e[j]:.3g} px = {ew[j]:.1f} robust sigma ({scale[j]:.3g} px) of its class "
+                          f"> {k:g} sigma"})
     if weak.any():
         for v in np.nonzero(weak)[0]:
             rejected.append({"capture_id": prob.poses[v].capture_id, "kind": "view", "point": -1,
@@ -1045,7 +1108,9 @@ def _subset(prob: JointProblem, keep_c: np.ndarray, keep_p: np.ndarray, drop_pos
 # result
 # ==================================================================================================
 def per_view_residuals(prob: JointProblem, x: np.ndarray) -> list[dict]:
-    r = prob.residuals(x)
+    """Per view: point count, rms and max residual (px), per observation kind, and every point's
+    residual norm (px; board corners first, by corner id, then pattern points, by index)."""
+    r = prob.raw_residuals(x)
     nc = len(prob.c["pose"])
     e2 = r[0::2] ** 2 + r[1::2] ** 2
     out = []
@@ -1056,7 +1121,8 @@ def per_view_residuals(prob: JointProblem, x: np.ndarray) -> list[dict]:
         allv = np.concatenate([ec, ep])
         rec = {"capture_id": ps.capture_id, "step": ps.role, "n_points": int(allv.size),
                "rms_px": float(np.sqrt(allv.mean())) if allv.size else None,
-               "max_px": float(np.sqrt(allv.max())) if allv.size else None}
+               "max_px": float(np.sqrt(allv.max())) if allv.size else None,
+               "point_residuals_px": np.round(np.sqrt(allv), 4).tolist()}
         if ps.role == "projector":
             rec["rms_board_px"] = float(np.sqrt(ec.mean())) if ec.size else None
             rec["rms_pattern_px"] = float(np.sqrt(ep.mean())) if ep.size else None
@@ -1084,10 +1150,18 @@ def _make_result(obs, init, prob: JointProblem, x, rejected, left_out, selection
                        _dist_out(np.array(m["proj_d"], float), s.proj_model))
     T = make_T(_orthonormalise(m["R_cp"]), np.array(m["t_cp"], float))
     mirror = MirrorPlane(np.array(m["n"], float), float(m["d"])) if prob.mirrored else None
-    r = prob.residuals(x)
+    r = prob.raw_residuals(x)
+    rw = prob.residuals(x)
     nc = len(prob.c["pose"])
     e2 = r[0::2] ** 2 + r[1::2] ** 2
     kinds = prob.c["kind"]
+    order = np.argsort(-e2)[:10]
+    worst_points = []
+    for j in order:
+        arr, i = (prob.c, j) if j < nc else (prob.p, j - nc)
+        worst_points.append({"capture_id": prob.captures[arr["cid"][i]],
+                             "kind": _KIND_NAMES[arr["kind"][i]] if j < nc else "pattern",
+                             "point": int(arr["pid"][i]), "residual_px": round(float(np.sqrt(e2[j])), 4)})
 
     def rms(a):
         return float(np.sqrt(a.mean())) if a.size else None
@@ -1107,6 +1181,9 @@ def _make_result(obs, init, prob: JointProblem, x, rejected, left_out, selection
         "n_residuals": int(r.size),
         "n_params": int(prob.n_params),
         "sigma_px": float(np.sqrt((r @ r) / max(r.size - prob.n_params, 1))),
+        "class_sigma_px": dict(prob.class_sigma),
+        "variance_factor": float((rw @ rw) / max(rw.size - prob.n_params, 1)),
+        "worst_points": worst_points,
         "rejected": rejected,
         "n_rejected": len([x_ for x_ in rejected if x_["kind"] != "view"]),
         "views_left_out": left_out,

@@ -16,36 +16,32 @@ def _sym_inv(A: np.ndarray) -> np.ndarray:
     s = np.sqrt(np.clip(np.diag(A), 1e-300, None))
     As = A / s[:, None] / s[None, :]
     try:
-        L = np.linalg.cholesky(As)
-        Li = np.linalg.inv(L)
-        inv = Li.T @ Li
+        inv = np.linalg.solve(As, np.eye(len(As)))
     except np.linalg.LinAlgError:
         inv = np.linalg.pinv(As, hermitian=True)
+    inv = (inv + inv.T) / 2
     return inv / s[:, None] / s[None, :]
 
 
-def marginal_covariance(J, r: np.ndarray, n_global: int, pose_start: np.ndarray, pose_ndof: np.ndarray):
-    """(Cov of the global parameters, sigma^2, dof) with the pose parameters marginalised."""
-    N, P = J.shape
-    dof = max(N - P, 1)
-    sigma2 = float(r @ r) / dof
-    H = (J.T @ J).toarray() if hasattr(J, "toarray") else J.T @ J
-    G = n_global
-    A = H[:G, :G]
-    B = H[:G, G:]
-    Dinv_Bt = np.zeros((P - G, G))
-    for start, k in zip(pose_start - G, pose_ndof):
-        blk = H[G + start:G + start + k, G + start:G + start + k]
-        Dinv_Bt[start:start + k] = np.linalg.solve(blk, B[:, start:start + k].T)
-    schur = A - B @ Dinv_Bt
-    return sigma2 * _sym_inv(schur), sigma2, dof
+def marginal_covariance(prob, x: np.ndarray):
+    """(Cov of the global parameters, variance factor, dof) at x, the board poses marginalised:
+    Cov = s^2 (A - B D^-1 B^T)^-1 with J^T J = [[A, B^T], [B, D]] (D block-diagonal per pose) and
+    s^2 = r.r / (N - P) of the (whitened) residuals."""
+    from calib.joint import normal_blocks
+
+    Jg, Jl = prob.jacobian_blocks(x)
+    r = prob.residuals(x)
+    A, B, D, _, _ = normal_blocks(prob, Jg, Jl, np.ones_like(r), r)
+    E = np.einsum("vij,vjg->vig", np.linalg.inv(D), B)
+    schur = A - np.einsum("vkg,vkh->gh", B, E)
+    dof = max(r.size - prob.n_params, 1)
+    s2 = float(np.einsum("i,i->", r, r)) / dof
+    return s2 * _sym_inv(schur), s2, dof
 
 
 def joint_uncertainty(prob, x: np.ndarray) -> dict:
     """1-sigma values of the joint adjustment (prob rebased at its solution x)."""
-    J = prob.jacobian(x)
-    r = prob.residuals(x)
-    cov, sigma2, dof = marginal_covariance(J, r, prob.n_global, prob.pose_start, prob.pose_ndof)
+    cov, sigma2, dof = marginal_covariance(prob, x)
     names = prob.global_names
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     idx = {n: i for i, n in enumerate(names)}
@@ -66,7 +62,8 @@ def joint_uncertainty(prob, x: np.ndarray) -> dict:
     out = {
         "schema": "procam-uncertainty-1",
         "units": prob.obs.units,
-        "sigma_px": float(np.sqrt(sigma2)),
+        "variance_factor": float(sigma2),
+        "class_sigma_px": dict(prob.class_sigma),
         "dof": int(dof),
         "camera": device("cam", 8 if s.cam_model == "rational" else 5),
         "projector": device("proj", 8 if s.proj_model == "rational" else 5),
