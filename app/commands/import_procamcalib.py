@@ -1,0 +1,74 @@
+"""`procam import-procamcalib RECORDING PATTERNS --board SPEC [--mirror DIR --mirror-board SPEC]
+[--units cm] --out SESSION`: convert a recording of the reference implementation into a session."""
+
+from __future__ import annotations
+
+import sys
+
+NAME = "import-procamcalib"
+HELP = "convert a recording made with EDM-Research/ProcamCalib into a session folder"
+DESCRIPTION = (
+    "Converts a ProcamCalib recording into a procam session (session.json + images). RECORDING: folder of "
+    "numbered PNGs (0.png, 1.png, ...; name starting with 'S' = seen through the mirror). PATTERNS: folder "
+    "<Name>_<cols>_<rows> of the projector images (01.png ... 13.png, white asymmetric circles on black); "
+    "consecutive recording images share a pattern. --mirror: folder of mirror-calibration images (name "
+    "starting with 'M' = real-virtual, 'F' = real-mirror). Then run `procam calibrate SESSION`."
+)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("recording", metavar="RECORDING", help="recording folder of numbered PNGs (S... = mirrored)")
+    p.add_argument("patterns", metavar="PATTERNS", help="patterns folder named <Name>_<cols>_<rows>, e.g. Asym_4_9")
+    p.add_argument("--board", required=True, metavar="SPEC",
+                   help="board of the projector step: COLSxROWS:DICT:SQUARE[:MARKER], e.g. 8x6:DICT_5X5_50:4.43 "
+                        "(marker defaults to half the square)")
+    p.add_argument("--mirror", metavar="DIR", help="mirror-calibration folder (M... real-virtual, F... real-mirror)")
+    p.add_argument("--mirror-board", metavar="SPEC", help="board of the mirror step (default: --board)")
+    p.add_argument("--board-thickness", type=float, default=0.0, metavar="T",
+                   help="real-mirror: printed face above the mirror surface, in --units (default 0)")
+    p.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
+                   help="length unit of the square/marker lengths (default mm)")
+    p.add_argument("--out", required=True, metavar="SESSION", help="session folder to create (new or empty)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    from calib.boards import CharucoSpec
+    from calib.errors import SpecError
+    from calib.procamcalib import import_procamcalib
+
+    board = CharucoSpec.parse(args.board, units=args.units)
+    mboard = CharucoSpec.parse(args.mirror_board, units=args.units) if args.mirror_board else None
+    if mboard is not None and not args.mirror:
+        raise SpecError("--mirror-board needs --mirror DIR (the mirror-calibration images)")
+    if args.board_thickness < 0:
+        raise SpecError("--board-thickness must be >= 0")
+    bar = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        bar = tqdm(desc="import", unit="img", file=sys.stderr, dynamic_ncols=True)
+
+    def progress(done, total, name):
+        if bar is not None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+    try:
+        store = import_procamcalib(args.recording, args.patterns, board, args.out, args.mirror, mboard,
+                                   args.board_thickness, progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    m = store.manifest
+    n_proj = len(m.captures_of("projector"))
+    n_mirror = len(m.captures) - n_proj
+    print(f"wrote {args.out}: {n_proj} projector images ({m.pattern.positions} patterns x "
+          f"{n_proj // max(m.pattern.positions, 1)}), {n_mirror} mirror images "
+          f"({m.mirror_method or 'none'}); camera {m.rig.camera_size[0]}x{m.rig.camera_size[1]}, projector "
+          f"{m.rig.projector_size[0]}x{m.rig.projector_size[1]}, view {m.rig.view}; pattern {m.pattern.cols}x"
+          f"{m.pattern.rows} circles, spacing {m.pattern.spacing_px:.1f} px, radius {m.pattern.radius_px:.1f} px")
+    if m.rig.view == "mirror" and not m.mirror_method:
+        print("note: the recording is mirrored (S...) but no --mirror images were given; calibration needs them",
+              file=sys.stderr)
+    return 0
