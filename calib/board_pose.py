@@ -147,3 +147,13 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
 
 
 _ZHANG_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+
+
+def point_residuals(K, dist, rvecs, tvecs, object_points, image_points) -> list[np.ndarray]:
+    """Per-point reprojection error norms (pixels) of a calibration, one array per view."""
+    out = []
+    for r, t, X, u in zip(rvecs, tvecs, object_points, image_points):
+        pred = cv2.projectPoints(np.asarray(X, np.float64).reshape(-1, 3), r, t, np.asarray(K, float),
+                                 np.asarray(dist, float))[0].reshape(-1, 2)
+        out.append(np.linalg.norm(pred - np.asarray(u, float).reshape(-1, 2), axis=1))
+    return out

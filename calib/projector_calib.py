@@ -26,7 +26,7 @@ from types import MappingProxyType
 import cv2
 import numpy as np
 
-from calib.board_pose import MIN_CORNERS, BoardPose, calibrate_zhang, solve_board_pose, usable_reason
+from calib.board_pose import MIN_CORNERS, BoardPose, calibrate_zhang, point_residuals, solve_board_pose, usable_reason
 from calib.camera import CameraModel
 from calib.errors import CalibrationError
 from calib.observations import VIEW_DIRECT, VIEW_MIRROR, ProjectorView, SessionObservations
@@ -37,6 +37,9 @@ from calib.transforms import FLIP_X, T_from_rvec_tvec, invert_T, make_T, rotatio
 MIN_VIEWS = 4
 #: Fewer pattern points than this in a view and it is not used.
 MIN_PATTERN_POINTS = 6
+#: Pattern-point outliers: residual above max(OUTLIER_FACTOR x median residual, OUTLIER_MIN_PX).
+OUTLIER_FACTOR = 6.0
+OUTLIER_MIN_PX = 2.0
 #: Board pose RMS above this (pixels) means a misdetected board: the view is not used.
 MAX_BOARD_RMS_PX = 3.0
 
@@ -78,8 +81,13 @@ def pattern_points_on_board(camera: CameraModel, pose: BoardPose, uv: np.ndarray
 
 def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: MirrorPlane | None, *,
                         fix_k3: bool = False, fix_tangential: bool = False, rational: bool = False,
-                        min_views: int = MIN_VIEWS, min_corners: int = MIN_CORNERS) -> ProjectorCalibration:
-    """Calibrate the projector (intrinsics and T_cam_proj) from the projector views of `obs`."""
+                        min_views: int = MIN_VIEWS, min_corners: int = MIN_CORNERS,
+                        reject_outliers: bool = True) -> ProjectorCalibration:
+    """Calibrate the projector (intrinsics and T_cam_proj) from the projector views of `obs`.
+
+    With `reject_outliers`, pattern points whose projector residual after Zhang exceeds
+    max(OUTLIER_FACTOR x median, OUTLIER_MIN_PX) are dropped and Zhang rerun (a misdetected circle
+    otherwise drags the intrinsics by tens of pixels); the counts are in per_view / diagnostics."""
     mirrored = obs.view == VIEW_MIRROR
     if obs.view not in (VIEW_MIRROR, VIEW_DIRECT):
         raise CalibrationError(f"unknown view '{obs.view}' (must be '{VIEW_MIRROR}' or '{VIEW_DIRECT}')")
@@ -121,13 +129,41 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
         flags |= cv2.CALIB_ZERO_TANGENT_DIST
     if rational:
         flags |= cv2.CALIB_RATIONAL_MODEL
-    objp = [X.astype(np.float32) for _, _, X, _, _ in views]
-    projp = [np.ascontiguousarray(q, np.float32) for *_, q in views]
-    try:
-        p_rms, Kp, Dp, _rv, _tv, std_i, p_pve = calibrate_zhang(objp, projp, obs.projector_size, flags)
-    except cv2.error as e:
-        raise CalibrationError(f"projector calibration failed in OpenCV ({e.err}); the board poses are probably "
-                               f"degenerate: tilt the board differently between captures") from None
+    keep = [np.ones(len(X), bool) for _, _, X, _, _ in views]
+    n_rejected = 0
+
+    def zhang():
+        objp = [X[k].astype(np.float32) for (_, _, X, _, _), k in zip(views, keep)]
+        projp = [np.ascontiguousarray(q[k], np.float32) for (*_, q), k in zip(views, keep)]
+        try:
+            return objp, projp, calibrate_zhang(objp, projp, obs.projector_size, flags)
+        except cv2.error as e:
+            raise CalibrationError(f"projector calibration failed in OpenCV ({e.err}); the board poses are probably "
+                                   f"degenerate: tilt the board differently between captures") from None
+
+    objp, projp, (p_rms, Kp, Dp, p_rv, p_tv, std_i, p_pve) = zhang()
+    for _round in range(4 if reject_outliers else 0):
+        res = point_residuals(Kp, Dp, p_rv, p_tv, objp, projp)
+        allres = np.concatenate(res)
+        limit = max(OUTLIER_FACTOR * float(np.median(allres)), OUTLIER_MIN_PX)
+        if not np.any(allres > limit):
+            break
+        for k, r in zip(keep, res):
+            idx = np.flatnonzero(k)
+            k[idx[r > limit]] = False
+            n_rejected += int(np.sum(r > limit))
+        for i in range(len(views) - 1, -1, -1):  # a view left with too few points goes
+            if keep[i].sum() < MIN_PATTERN_POINTS:
+                skipped.append({"capture_id": views[i][0].capture_id, "stage": "projector",
+                                "reason": f"{int((~keep[i]).sum())} of {len(keep[i])} pattern points inconsistent "
+                                          f"with the other views (misdetected pattern?)"})
+                del views[i], keep[i]
+        if len(views) < min_views:
+            raise CalibrationError(
+                f"cannot calibrate the projector: only {len(views)} projector view(s) with consistent pattern "
+                f"points (need at least {min_views}); check the pattern detections")
+        objp, projp, (p_rms, Kp, Dp, p_rv, p_tv, std_i, p_pve) = zhang()
+    views = [(v, pose, X[k], u[k], q[k], k) for (v, pose, X, u, q), k in zip(views, keep)]
     Dp = np.asarray(Dp, float).reshape(-1)
     if Dp.size not in (4, 5, 8):
         Dp = Dp[:8] if Dp.size > 8 else np.pad(Dp, (0, 5 - Dp.size))
@@ -135,7 +171,7 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
 
     # -- pose once over all views (stereo, intrinsics fixed) -----------------------------------------
     ref = camera.flipped() if mirrored else camera
-    camp = [np.ascontiguousarray(camera.flip_points(u) if mirrored else u, np.float32) for _, _, _, u, _ in views]
+    camp = [np.ascontiguousarray(camera.flip_points(u) if mirrored else u, np.float32) for _, _, _, u, _, _ in views]
     try:
         s_rms, _, _, _, _, R, T, _E, _F, s_rv, s_tv, s_pve = cv2.stereoCalibrateExtended(
             objp, camp, projp, np.array(ref.K), np.array(ref.dist), np.array(projector.K), np.array(projector.dist),
@@ -153,13 +189,14 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
     # -- per-view records ------------------------------------------------------------------------------
     per_view, poses, points = [], {}, {}
     s_pve = np.asarray(s_pve, float).reshape(len(views), -1)
-    for k, (v, pose, Xb, u, q) in enumerate(views):
+    for k, (v, pose, Xb, u, q, kept) in enumerate(views):
         T_cb = pose.physical(S if mirrored else None)
         poses[v.capture_id] = _ro(T_cb)
         points[v.capture_id] = _ro(Xb)
         # this view's own estimate of T_cam_proj (board pose from the camera, projector pose by PnP)
         rec = {"stage": "projector", "capture_id": v.capture_id, "pattern_position": v.pattern_position,
-               "n_corners": int(len(v.board.ids)), "n_points": int(len(Xb)), "board_rms_px": pose.rms_px,
+               "n_corners": int(len(v.board.ids)), "n_points": int(len(Xb)),
+               "n_rejected_points": int((~kept).sum()), "board_rms_px": pose.rms_px,
                "proj_rms_px": float(np.asarray(p_pve).reshape(-1)[k]),
                "stereo_cam_px": float(s_pve[k, 0]), "stereo_proj_px": float(s_pve[k, -1])}
         ok, rvec, tvec = cv2.solvePnP(Xb, np.ascontiguousarray(q, float), np.array(projector.K),
@@ -173,7 +210,8 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
         per_view.append(rec)
     std_i = np.asarray(std_i, float).reshape(-1).copy()
     std_i.setflags(write=False)
-    diag = {"n_views": len(views), "n_points": int(sum(len(X) for _, _, X, _, _ in views)),
+    diag = {"n_views": len(views), "n_points": int(sum(len(X) for _, _, X, _, _, _ in views)),
+            "n_rejected_points": n_rejected,
             "flags": {"fix_k3": fix_k3, "fix_tangential": fix_tangential, "rational": rational}}
     return ProjectorCalibration(projector, _ro(T_cam_proj), _ro(T_proj_ref), float(p_rms), float(s_rms),
                                 tuple(per_view), MappingProxyType(poses), MappingProxyType(points), mirrored,
