@@ -21,6 +21,8 @@ def test_correct_calibration_passes_and_writes_the_report(tmp_path, capsys):
     d = json.loads((tmp_path / "verification.json").read_text())
     assert d["passed"] is True and d["n_checks"] == 6 and d["n_measured"] == 6
     assert d["settings"]["grid"] == [3, 2] and d["calibration"]["path"].endswith("calibration.json")
+    # the session's board was found: every check carries the predicted curve for the panel's overlay
+    assert d["settings"]["board_pose_known"] and all(len(c["predicted_curve"]) > 10 for c in d["checks"])
 
 
 def test_perturbed_calibration_fails_with_exit_1(tmp_path, capsys):

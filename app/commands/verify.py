@@ -123,9 +123,10 @@ def run(args) -> int:
             if args.rig == "realsense" and args.delay > 0:
                 time.sleep(args.delay)
             # the operator has been asked already: pass None so verify does not ask again
+            # the session's board, found in the white frame, adds the predicted curves to the report
             return verify(rig.camera, rig.projector, None, result, grid=args.grid, threshold_px=args.threshold,
-                          progress=progress, settle_frames=settle_frames, average=args.average,
-                          calibration_info=info)
+                          progress=progress, board=man.projector_board, settle_frames=settle_frames,
+                          average=args.average, calibration_info=info)
         finally:
             rig.camera.stop()
 
