@@ -142,16 +142,18 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
                                    f"degenerate: tilt the board differently between captures") from None
 
     objp, projp, (p_rms, Kp, Dp, p_rv, p_tv, std_i, p_pve) = zhang()
-    for _round in range(4 if reject_outliers else 0):
+    for _round in range(6 if reject_outliers else 0):
         res = point_residuals(Kp, Dp, p_rv, p_tv, objp, projp)
         allres = np.concatenate(res)
         limit = max(OUTLIER_FACTOR * float(np.median(allres)), OUTLIER_MIN_PX)
         if not np.any(allres > limit):
             break
         for k, r in zip(keep, res):
-            idx = np.flatnonzero(k)
-            k[idx[r > limit]] = False
-            n_rejected += int(np.sum(r > limit))
+            # only the worst points of a view go in one round: one gross outlier drags its view's pose
+            # and inflates its neighbours' residuals, which come back once it is gone
+            out = (r > limit) & (r >= 0.5 * r.max())
+            k[np.flatnonzero(k)[out]] = False
+            n_rejected += int(out.sum())
         for i in range(len(views) - 1, -1, -1):  # a view left with too few points goes
             if keep[i].sum() < MIN_PATTERN_POINTS:
                 skipped.append({"capture_id": views[i][0].capture_id, "stage": "projector",
