@@ -160,18 +160,12 @@ def accuracy_table(runs, seeds: int) -> str:
 
 
 def timing_table(runs) -> str:
-    """Mean time of each stage (seconds), per scenario and method, plus simulation and detection."""
-    stages = []
-    for r in runs:
-        for k in r.get("timing_s", {}):
-            if k not in stages and k != "total":
-                stages.append(k)
-    stages = [s for s in stages if s != "detection"]
-    head = ["scenario", "method", "simulate", "detection"] + stages + ["total"]
+    """Mean time (seconds) of simulation, detection and each calibration stage, per scenario and method."""
     keys = []
     for r in runs:
         if (r["scenario"], r["method"]) not in keys:
             keys.append((r["scenario"], r["method"]))
+    head = ["scenario", "method", "simulate", "detection", "calibrate", "stages (calibrate)"]
     rows = []
     for scen, meth in keys:
         sel = [r for r in runs if r["scenario"] == scen and r["method"] == meth and "timing_s" in r]
@@ -180,17 +174,26 @@ def timing_table(runs) -> str:
 
         def mean(vals):
             vals = [v for v in vals if v is not None]
-            return f"{sum(vals) / len(vals):.2f}" if vals else "-"
+            return sum(vals) / len(vals) if vals else None
 
-        row = [scen, meth, mean([r["simulate_s"] for r in sel]), mean([r["detection_s"] for r in sel])]
-        row += [mean([r["timing_s"].get(s) for r in sel]) for s in stages]
-        row.append(mean([r["timing_s"].get("total") for r in sel]))
-        rows.append(row)
+        stages = []
+        for r in sel:
+            for k in r["timing_s"]:
+                if k not in stages and k not in ("total", "detection") and not k.endswith(".total"):
+                    stages.append(k)
+        parts = []
+        for k in stages:
+            v = mean([r["timing_s"].get(k) for r in sel])
+            if v is not None:
+                parts.append(f"{k} {v:.2f}")
+        total = mean([r["timing_s"].get("total") for r in sel])
+        rows.append([scen, meth, f"{mean([r['simulate_s'] for r in sel]):.1f}", f"{mean([r['detection_s'] for r in sel]):.1f}",
+                     "-" if total is None else f"{total:.1f}", ", ".join(parts)])
     widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
-    lines = ["  ".join(h.ljust(w) if i < 2 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths)))]
-    lines.append("  ".join("-" * w for w in widths))
-    for r in rows:
-        lines.append("  ".join(str(v).ljust(w) if i < 2 else str(v).rjust(w) for i, (v, w) in enumerate(zip(r, widths))))
+    right = (2, 3, 4)
+    fmt = lambda r: "  ".join(str(v).rjust(w) if i in right else str(v).ljust(w)  # noqa: E731
+                              for i, (v, w) in enumerate(zip(r, widths))).rstrip()
+    lines = [fmt(head), "  ".join("-" * w for w in widths)] + [fmt(r) for r in rows]
     return "\n".join(lines) + "\n(seconds per session; stage times as the methods report them in diagnostics.timing_s)"
 
 

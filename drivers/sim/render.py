@@ -471,8 +471,11 @@ class Renderer:
         X = Hp[0, 0] * bx + Hp[0, 1] * by + Hp[0, 2]
         Y = Hp[1, 0] * bx + Hp[1, 1] * by + Hp[1, 2]
         Z = Hp[2, 0] * bx + Hp[2, 1] * by + Hp[2, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x, y = X / Z, Y / Z
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return self._projector_light_rays(T_pb, X, Y, Z, levels, st, s, depth_c)
+
+    def _projector_light_rays(self, T_pb, X, Y, Z, levels, st: RenderSettings, s: int, depth_c: float):
+        x, y = X / Z, Y / Z
         P = self.projector
         dd = np.zeros(8)
         dd[: P.dist.size] = P.dist

@@ -238,6 +238,11 @@ class SimRig:
     def ground_truth(self) -> CalibrationResult:
         return self.scenario.ground_truth()
 
+    def close(self) -> None:
+        """Stop the camera and close the projector."""
+        self.camera.stop()
+        self.projector.close()
+
     @property
     def board(self) -> PlacedBoard | None:
         """The board now in the scene (layout and T_cam_board), or None."""
