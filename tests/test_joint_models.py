@@ -1,0 +1,73 @@
+"""Distortion model selection: the true model is found on data generated with it (no distortion, and a
+5-coefficient lens), the rational model is not picked for a Brown-Conrady lens, a forced model is
+kept, and the report says what was chosen and why."""
+
+import numpy as np
+import pytest
+
+from _joint_helpers import ground_truth, observations, perturbed
+from calib.joint import JointOptions, refine_joint
+from calib.model_select import bic
+
+STRONG_CAM = (-0.12, 0.09, 0.002, -0.0015, -0.04)
+STRONG_PROJ = (0.03, -0.05, 0.003, -0.002, 0.08)
+
+
+def test_no_distortion_selects_none():
+    kw = dict(per_position=2, camera_dist=(), projector_dist=())
+    res = refine_joint(observations(0.1, 0, **kw), perturbed(ground_truth(**kw)), JointOptions(uncertainty=False))
+    ms = res.diagnostics["model_selection"]
+    assert ms["camera"]["chosen"] == "none" and ms["projector"]["chosen"] == "none"
+    assert not np.any(res.camera.dist) and not np.any(res.projector.dist)
+    assert "lowest BIC" in ms["camera"]["reason"] and ms["refit"]["kept"]
+
+
+@pytest.mark.parametrize("selection", ["bic", "lrt"])
+def test_five_coefficient_lenses_select_5coef_not_rational(selection):
+    kw = dict(per_position=2, camera_dist=STRONG_CAM, projector_dist=STRONG_PROJ)
+    gt = ground_truth(**kw)
+    res = refine_joint(observations(0.1, 1, **kw), perturbed(gt), JointOptions(selection=selection, uncertainty=False))
+    ms = res.diagnostics["model_selection"]
+    assert ms["camera"]["chosen"] == "5coef" and ms["projector"]["chosen"] == "5coef"
+    assert res.camera.dist.size == 5 and np.abs(res.camera.dist - gt.camera.dist).max() < 0.02
+    for dev in ("camera", "projector"):
+        cands = {c["model"]: c for c in ms[dev]["candidates"]}
+        assert set(cands) == {"none", "k1", "k1k2", "5coef", "rational"}
+        if selection == "bic":
+            assert cands["rational"]["delta_bic"] > 0 and cands["k1k2"]["delta_bic"] > 0
+        else:
+            assert cands["k1k2"]["p_value"] < 0.05 and cands["rational"]["p_value"] >= 0.001
+            assert "p =" in ms[dev]["reason"]
+
+
+def test_k1k2_projector_is_recognised():
+    """The default rig's projector has k1, k2 only: it is simplified, the 5-coefficient camera is not."""
+    kw = dict(per_position=2)
+    res = refine_joint(observations(0.05, 2, **kw), perturbed(ground_truth(**kw)), JointOptions(uncertainty=False))
+    assert res.diagnostics["camera_model"] == "5coef" and res.diagnostics["projector_model"] == "k1k2"
+    assert np.all(res.projector.dist[2:] == 0)
+
+
+def test_forced_models_are_kept():
+    kw = dict(per_position=2)
+    res = refine_joint(observations(0.1, 3, **kw), perturbed(ground_truth(**kw)),
+                       JointOptions(camera_model="rational", projector_model="k1"))
+    ms = res.diagnostics["model_selection"]
+    assert ms["camera"] == {"chosen": "rational", "forced": True, "reason": "forced by the user"}
+    assert ms["projector"]["chosen"] == "k1" and ms["projector"]["forced"]
+    assert res.camera.dist.size == 8 and np.all(res.projector.dist[1:] == 0) and res.projector.dist[0] != 0
+    assert len(res.uncertainty["camera"]["dist"]) == 8 and res.uncertainty["projector"]["dist"][1] == 0.0
+
+
+def test_unknown_model_is_an_actionable_error():
+    from calib.errors import CalibrationError
+
+    kw = dict(per_position=1)
+    with pytest.raises(CalibrationError, match="one of auto, none, k1, k1k2, 5coef, rational"):
+        refine_joint(observations(**kw), ground_truth(**kw), JointOptions(camera_model="fisheye"))
+
+
+def test_bic_penalises_parameters_and_floors_exact_fits():
+    assert bic(100.0, 1000, 10) < bic(100.0, 1000, 11)
+    assert bic(100.0, 1000, 10) < bic(101.0, 1000, 10)
+    assert bic(0.0, 1000, 10) == bic(1e-9, 1000, 10)
