@@ -493,15 +493,16 @@ def _find_chessboard(gray: np.ndarray, pattern: PatternSpec, roi):
 
 def _refine_chess_corners(img: np.ndarray, pts: np.ndarray, pattern: PatternSpec) -> np.ndarray:
     """cornerSubPix on a smoothed copy with a window of ~0.3 square (see _refine_corners)."""
-    g = pts.reshape(pattern.rows, pattern.cols, 2)
-    dx = np.linalg.norm(np.diff(g, axis=1), axis=2).min()
-    dy = np.linalg.norm(np.diff(g, axis=0), axis=2).min()
-    hw = int(np.clip(np.floor(0.3 * min(dx, dy)), 2, 10))
-    sigma = min(2.0, 0.4 * hw)
+    d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
+    d[np.arange(len(pts)), np.arange(len(pts))] = np.inf
+    side = float(np.percentile(d.min(axis=1), 10))  # (the finder's point order may be transposed)
+    hw = int(np.clip(np.floor(0.3 * side), 3, 10))
+    sigma = float(np.clip(0.25 * hw, 1.0, 1.5))
     sm = cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma)
     start = pts.astype(np.float32).reshape(-1, 1, 2)
     ref = cv2.cornerSubPix(sm, start.copy(), (hw, hw), (-1, -1), _SUBPIX_CRITERIA).reshape(-1, 2).astype(float)
-    ok = np.linalg.norm(ref - pts, axis=1) < 1.5
+    # the grid finder's corners are unrefined (often 1-2 px off); the clean X-junction pulls them in
+    ok = np.linalg.norm(ref - pts, axis=1) < max(2.5, 0.8 * hw)
     out = pts.copy()
     out[ok] = ref[ok]
     return out
