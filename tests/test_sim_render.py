@@ -120,7 +120,7 @@ def test_pattern_blobs_are_imaged_at_the_exact_circle_centroids(name):
     rig = sc.rig
     r = _renderer(sc)
     errs = []
-    for pos, T in sc.projector_poses[3::9]:
+    for pos, T in sc.projector_poses[3::17]:
         img, pts = sc.pattern.render(*rig.projector.size, pos)
         b = PlacedBoard(sc.layout, T)
         lit = r.render(SceneState((b,), img)) - r.render(SceneState((b,), None))
@@ -173,7 +173,7 @@ def test_projected_chessboard_corners():
     rig = sc.rig
     r = _renderer(sc, RenderSettings(supersample=3, blur_sigma_px=0.5))
     errs = []
-    for pos, T in sc.projector_poses[0::12]:
+    for pos, T in sc.projector_poses[0::17]:
         img, pts = sc.pattern.render(*rig.projector.size, pos)
         frame = r.render(SceneState((PlacedBoard(sc.layout, T),), img))
         board = detect_board(frame, sc.projector_board, True)
@@ -193,7 +193,7 @@ def test_charuco_corners_detected_at_ground_truth(name, quality):
     rig = sc.rig
     r = _renderer(sc, RenderSettings(supersample=quality))
     errs = []
-    for pos, T in sc.projector_poses[2::10]:
+    for pos, T in sc.projector_poses[2::13]:
         frame = r.render(SceneState((PlacedBoard(sc.layout, T),)))
         obs = detect_board(frame, sc.projector_board, rig.mirror is not None)
         assert obs, obs

@@ -207,6 +207,8 @@ class SimOperator:
 class SimRig:
     """The shared scene state of a simulated rig, and its three devices."""
 
+    kind = "sim"  # as drivers.factory names rigs
+
     def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, **settings):
         if quality not in QUALITIES:
