@@ -23,7 +23,7 @@ quantisation; each can be switched off. Pixel (0, 0) is the centre of the top-le
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2

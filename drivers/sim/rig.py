@@ -30,7 +30,6 @@ from drivers.sim.scenarios import (
     DEFAULT_SCENARIO,
     OPERATOR_STEPS,
     STEP_PROJECTOR,
-    STEP_REAL_MIRROR,
     STEP_REAL_VIRTUAL,
     STEP_VERIFICATION,
     Scenario,
