@@ -75,3 +75,75 @@ def popen_procam(*args, env_extra=None) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1", **(env_extra or {}))
     return subprocess.Popen([sys.executable, "-m", "app", *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
+
+
+# ---- the station as a process, for the browser tests --------------------------------------------------
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run"]
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class StationProcess:
+    """`procam station` in a subprocess; its output lines are collected in a thread."""
+
+    def __init__(self, *args, timeout_s: float = 90.0):
+        import re
+        import threading
+        import time
+
+        self.port = free_port()
+        self.proc = popen_procam("station", "--port", str(self.port), *args)
+        self.lines: list[str] = []
+        self.url = None
+        self.code = None
+        done = threading.Event()
+
+        def read():
+            for line in self.proc.stdout:
+                self.lines.append(line.rstrip("\n"))
+                m = re.search(r"panel at (http://\S+)", line)
+                if m:
+                    self.url = m.group(1)
+                    if not any("access code" in ln for ln in self.lines) and "--host" not in args:
+                        done.set()
+                m = re.search(r"access code to operate the rig: (\d+)", line)
+                if m:
+                    self.code = m.group(1)
+                    done.set()
+            done.set()
+
+        threading.Thread(target=read, daemon=True).start()
+        end = time.monotonic() + timeout_s
+        while not done.wait(0.2):
+            if time.monotonic() > end:
+                self.stop()
+                raise AssertionError("the station did not start:\n" + "\n".join(self.lines))
+        if self.url is None:
+            raise AssertionError("the station did not start:\n" + "\n".join(self.lines))
+
+    def stop(self):
+        import signal
+
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except Exception:
+                self.proc.kill()
+                self.proc.wait(10)
+
+
+def launch_chromium(playwright):
+    return playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+
+
+def text_input(page, label: str):
+    """viser's text input of the given label (its <label> does not point at the input)."""
+    return page.locator(f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first

@@ -46,6 +46,9 @@ def add_arguments(p) -> None:
     p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
     p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
+    p.add_argument("--method", default=None,
+                   help="calibration method (default: the calibration core's default; 'paper' is the method of "
+                        "Vanherck et al.)")
 
 
 def plan_from_args(args, base=None):
@@ -84,7 +87,8 @@ def open_session(args, log=print):
             from app.station.machine import Plan
 
             plan = plan_from_args(args, Plan.from_dict((store.manifest.state or {}).get("plan")))
-        machine = make_machine(store, rig, plan, resume=True, workers=args.workers)
+        method = args.method or (store.manifest.state or {}).get("method")
+        machine = make_machine(store, rig, plan, resume=True, workers=args.workers, method=method)
         c = machine.counts()
         log(f"resuming {folder}: {len(store.manifest.captures)} captures on disk "
             f"(mirror {c['mirror']}, projector {c['projector']}), step '{machine.state}'")
@@ -102,7 +106,10 @@ def open_session(args, log=print):
                       if args.mirror_board else None, view=VIEW_DIRECT if args.direct else VIEW_MIRROR)
         plan = plan_from_args(args)
         store = create_session(folder, rig, req, plan, **kw)
-        machine = make_machine(store, rig, plan, workers=args.workers)
+        machine = make_machine(store, rig, plan, workers=args.workers, method=args.method)
+        if args.method:
+            machine.extra_state["method"] = args.method  # a resumed session calibrates the same way
+            machine._persist()
         what = f"simulated rig '{req.scenario}' (seed {req.seed})" if kind == "sim" else f"{kind} rig"
         log(f"new session in {folder} on the {what}")
     if args.camera_intrinsics:
@@ -180,8 +187,9 @@ def run(args) -> int:
     shown = {}
 
     def progress(done, total, label=""):
-        stage = "detecting captures" if str(label)[:1].isalnum() and str(label)[:1] in "pm" and str(label)[1:2].isdigit() \
-            or str(label).startswith("mr") else f"calibration: {label}"
+        import re
+
+        stage = "detecting captures" if re.fullmatch(r"(p|mrv|mrm)\d+", str(label)) else f"calibration: {label}"
         if shown.get(stage) is None or done == total or time.monotonic() - shown[stage] > 5:
             shown[stage] = time.monotonic()
             log(f"{stage} {done}/{total}")
@@ -189,7 +197,9 @@ def run(args) -> int:
     station.on_progress = progress
     machine.on_event = lambda text: None if text.startswith("captured") else log(text)  # the station logs captures
     last_hint = ""
-    try:
+
+    def work():
+        nonlocal last_hint
         while machine.state != DONE:
             station.tick()
             if req.kind != "sim":
@@ -197,6 +207,11 @@ def run(args) -> int:
                 if hint != last_hint:
                     print(hint, flush=True)
                     last_hint = hint
+
+    from app.station.setup import run_on_rig
+
+    try:
+        run_on_rig(rig, work)
     finally:
         close = getattr(rig, "close", None)
         if callable(close):

@@ -251,7 +251,10 @@ class AutoCapture:
             return self.last
         novel, similar, why = self.novelty(det.features)
         if not still:
-            msg = "hold the board still" if motion is None or motion >= s.still_px else "hold still a moment"
+            if motion is not None and motion >= s.still_px:
+                msg = f"hold the board still (it moves {motion:.1f} px per frame)"
+            else:
+                msg = "keep the board still a moment"
             self.last = Decision(False, False, novel, msg, motion, similar)
         elif not novel:
             self.last = Decision(False, True, False, why, motion, similar)

@@ -717,8 +717,10 @@ class SessionMachine:
             self.on_event(text)
 
 
-def default_calibrate(folder, camera_intrinsics, progress=None, workers: int = 2) -> CalibrationResult:
-    """The calibration core's pipeline on the session folder."""
+def default_calibrate(folder, camera_intrinsics, progress=None, workers: int = 2,
+                      method: str | None = None) -> CalibrationResult:
+    """The calibration core's pipeline on the session folder (its default method unless given)."""
     from calib.pipeline import calibrate_session
 
-    return calibrate_session(folder, camera_intrinsics=camera_intrinsics, workers=workers, progress=progress)
+    kw = {} if method is None else {"method": method}
+    return calibrate_session(folder, camera_intrinsics=camera_intrinsics, workers=workers, progress=progress, **kw)

@@ -45,35 +45,33 @@ def default_rig_kind() -> str:
         from drivers.factory import default_rig_kind as factory_default
 
         return factory_default()
-    except ImportError:
-        pass
-    try:
-        from drivers.realsense import list_realsense_devices
-
-        return "realsense" if list_realsense_devices() else "sim"
     except Exception:  # no librealsense, no USB access: the simulated rig it is
         return "sim"
 
 
 def open_rig(req: RigRequest, **options):
-    """The rig the request names: the simulated rig (scenario, seed) or the real devices."""
+    """The rig the request names: the simulated rig (scenario, seed) or the real devices. On a real rig
+    call this on the main thread (the projector window's) and run the station with `run_on_rig`."""
+    from drivers.factory import open_rig as factory_open
+
     if req.kind == "sim":
-        from drivers.sim.rig import open_sim_rig
-
-        rig = open_sim_rig(req.scenario, seed=req.seed, quality=req.quality, **options)
-        if not hasattr(rig, "kind"):
-            try:
-                rig.kind = "sim"
-            except AttributeError:
-                pass
+        rig = factory_open("sim", scenario=req.scenario, seed=req.seed, quality=req.quality, **options)
     else:
-        from drivers.factory import open_rig as factory_open
-
         rig = factory_open(req.kind, **options)
     start = getattr(rig.camera, "start", None)
     if callable(start) and not getattr(rig.camera, "running", False):
         start()
     return rig
+
+
+def run_on_rig(rig, work):
+    """Run `work()`: directly on the simulated rig; on the hardware in a worker thread while the main
+    thread runs the projector window's event loop (pyglet wants the main thread)."""
+    if getattr(rig, "kind", "sim") == "sim":
+        return work()
+    from drivers.projector_window import run_projector_loop
+
+    return run_projector_loop(rig.projector, work)
 
 
 def _attr(obj, *names, default=None):
@@ -174,11 +172,17 @@ def make_verify_fn(rig, folder):
 
 
 def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: bool = False,
-                 workers: int = 2) -> SessionMachine:
+                 workers: int = 2, method: str | None = None) -> SessionMachine:
     from app.station.machine import default_calibrate
 
+    if method is not None:
+        from calib.pipeline import METHODS
+
+        if method not in METHODS:
+            raise SessionError(f"unknown calibration method '{method}' (one of {', '.join(sorted(METHODS))})")
+
     def calibrate(folder, intrinsics, progress):
-        return default_calibrate(folder, intrinsics, progress, workers=workers)
+        return default_calibrate(folder, intrinsics, progress, workers=workers, method=method)
 
     verify_fn = make_verify_fn(rig, store.folder)
     if resume:

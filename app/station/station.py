@@ -45,6 +45,11 @@ from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTU
 from drivers.errors import DeviceError
 
 
+def _rate(times, window_s: float = 2.0) -> float:
+    now = time.monotonic()
+    return sum(1 for t in list(times) if now - t <= window_s) / window_s
+
+
 @dataclass
 class StationOptions:
     auto: bool = False  # the station runs the whole session itself (the simulated operator moves the board)
@@ -117,6 +122,7 @@ class Station:
         self._operator_index = 0
         self._variant = 0  # auto mode: how many times the operator was asked for another pose
         self.started_s = time.monotonic()
+        self.last_capture_s = -1e9
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
 
@@ -255,14 +261,19 @@ class Station:
             with self._frame_cond:
                 self.preview = frame
                 self._preview_times.append(time.monotonic())
-                del self._preview_times[:-30]
+                del self._preview_times[:-60]
                 self._frame_cond.notify_all()
             time.sleep(max(0.0, period - (time.monotonic() - t0)))
 
     @property
     def preview_fps(self) -> float:
-        t = list(self._preview_times)
-        return (len(t) - 1) / max(t[-1] - t[0], 1e-6) if len(t) > 1 else 0.0
+        """Camera frames per second over the last two seconds."""
+        return _rate(self._preview_times)
+
+    @property
+    def detection_fps(self) -> float:
+        """Frames detected per second over the last two seconds."""
+        return _rate(self._tick_times)
 
     def taken_for(self, target: Target | None) -> list[tuple[str, PoseFeatures]]:
         """Features of the captured poses a new capture for `target` must differ from."""
@@ -304,18 +315,15 @@ class Station:
         if frame is None:
             return None
         now = time.monotonic()
-        self._tick_times.append(now)
-        del self._tick_times[:-20]
-        fps = 0.0
-        if len(self._tick_times) > 1:
-            fps = (len(self._tick_times) - 1) / max(self._tick_times[-1] - self._tick_times[0], 1e-6)
         det, decision = None, None
         if target is not None:
             det = detect_for_step(frame.image, target.step, m.manifest, self.camera_model, frame.frame_number)
+            self._tick_times.append(time.monotonic())
+            del self._tick_times[:-60]
             if frame.frame_number > self._min_frame:
                 decision = self.autocap.update(det)
                 self._frames_on_target += 1
-        self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, fps)
+        self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, self.detection_fps)
         if decision is not None and target is not None:
             take = decision.capture and self.options.auto_capture
             if not take and self.options.auto:
@@ -353,6 +361,9 @@ class Station:
             meta["pose"] = det.features.to_dict()
         if det.board is not None:
             meta["corners"] = int(len(det.board.ids))
+            # the corners as detected live: the panel redraws the board poses with the calibrated camera
+            meta["board_ids"] = [int(i) for i in det.board.ids]
+            meta["board_px"] = np.round(np.asarray(det.board.corners_px, float), 3).tolist()
         if det.virtual is not None:
             meta["virtual_corners"] = int(len(det.virtual.ids))
         if decision is not None and decision.motion_px is not None:
@@ -362,6 +373,7 @@ class Station:
         if self._requested == self.machine.target and self._requested is not None:
             meta["operator_pose_index"] = int(self._operator_index)
         cap = self.machine.record_capture(frame.image, meta)
+        self.last_capture_s = time.monotonic()
         self.log(f"captured {cap.id}: {self._describe(cap)}")
         self._changed()
         return cap
@@ -441,7 +453,11 @@ class Station:
     background_long_actions = False
 
     def run_long(self, name: str, fn: Callable[[], object]):
-        """Calibration and verification: inline (headless) or in a worker thread (panel)."""
+        """Calibration and verification: inline (headless) or in a worker thread (panel). A refused
+        action is refused here, before any thread starts, so the caller shows the reason."""
+        reason = self.machine.why_not(name)
+        if reason is not None:
+            raise ActionRefused(name, reason)
         if not self.background_long_actions:
             return fn()
         if self._worker is not None and self._worker.is_alive():

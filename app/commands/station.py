@@ -1,0 +1,131 @@
+"""`procam station`: the guided station, operated from a browser (viser panel).
+
+The panel leads the operator through the session (rig check, mirror capture, projector capture,
+calibration, verification) and shows the live camera image, coverage, pose diversity, the 3D rig and
+the results. It binds to 127.0.0.1 unless told otherwise; served on a network (--host 0.0.0.0) it
+prints an access code, and a browser without the code sees the status only.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from pathlib import Path
+
+NAME = "station"
+HELP = "the guided capture-and-calibrate station, operated from a browser panel"
+DESCRIPTION = (
+    "Starts the station and its browser panel (viser). With no RealSense connected the simulated rig is "
+    "used, and its simulated operator moves the board when asked, so a whole session can be run from "
+    "the browser. Every capture is written to the session folder before the panel acknowledges it; "
+    "--resume DIR continues a session where it stopped."
+)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--rig", choices=("sim", "realsense"), default=None,
+                   help="rig to use (default: realsense when one is connected, else sim)")
+    p.add_argument("--port", type=int, default=8080, help="panel port (default 8080)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve the panel on (default 127.0.0.1; 0.0.0.0 serves the network and "
+                        "requires the printed access code to operate the rig)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--session", metavar="DIR", help="new session folder (default: ./session-YYYYmmdd-HHMMSS)")
+    g.add_argument("--resume", metavar="DIR", help="continue the session in DIR where it stopped")
+    p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
+    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
+    p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
+    p.add_argument("--auto", action="store_true",
+                   help="simulated rig: the simulated operator moves the board by itself and the station runs "
+                        "the whole session (watch it in the browser)")
+    p.add_argument("--poses-per-position", type=int, default=None,
+                   help="board poses per pattern position (default 4)")
+    p.add_argument("--mirror-captures", type=int, default=None,
+                   help="mirror captures to take (default 6 real-virtual, 3 real-mirror)")
+    p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
+                   help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
+    p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
+    p.add_argument("--mirror-board", default=None, help="real rig: mirror board spec (default: --board)")
+    p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
+    p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
+    p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
+    p.add_argument("--method", default=None,
+                   help="calibration method (default: the calibration core's default; 'paper' is the method of "
+                        "Vanherck et al.)")
+    p.add_argument("--mirror-method", choices=("real-virtual", "real-mirror"), default=None,
+                   help="with --auto: the mirror method the station chooses (default: the scenario's)")
+
+
+def rig_note(req, defaulted: bool) -> str:
+    if req.kind == "sim":
+        note = f"**Simulated rig** `{req.scenario}` (seed {req.seed})"
+        if defaulted:
+            note += ": no RealSense camera is connected, so the station uses the simulated rig"
+        return note + ". Its simulated operator moves the board when you press *Move board*."
+    return f"**{req.kind} rig**: a person moves the board, following the instructions below."
+
+
+def run(args) -> int:
+    from app.commands.session import open_session
+    from app.station.panel import StationPanel, needs_access_code, new_access_code
+    from app.station.setup import default_rig_kind, resume_request, run_on_rig
+    from app.station.station import Station, StationOptions
+
+    defaulted = False
+    if not args.resume and not args.session:
+        args.session = time.strftime("session-%Y%m%d-%H%M%S")
+    if args.resume:
+        kind = resume_request(args.resume, kind=args.rig).kind
+    else:
+        kind = args.rig
+        if kind is None:
+            kind = default_rig_kind()
+            defaulted = kind == "sim"
+        args.rig = kind
+    args.out = args.session
+    rig, store, machine, req = open_session(args, print)
+    sim = req.kind == "sim"
+    opts = StationOptions(auto=bool(args.auto and sim), follow_operator=(not sim) or bool(args.auto),
+                          mirror_method=args.mirror_method)
+    if not sim:
+        opts.max_frames_per_target = 10**9
+        opts.stuck_frames = 10**9
+    station = Station(rig, machine, opts, log=lambda text: None)
+    code = new_access_code() if needs_access_code(args.host) else None
+    panel = StationPanel(station, args.host, args.port, code, rig_note(req, defaulted))
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        stop.set()
+
+    try:
+        signal.signal(signal.SIGTERM, on_signal)
+    except ValueError:  # not the main thread (tests call run() in a thread)
+        pass
+
+    def work():
+        station.start_loop()
+        panel.start()
+        print(f"procam station: panel at {panel.url}  (session {Path(store.folder)})", flush=True)
+        if code is not None:
+            print(f"procam station: served on {args.host}; access code to operate the rig: {code}", flush=True)
+        try:
+            while not stop.wait(0.5):
+                pass
+        except KeyboardInterrupt:
+            pass
+        finally:
+            station.stop_loop()
+            panel.stop()
+
+    try:
+        run_on_rig(rig, work)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        close = getattr(rig, "close", None)
+        if callable(close):
+            close()
+    print(f"procam station: stopped; the session is in {store.folder} (continue with --resume {store.folder})")
+    return 0
