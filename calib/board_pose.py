@@ -66,11 +66,17 @@ class BoardPose:
 
     T_cam_view: np.ndarray
     mirrored: bool
-    residuals_px: np.ndarray  # (N,) reprojection error per corner
+    residuals_px: np.ndarray  # (N,) reprojection error per corner (all corners, outliers included)
+    inliers: np.ndarray | None = None  # (N,) bool: corners the pose was fitted to (None: all)
 
     @property
     def rms_px(self) -> float:
-        return float(np.sqrt(np.mean(self.residuals_px**2)))
+        r = self.residuals_px if self.inliers is None else self.residuals_px[self.inliers]
+        return float(np.sqrt(np.mean(r**2)))
+
+    @property
+    def n_outliers(self) -> int:
+        return 0 if self.inliers is None else int((~self.inliers).sum())
 
     def physical(self, S: np.ndarray | None) -> np.ndarray:
         """T_cam_board of the physical board (needs the mirror reflection S for a mirrored view)."""
@@ -89,11 +95,40 @@ class BoardPose:
         return transform_points(self.T_cam_view, X)
 
 
-def solve_board_pose(camera: CameraModel, spec: CharucoSpec, obs: BoardObservation) -> BoardPose:
-    """PnP of one board observation: IPPE (both planar solutions, the better one), then LM."""
+#: A corner (or pattern point) is an outlier when its residual exceeds
+#: max(OUTLIER_FACTOR x the median residual, OUTLIER_MIN_PX); removed worst first.
+OUTLIER_FACTOR = 6.0
+OUTLIER_MIN_PX = 2.0
+
+
+def outlier_limit(residuals: np.ndarray) -> float:
+    return max(OUTLIER_FACTOR * float(np.median(residuals)), OUTLIER_MIN_PX)
+
+
+def solve_board_pose(camera: CameraModel, spec: CharucoSpec, obs: BoardObservation,
+                     reject_outliers: bool = True) -> BoardPose:
+    """PnP of one board observation: IPPE (both planar solutions, the better one), then LM. With
+    `reject_outliers`, corners far off the fitted pose (outlier_limit) are dropped one at a time, worst
+    first (at most a quarter of them), and the pose refitted."""
     X = view_object_points(spec, obs)
     uv = np.ascontiguousarray(obs.corners_px, float)
+    T, res = _pnp(camera, X, uv)
+    inl = np.ones(len(X), bool)
+    if reject_outliers:
+        for _ in range(len(X) // 4):
+            r = np.where(inl, res, -1.0)
+            if r.max() <= outlier_limit(res[inl]) or inl.sum() <= MIN_CORNERS:
+                break
+            inl[int(np.argmax(r))] = False
+            T, _ = _pnp(camera, X[inl], uv[inl])
+            res = _residuals(camera, T, X, uv)
+    return BoardPose(T, bool(obs.mirrored), res, None if inl.all() else inl)
+
+
+def _pnp(camera: CameraModel, X: np.ndarray, uv: np.ndarray):
     K, dist = np.array(camera.K), np.array(camera.dist)
+    X = np.ascontiguousarray(X, float)
+    uv = np.ascontiguousarray(uv, float)
     n, rvecs, tvecs, errs = cv2.solvePnPGeneric(X, uv, K, dist, flags=cv2.SOLVEPNP_IPPE)
     best = None
     for rvec, tvec in zip(rvecs, tvecs):
@@ -102,8 +137,7 @@ def solve_board_pose(camera: CameraModel, spec: CharucoSpec, obs: BoardObservati
         res = _residuals(camera, T, X, uv)
         if best is None or np.sum(res**2) < np.sum(best[1] ** 2):
             best = (T, res)
-    T, res = best
-    return BoardPose(T, bool(obs.mirrored), res)
+    return best
 
 
 def refine_pose(camera: CameraModel, X: np.ndarray, uv: np.ndarray, T0: np.ndarray) -> np.ndarray:

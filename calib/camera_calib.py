@@ -12,14 +12,14 @@ stage still reports its RMS.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
 import cv2
 import numpy as np
 
-from calib.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, solve_board_pose, usable_reason,
-                              view_object_points)
+from calib.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, solve_board_pose,
+                              usable_reason, view_object_points)
 from calib.boards import CharucoSpec
 from calib.camera import CameraModel
 from calib.errors import CalibrationError
@@ -70,12 +70,15 @@ class CameraCalibration:
 
 def calibrate_camera(obs: SessionObservations, camera: CameraModel | None = None, *, fix_k3: bool = False,
                      rational: bool = False, fix_tangential: bool = False, min_views: int = MIN_VIEWS,
-                     min_corners: int = MIN_CORNERS, reject_outlier_views: bool = True) -> CameraCalibration:
+                     min_corners: int = MIN_CORNERS, reject_outlier_views: bool = True,
+                     reject_outlier_points: bool = True) -> CameraCalibration:
     """Calibrate the camera from every board view of the session (or evaluate a given `camera`).
 
     Views with too few corners are skipped (reported in `skipped`). With `reject_outlier_views`, a view
     whose RMS is far above the others' (> max(5 x median, 2 px)) is dropped and the calibration
-    rerun once: such a view is almost always a misdetection."""
+    rerun once: such a view is almost always a misdetection. With `reject_outlier_points`, single corners
+    beyond calib.board_pose.outlier_limit (max(6 x median, 2 px)) are then dropped, worst first, and the
+    calibration rerun (counts in per_view[...]["n_rejected_points"])."""
     W, H = obs.camera_size
     if camera is not None and (camera.width, camera.height) != (W, H):
         raise CalibrationError(
@@ -120,7 +123,31 @@ def calibrate_camera(obs: SessionObservations, camera: CameraModel | None = None
                                               f"median {np.median(rms_v):.2f} px): probably a misdetection"})
             used = [v for v in used if v not in bad]
             cam, rms, poses, std = _zhang(used, (W, H), flags)
-    return _result(cam, rms, used, poses, skipped, False, std, flag_info)
+    rejected: dict[str, int] = {}
+    for _round in range(6 if reject_outlier_points else 0):
+        limit = outlier_limit(np.concatenate([poses[v.key].residuals_px for v in used]))
+        changed, kept = False, []
+        for v in used:
+            r = poses[v.key].residuals_px
+            out = (r > limit) & (r >= 0.5 * r.max())
+            if out.any():  # the worst corners of a view go first (one outlier drags its view's pose)
+                changed = True
+                rejected[v.key] = rejected.get(v.key, 0) + int(out.sum())
+                v = replace(v, obs=BoardObservation(v.obs.ids[~out], v.obs.corners_px[~out], v.obs.mirrored))
+                reason = usable_reason(v.spec, v.obs, min_corners)
+                if reason is not None:
+                    skipped.append({"capture_id": v.capture_id, "stage": "camera", "view": v.key,
+                                    "reason": f"after dropping {rejected[v.key]} inconsistent corner(s): {reason}"})
+                    continue
+            kept.append(v)
+        if not changed:
+            break
+        if len(kept) < min_views:
+            raise CalibrationError(f"cannot calibrate the camera: only {len(kept)} board view(s) with consistent "
+                                   f"corners (need at least {min_views}); check the board detections")
+        used = kept
+        cam, rms, poses, std = _zhang(used, (W, H), flags)
+    return _result(cam, rms, used, poses, skipped, False, std, flag_info, rejected)
 
 
 def _zhang(used: list[BoardView], size, flags):
@@ -143,14 +170,16 @@ def _zhang(used: list[BoardView], size, flags):
     return cam, float(rms), poses, np.asarray(std_i, float).reshape(-1)
 
 
-def _result(cam, rms, used, poses, skipped, pre, std, flag_info) -> CameraCalibration:
+def _result(cam, rms, used, poses, skipped, pre, std, flag_info, rejected=None) -> CameraCalibration:
+    rejected = rejected or {}
     per_view = []
     all_res = []
     for v in used:
         p = poses[v.key]
-        all_res.append(p.residuals_px)
+        all_res.append(p.residuals_px if p.inliers is None else p.residuals_px[p.inliers])
         per_view.append({"stage": "camera", "key": v.key, "capture_id": v.capture_id, "role": v.role,
                          "mirrored": bool(v.obs.mirrored), "n_points": int(len(v.obs.ids)),
+                         "n_rejected_points": rejected.get(v.key, 0) + p.n_outliers,
                          "rms_px": p.rms_px, "max_px": float(np.max(p.residuals_px))})
     res = np.concatenate(all_res) if all_res else np.zeros(0)
     if rms is None:

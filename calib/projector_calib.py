@@ -26,7 +26,8 @@ from types import MappingProxyType
 import cv2
 import numpy as np
 
-from calib.board_pose import MIN_CORNERS, BoardPose, calibrate_zhang, point_residuals, solve_board_pose, usable_reason
+from calib.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, point_residuals, solve_board_pose,
+                              usable_reason)
 from calib.camera import CameraModel
 from calib.errors import CalibrationError
 from calib.observations import VIEW_DIRECT, VIEW_MIRROR, ProjectorView, SessionObservations
@@ -37,9 +38,6 @@ from calib.transforms import FLIP_X, T_from_rvec_tvec, invert_T, make_T, rotatio
 MIN_VIEWS = 4
 #: Fewer pattern points than this in a view and it is not used.
 MIN_PATTERN_POINTS = 6
-#: Pattern-point outliers: residual above max(OUTLIER_FACTOR x median residual, OUTLIER_MIN_PX).
-OUTLIER_FACTOR = 6.0
-OUTLIER_MIN_PX = 2.0
 #: Board pose RMS above this (pixels) means a misdetected board: the view is not used.
 MAX_BOARD_RMS_PX = 3.0
 
@@ -86,7 +84,7 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
     """Calibrate the projector (intrinsics and T_cam_proj) from the projector views of `obs`.
 
     With `reject_outliers`, pattern points whose projector residual after Zhang exceeds
-    max(OUTLIER_FACTOR x median, OUTLIER_MIN_PX) are dropped and Zhang rerun (a misdetected circle
+    calib.board_pose.outlier_limit (max(6 x median, 2 px)) are dropped, worst first, and Zhang rerun (a misdetected circle
     otherwise drags the intrinsics by tens of pixels); the counts are in per_view / diagnostics."""
     mirrored = obs.view == VIEW_MIRROR
     if obs.view not in (VIEW_MIRROR, VIEW_DIRECT):
@@ -145,7 +143,7 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
     for _round in range(6 if reject_outliers else 0):
         res = point_residuals(Kp, Dp, p_rv, p_tv, objp, projp)
         allres = np.concatenate(res)
-        limit = max(OUTLIER_FACTOR * float(np.median(allres)), OUTLIER_MIN_PX)
+        limit = outlier_limit(allres)
         if not np.any(allres > limit):
             break
         for k, r in zip(keep, res):
@@ -198,7 +196,8 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
         # this view's own estimate of T_cam_proj (board pose from the camera, projector pose by PnP)
         rec = {"stage": "projector", "capture_id": v.capture_id, "pattern_position": v.pattern_position,
                "n_corners": int(len(v.board.ids)), "n_points": int(len(Xb)),
-               "n_rejected_points": int((~kept).sum()), "board_rms_px": pose.rms_px,
+               "n_rejected_points": int((~kept).sum()), "n_rejected_corners": pose.n_outliers,
+               "board_rms_px": pose.rms_px,
                "proj_rms_px": float(np.asarray(p_pve).reshape(-1)[k]),
                "stereo_cam_px": float(s_pve[k, 0]), "stereo_proj_px": float(s_pve[k, -1])}
         ok, rvec, tvec = cv2.solvePnP(Xb, np.ascontiguousarray(q, float), np.array(projector.K),

@@ -105,3 +105,24 @@ def test_too_few_views_is_an_actionable_error():
     obs = replace_obs(obs, projector_views=obs.projector_views[:2], mirror_views=())
     with pytest.raises(CalibrationError, match=r"only 2 usable board view.*--camera-intrinsics"):
         calibrate_camera(obs)
+
+
+def test_a_misdetected_corner_is_dropped_not_the_view():
+    obs = observations("136", 0.2, 3)
+    clean = calibrate_camera(obs)
+    pv = list(obs.projector_views)
+    v = pv[11]
+    c = np.array(v.board.corners_px)
+    c[7] += [7.0, 5.0]
+    pv[11] = ProjectorView(v.capture_id, BoardObservation(v.board.ids, c, True), v.pattern_cam_px, v.pattern_proj_px,
+                           v.pattern_position)
+    cc = calibrate_camera(replace_obs(obs, projector_views=tuple(pv)))
+    rec = next(r for r in cc.per_view if r["capture_id"] == v.capture_id)
+    assert rec["n_rejected_points"] == 1 and rec["n_points"] == 34
+    assert sum(r["n_rejected_points"] for r in cc.per_view) == 1
+    assert np.linalg.norm(cc.camera.K - clean.camera.K) < 0.5
+    assert cc.rms_px < 0.35
+    # the PnP of a pre-calibrated camera drops the same corner
+    gt = session("136").rig.camera
+    pose = solve_board_pose(gt, session("136").layout.charuco, pv[11].board)
+    assert pose.n_outliers == 1 and not pose.inliers[7] and pose.rms_px < 0.4
