@@ -163,7 +163,7 @@ def STATE(machine) -> str:
 
 
 def run(args) -> int:
-    from app.station.machine import DONE
+    from app.station.machine import CHECK_RIG, DONE
     from app.station.station import Station, StationOptions
     from calib.errors import SessionError
 
@@ -200,6 +200,10 @@ def run(args) -> int:
 
     def work():
         nonlocal last_hint
+        if machine.state != CHECK_RIG:  # resumed: the rig is checked again, the session stays where it is
+            bad = [c for c in station.check_rig() if not c.ok]
+            if bad:
+                raise SessionError("the rig check failed: " + "; ".join(f"{c.name}: {c.detail}" for c in bad))
         while machine.state != DONE:
             station.tick()
             if req.kind != "sim":

@@ -68,6 +68,7 @@ def rig_note(req, defaulted: bool) -> str:
 
 def run(args) -> int:
     from app.commands.session import open_session
+    from app.station.machine import CHECK_RIG
     from app.station.panel import StationPanel, needs_access_code, new_access_code
     from app.station.setup import default_rig_kind, resume_request, run_on_rig
     from app.station.station import Station, StationOptions
@@ -105,6 +106,8 @@ def run(args) -> int:
         pass
 
     def work():
+        if machine.state != CHECK_RIG:  # resumed: check the rig again (the panel shows the outcome)
+            station.check_rig()
         station.start_loop()
         panel.start()
         print(f"procam station: panel at {panel.url}  (session {Path(store.folder)})", flush=True)

@@ -422,16 +422,36 @@ class StationPanel:
                 scene.remove_by_name("/rig/rays")
             except Exception:
                 pass
-        segs, colours = [], []
+        groups = {"mirror step": ((60, 200, 90), []), "projector step": ((240, 150, 40), []),
+                  "seen in the mirror": ((170, 170, 170), [])}
         for b in sc.boards:
-            o = b.outline * k
-            col = (60, 200, 90) if b.step != STEP_PROJECTOR else ((170, 170, 170) if b.virtual else (240, 150, 40))
-            for i in range(4):
-                segs.append([o[i], o[(i + 1) % 4]])
-                colours.append([col, col])
-        if segs:
-            scene.add_line_segments("/rig/boards", np.array(segs, np.float32), np.array(colours, np.uint8),
-                                    thickness=0.003)
+            key = "mirror step" if b.step != STEP_PROJECTOR else ("seen in the mirror" if b.virtual else "projector step")
+            groups[key][1].append(b.outline * k)
+        for key, (col, quads) in groups.items():
+            name = "/rig/boards/" + key.replace(" ", "_")
+            if not quads:
+                try:
+                    scene.remove_by_name(name)
+                except Exception:
+                    pass
+                continue
+            v = np.concatenate(quads).astype(np.float32)
+            f = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]) + 4 * i for i in range(len(quads))]).astype(np.uint32)
+            scene.add_mesh_simple(name, v, f, color=col, opacity=0.35, side="double")
+            segs = np.array([[q[i], q[(i + 1) % 4]] for q in quads for i in range(4)], np.float32)
+            scene.add_line_segments(name + "_edges", segs, col, thickness=0.002)
+        # frame the rig for browsers that connect from now on
+        pts = [np.zeros(3)] + [b.outline.mean(axis=0) * k for b in sc.boards]
+        if sc.mirror_quad is not None:
+            pts.append(sc.mirror_quad.mean(axis=0) * k)
+        if sc.projector is not None:
+            pts.append(sc.projector.T_cam_dev[:3, 3] * k)
+        pts = np.array(pts)
+        centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
+        extent = float(max(np.ptp(pts, axis=0).max(), 0.6))
+        ic = self.server.initial_camera
+        ic.look_at = tuple(centre)
+        ic.position = tuple(centre + extent * np.array([-0.9, -1.1, -1.0]))
 
     # ---- per-browser controls ------------------------------------------------------------------------
     def _on_connect(self, client) -> None:

@@ -186,14 +186,15 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
 
     verify_fn = make_verify_fn(rig, store.folder)
     if resume:
+        saved = dict(store.manifest.state or {})  # before the machine rewrites it
         m = SessionMachine.from_store(store, plan, calibrate_fn=calibrate, verify_fn=verify_fn)
         vfile = Path(store.folder) / VERIFICATION_FILE
-        if m.result is not None and not m.result_stale and (store.manifest.state or {}).get("verified") is not None \
-                and vfile.exists():
+        if m.result is not None and not m.result_stale and saved.get("verified") is not None and vfile.exists():
             try:
                 from app.verification import VerificationReport
 
                 m.report = VerificationReport.from_json(vfile)
+                m._persist()
             except Exception as e:  # a report that does not load is simply re-measured
                 m._log(f"the saved verification does not load ({e}); verify again")
     else:

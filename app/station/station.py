@@ -248,6 +248,8 @@ class Station:
             if self.machine.busy == "verifying":  # the verification owns the camera meanwhile
                 time.sleep(0.1)
                 continue
+            if self.machine.busy == "calibrating":  # leave the processor to the calibration
+                time.sleep(0.5)
             try:
                 frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
                                                   newer_than=last_n if last_n >= 0 else None)
