@@ -74,10 +74,18 @@ class Scene:
     pattern_point_px: np.ndarray | None = None  # (N, 2) images of the projector points themselves
 
 
-def board_texture(spec: CharucoSpec, px_per_unit: float, blank_width: float, border: float):
-    """(texture uint8, A) where A maps texture pixels to board coordinates."""
+def board_texture(spec: CharucoSpec, px_per_unit: float, blank_width: float, border: float, legacy: bool = False):
+    """(texture uint8, A) where A maps texture pixels to board coordinates. `legacy`: the layout OpenCV
+    < 4.6 printed for boards with an even number of rows."""
     s = px_per_unit
-    tex_charuco = spec.render(s)
+    if legacy:
+        b = cv2.aruco.CharucoBoard((spec.cols, spec.rows), spec.square_length, spec.marker_length,
+                                   spec.cv_board().getDictionary())
+        b.setLegacyPattern(True)
+        size = (int(round(spec.size[0] * s)), int(round(spec.size[1] * s)))
+        tex_charuco = b.generateImage(size, marginSize=0, borderBits=1)
+    else:
+        tex_charuco = spec.render(s)
     b = int(round(border * s))
     bw = int(round(blank_width * s))
     h, w = tex_charuco.shape
@@ -98,7 +106,7 @@ def render_board_scene(width: int, height: int, spec: CharucoSpec, H_img_board: 
                        proj_size=(1920, 1080), position: int = 0, supersample: int = 4,
                        blank_width: float | None = None, noise_px: float = 0.0, seed: int = 0,
                        ambient: float = 0.35, background: float = 0.12, colour: bool = False,
-                       extra_light: np.ndarray | None = None) -> Scene:
+                       extra_light: np.ndarray | None = None, legacy: bool = False) -> Scene:
     """Render a camera image of the board lit by the projector showing `pattern` at `position`.
 
     Camera intensity = albedo * (ambient + (1 - ambient) * projector light), albedo from the board's
@@ -111,7 +119,7 @@ def render_board_scene(width: int, height: int, spec: CharucoSpec, H_img_board: 
     s = max(2.0, np.ceil(1.5 * k * img_per_unit))
     # integer number of texture pixels per square
     s = np.ceil(s * spec.square_length) / spec.square_length
-    tex, A = board_texture(spec, s, blank, border)
+    tex, A = board_texture(spec, s, blank, border, legacy)
     albedo_tex = (0.06 + (0.92 - 0.06) * tex.astype(np.float32) / 255.0)
     Hs = _super(H_img_board @ A, k)
     W2, H2 = width * k, height * k

@@ -83,6 +83,18 @@ def test_mirrored_board_maps_back_with_w_minus_1(mirrored_circles):
     assert isinstance(detect_board(sc.image, SPEC, mirrored=False), DetectionFailure)
 
 
+def test_legacy_board_layout_is_recognised():
+    # a board printed by OpenCV < 4.6 (even number of rows): same corner positions, markers shifted
+    Hb = board_homography(W, H, SPEC, angle_deg=-7, tilt=(0.2, 0.2))
+    legacy = render_board_scene(W, H, SPEC, Hb, legacy=True)
+    modern = render_board_scene(W, H, SPEC, Hb)
+    assert not np.array_equal(legacy.image, modern.image)
+    for sc in (legacy, modern):
+        obs = detect_board(sc.image, SPEC, False)
+        assert isinstance(obs, BoardObservation) and len(obs.ids) == SPEC.n_corners
+        assert np.abs(obs.corners_px - sc.corners_px[obs.ids]).max() < 0.06
+
+
 def test_board_noise_robust():
     Hb = board_homography(W, H, SPEC, angle_deg=12, tilt=(0.2, 0.2))
     sc = render_board_scene(W, H, SPEC, Hb, noise_px=3.0, seed=3)
