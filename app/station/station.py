@@ -493,7 +493,7 @@ class Station:
         return self.machine.verify()
 
     # ---- background loop (panel) ------------------------------------------------------------------
-    def start_loop(self, preview_fps: float = 15.0) -> None:
+    def start_loop(self, preview_fps: float = 20.0) -> None:
         """Run the station in background threads: a preview thread keeping the newest frame and a
         station thread detecting and capturing on it (the panel only draws)."""
         self.background_long_actions = True
