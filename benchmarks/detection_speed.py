@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from calib import detect as D  # noqa: E402
 from calib.camera import CameraModel  # noqa: E402
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_MIRROR  # noqa: E402
+from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL, VIEW_MIRROR  # noqa: E402
 from calib.session import SessionStore  # noqa: E402
 
 

@@ -786,9 +786,10 @@ def _run_job(job: _Job):
         if isinstance(pts, DetectionFailure):
             return job.capture_id, pts
         return job.capture_id, (board, pts)
-    except cv2.error as e:  # a pathological image must not stop the session
-        msg = str(e).strip().splitlines()[-1] if str(e).strip() else "OpenCV error"
-        return job.capture_id, DetectionFailure(f"detection failed: {msg}")
+    except Exception as e:  # noqa: BLE001 - a pathological image must not stop the whole session
+        lines = str(e).strip().splitlines()
+        msg = lines[-1] if lines else ""
+        return job.capture_id, DetectionFailure(f"detection failed ({e.__class__.__name__}): {msg}".rstrip(": "))
 
 
 def _init_worker():
