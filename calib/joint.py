@@ -16,17 +16,20 @@ Observations, all in camera pixels (where the noise is), with the exact models o
   real-mirror boards are parametrised on the plane offset by the board thickness;
 * direct rigs: S = I.
 
-Derivatives are exact (complex step, grouped by the block structure: one evaluation per global
-parameter plus six for all board poses together); the solver is scipy's least_squares (trf, sparse
-Jacobian, x_scale='jac') with a robust loss, followed by outlier rejection and a final solve with the
-plain squared loss on the inliers (the maximum-likelihood estimate under Gaussian pixel noise) from
-which the covariance is taken (calib.uncertainty).
+Residuals are weighted by the noise sigma of their observation class (board corners, pattern points,
+mirror real / virtual corners), estimated from the residuals. Derivatives are exact: the camera
+intrinsics analytically, the rest by complex step grouped by the block structure (one evaluation per
+global parameter plus six for all board poses together). The solver is Levenberg-Marquardt with the
+board poses eliminated by the Schur complement (solver="scipy": scipy's least_squares, trf, sparse
+Jacobian, x_scale='jac'): a robust pass (soft-L1), outlier rejection, then the plain squared loss on
+the inliers (the maximum-likelihood estimate under Gaussian pixel noise), distortion model selection
+(calib.model_select) and the covariance (calib.uncertainty).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -37,7 +40,7 @@ from calib.camera import CameraModel
 from calib.errors import CalibrationError
 from calib.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
 from calib.result import CalibrationResult, MirrorPlane
-from calib.transforms import FLIP_X, invert_T, make_T, rotation_angle_deg
+from calib.transforms import FLIP_X, make_T
 
 #: Distortion models: name -> indices of the free coefficients in OpenCV's 8-vector
 #: [k1, k2, p1, p2, k3, k4, k5, k6]. Nested, simplest first.
@@ -64,8 +67,12 @@ class JointOptions:
     imaged conic (what a centroid detector measures), "point" as the image of its centre; "auto" =
     conic for circle patterns, point for chessboards. loss / noise_px: robust loss of the first pass
     and its scale (None: estimated from the initial residuals). outlier_sigma: points whose residual
-    exceeds this many robust sigmas (and at least min_outlier_px) are rejected, then the problem is
-    solved again with the squared loss. selection: criterion of the model selection ("bic")."""
+    exceeds this many robust sigmas of their class (and min_outlier_px) are rejected, then the problem
+    is solved with the squared loss. selection: criterion of the model selection ("bic" or "lrt").
+    solver: "lm" (Levenberg-Marquardt, Schur complement) or "scipy" (least_squares). fix_camera: hold
+    the initial camera fixed (set when a camera is given). weighting: "class" (per observation class
+    noise sigma) or "none". centroid_correction: with the conic model, the 32-point area-centroid
+    correction for the lenses' curvature across a blob."""
 
     camera_model: str = "auto"
     projector_model: str = "auto"
@@ -1201,5 +1208,5 @@ def _make_result(obs, init, prob: JointProblem, x, rejected, left_out, selection
                              skipped=skipped, uncertainty=unc, diagnostics=diag)
 
 
-__all__ = ["JointOptions", "refine_joint", "DIST_MODELS", "MODEL_NAMES", "JointProblem", "build_problem",
-           "solve", "gibbs_R", "distort", "distort_jac", "invert_T", "rotation_angle_deg"]
+__all__ = ["JointOptions", "refine_joint", "calibrate_joint", "DIST_MODELS", "MODEL_NAMES", "JointProblem",
+           "build_problem", "solve", "gibbs_R", "distort", "distort_jac"]
