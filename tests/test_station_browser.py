@@ -93,6 +93,12 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Mirror: normal")
             click(page, "Verify")
             see(page, r"Verification PASSED", timeout=60_000)
+            # the live check of one pixel: its epipolar curve drawn, seen and measured
+            click(page, "Check pixel")
+            see(page, r"Check pixel: checking pixel \(640\.0, 400\.0\)")
+            page.get_by_role("tab", name="Log").click()
+            see(page, r"pixel check \(640\.0, 400\.0\): \d+\.\d+ camera px", timeout=60_000)
+            page.get_by_role("tab", name="Live camera").click()
             click(page, "Finish")
             see(page, r"The session is complete")
             page.get_by_role("tab", name="Captures").click()

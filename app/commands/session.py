@@ -149,8 +149,9 @@ def summary(machine, folder, elapsed_s: float) -> str:
     if machine.report is not None:
         r = machine.report
         verdict = "PASSED" if getattr(r, "passed", False) else "FAILED"
-        lines.append(f"  verification {verdict}: mean {getattr(r, 'mean_px', float('nan')):.2f} px, worst "
-                     f"{getattr(r, 'worst_px', float('nan')):.2f} px (threshold {getattr(r, 'threshold_px', float('nan')):.2f} px)")
+        lines.append(f"  verification {verdict} (threshold {getattr(r, 'threshold_px', float('nan')):.2f} projector px):")
+        if hasattr(r, "summary"):
+            lines.extend("    " + ln for ln in r.summary().splitlines())
     files = [p.name for p in sorted(Path(folder).iterdir()) if p.is_file()]
     lines.append(f"  files: {', '.join(files)}")
     return "\n".join(lines)

@@ -667,11 +667,33 @@ class SessionMachine:
             self.report = report
             self.busy = None
             passed = getattr(report, "passed", None)
-            mean = getattr(report, "mean_px", None)
+            mean = getattr(report, "mean_proj_px", None)
             self._log("verification " + ("passed" if passed else "FAILED")
-                      + (f" (mean {mean:.2f} px)" if isinstance(mean, (int, float)) else ""))
+                      + (f" (mean {mean:.2f} projector px)" if isinstance(mean, (int, float)) else ""))
             self._persist()
             return report
+
+    def hold(self, label: str, allowed_states=(CALIBRATION, VERIFICATION, DONE)):
+        """Mark the station busy with `label` for the duration of a `with` block (e.g. checking one
+        pixel's epipolar curve, which drives the camera and projector); refused when busy already or
+        outside `allowed_states`."""
+        import contextlib
+
+        @contextlib.contextmanager
+        def held():
+            with self._lock:
+                if self.busy:
+                    raise ActionRefused(label, f"the station is busy ({self.busy}); wait until it finishes")
+                if self.state not in allowed_states:
+                    raise ActionRefused(label, f"not possible during {STATE_TITLES[self.state]}")
+                self.busy = label
+            try:
+                yield
+            finally:
+                with self._lock:
+                    self.busy = None
+
+        return held()
 
     def finish(self) -> str:
         with self._lock:

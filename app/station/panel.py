@@ -239,9 +239,9 @@ class StationPanel:
         rep = m.report
         if rep is not None:
             verdict = "PASSED" if getattr(rep, "passed", False) else "FAILED"
-            lines.append(f"\n**Verification {verdict}**: mean {getattr(rep, 'mean_px', float('nan')):.2f} px, worst "
-                         f"{getattr(rep, 'worst_px', float('nan')):.2f} px (threshold "
-                         f"{getattr(rep, 'threshold_px', float('nan')):.2f} px)")
+            summary = rep.summary() if hasattr(rep, "summary") else ""
+            lines.append(f"\n**Verification {verdict}** (threshold {getattr(rep, 'threshold_px', float('nan')):.2f} "
+                         f"projector px): {summary}")
         elif m.verification_error:
             lines.append(f"\n**Verification could not run:** {m.verification_error}")
         return "\n".join(lines)
@@ -353,6 +353,22 @@ class StationPanel:
                 cv2.polylines(small, [pts.reshape(-1, 1, 2)], False, (200, 60, 220), 1, cv2.LINE_AA)
                 for x, y in pts:
                     cv2.circle(small, (int(x), int(y)), 3, (220, 80, 240), 1, cv2.LINE_AA)
+        pc = st.pixel_check
+        if pc is not None and self.machine.state in (CALIBRATION, VERIFICATION, DONE):
+            ov = pc.overlay()
+            if ov.get("predicted") is not None and len(ov["predicted"]) > 1:
+                pts = np.round(np.asarray(ov["predicted"]) * s).astype(np.int32)
+                cv2.polylines(small, [pts.reshape(-1, 1, 2)], False, (40, 200, 240), 1, cv2.LINE_AA)
+            if ov.get("detected") is not None and len(ov["detected"]) > 1:
+                pts = np.round(np.asarray(ov["detected"]) * s).astype(np.int32)
+                cv2.polylines(small, [pts.reshape(-1, 1, 2)], False, (240, 220, 60), 2, cv2.LINE_AA)
+            px, py = (int(round(v * s)) for v in ov["pixel"])
+            cv2.drawMarker(small, (px, py), (40, 40, 240), cv2.MARKER_CROSS, 14, 2)
+            hh = small.shape[0]
+            cv2.rectangle(small, (0, hh - 22), (LIVE_WIDTH, hh), (0, 0, 0), -1)
+            cv2.putText(small, str(ov.get("label", ""))[:95], (6, hh - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
+                        (240, 240, 240), 1, cv2.LINE_AA)
+            key = key + (id(pc),)
         banner = self._banner(det, dec)
         if banner:
             cv2.rectangle(small, (0, 0), (LIVE_WIDTH, 22), (0, 0, 0), -1)
@@ -530,6 +546,12 @@ class StationPanel:
                 h["use_camera"] = g.add_button("Calibrate camera from captures")
                 h["verify"] = g.add_button("Verify")
                 h["finish"] = g.add_button("Finish")
+            with g.add_folder("Check one pixel"):
+                W, H = self.machine.manifest.rig.camera_size
+                h["pixel_x"] = g.add_number("Pixel x", float(W // 2), min=0.0, max=float(W - 1), step=0.5)
+                h["pixel_y"] = g.add_number("Pixel y", float(H // 2), min=0.0, max=float(H - 1), step=0.5)
+                h["check_pixel"] = g.add_button("Check pixel", hint="the projector draws this camera pixel's "
+                                                                    "epipolar curve; the camera measures how far it passes")
         st, m = self.station, self.machine
         actions = {
             "check": lambda: self._check(),
@@ -548,6 +570,7 @@ class StationPanel:
             "use_camera": lambda: m.use_camera_calibration(),
             "verify": lambda: st.run_long("verify", st.verify),
             "finish": lambda: m.finish(),
+            "check_pixel": lambda: self._check_pixel(h),
         }
         for name, fn in actions.items():
             if name in h:
@@ -580,6 +603,13 @@ class StationPanel:
         if self.station.is_sim and not self.station.options.follow_operator:
             return f"asked for the same pose again: press Move board to put the board back (pose {tgt.pose_index + 1})"
         return tgt
+
+    def _check_pixel(self, h):
+        if self.machine.result is None:
+            raise ActionRefused("check a pixel", "calibrate first")
+        x, y = float(h["pixel_x"].value), float(h["pixel_y"].value)
+        self.station.run_long("check pixel", lambda: self.station.check_pixel(x, y))
+        return f"checking pixel ({x:.1f}, {y:.1f}); the result appears on the live image and in the log"
 
     def _check(self):
         checks = self.station.check_rig()
@@ -678,6 +708,10 @@ class StationPanel:
             "use_camera": m.why_not("use_camera_calibration"),
             "verify": m.why_not("verify"),
             "finish": m.why_not("finish"),
+            "check_pixel": ("calibrate first" if m.result is None else
+                            f"the station is busy ({m.busy})" if m.busy else
+                            None if m.state in (CALIBRATION, VERIFICATION, DONE) else
+                            "pixels are checked after calibration"),
         }
         return r
 

@@ -123,6 +123,7 @@ class Station:
         self._variant = 0  # auto mode: how many times the operator was asked for another pose
         self.started_s = time.monotonic()
         self.last_capture_s = -1e9
+        self.pixel_check = None  # the last live epipolar check (app.verification.PixelCheck)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
 
@@ -454,10 +455,15 @@ class Station:
     # ---- long actions -----------------------------------------------------------------------------
     background_long_actions = False
 
-    def run_long(self, name: str, fn: Callable[[], object]):
+    def run_long(self, name: str, fn: Callable[[], object], action: str | None = None):
         """Calibration and verification: inline (headless) or in a worker thread (panel). A refused
-        action is refused here, before any thread starts, so the caller shows the reason."""
-        reason = self.machine.why_not(name)
+        action (`action`, default `name` when it is one of the machine's) is refused here, before any
+        thread starts, so the caller shows the reason."""
+        from app.station.machine import ACTIONS
+
+        action = action or (name if name in ACTIONS else None)
+        reason = self.machine.why_not(action) if action else (
+            f"the station is busy ({self.machine.busy}); wait until it finishes" if self.machine.busy else None)
         if reason is not None:
             raise ActionRefused(name, reason)
         if not self.background_long_actions:
@@ -491,6 +497,23 @@ class Station:
     def verify(self):
         self._shown = None
         return self.machine.verify()
+
+    def check_pixel(self, x: float, y: float):
+        """The live epipolar check of one camera pixel with the current calibration: the projector draws
+        the pixel's epipolar curve, the camera sees it, the distance is measured (app.verification)."""
+        m = self.machine
+        if m.result is None:
+            raise ActionRefused("check a pixel", "calibrate first")
+        from app.verification import verify_pixel
+
+        with m.hold("verifying"):
+            if self.is_sim:  # the simulated person holds the board where the projector lights it
+                self.rig.operator.request_pose("verification", None, 0)
+            self._shown = None
+            check = verify_pixel(self.rig.camera, self.rig.projector, m.result, (float(x), float(y)))
+        self.pixel_check = check
+        m._log("pixel check " + check.label())
+        return check
 
     # ---- background loop (panel) ------------------------------------------------------------------
     def start_loop(self, preview_fps: float = 20.0) -> None:
