@@ -13,7 +13,8 @@ from __future__ import annotations
 import multiprocessing
 import os
 import warnings
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from functools import lru_cache
@@ -807,10 +808,42 @@ def _pool_context():
         return multiprocessing.get_context("spawn")
 
 
+def _detect_pooled(jobs, workers: int, done) -> None:
+    """Run jobs in `workers - 1` worker processes plus this process: this one starts detecting at once,
+    while the workers are still starting (about half a second for a fresh fork server). Jobs left
+    over when the workers cannot start are for the caller to run."""
+    pending = deque(jobs)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # one detection stream per core; restored below
+    try:
+        with ProcessPoolExecutor(max_workers=max(1, workers - 1), initializer=_init_worker,
+                                 mp_context=_pool_context()) as ex:
+            in_flight = set()
+            while pending or in_flight:
+                while pending and len(in_flight) < 2 * (workers - 1):  # keep every worker fed
+                    in_flight.add(ex.submit(_run_job, pending.pop()))
+                finished = {f for f in in_flight if f.done()}
+                for f in finished:
+                    done(*f.result())
+                in_flight -= finished
+                if pending:
+                    done(*_run_job(pending.popleft()))
+                elif in_flight:
+                    wait(in_flight, return_when=FIRST_COMPLETED)
+    except (BrokenProcessPool, OSError) as e:
+        # workers could not start (e.g. an unguarded __main__ script re-run by the fork server):
+        # finish inline rather than fail the session
+        warnings.warn(f"detection workers failed ({e.__class__.__name__}); detecting in this process",
+                      RuntimeWarning, stacklevel=3)
+    finally:
+        cv2.setNumThreads(threads)
+
+
 def detect_session(store, workers: int = 2, progress=None) -> SessionObservations:
     """Detect every capture of a session (SessionStore) -> SessionObservations.
 
-    Each image is read once; detection runs in `workers` processes (1 = inline). A capture whose image
+    Each image is read once; detection runs in `workers` processes (this one and workers - 1 others;
+    1 = inline only). A capture whose image
     is missing or unreadable, or whose board/pattern is not found, is listed in `skipped` with the
     reason. `progress(done, total, capture_id)` is called after each capture."""
     m = store.manifest
@@ -830,16 +863,7 @@ def detect_session(store, workers: int = 2, progress=None) -> SessionObservation
             progress(len(results), total, cid)
 
     if workers > 1 and total > 1:
-        try:
-            with ProcessPoolExecutor(max_workers=min(workers, total), initializer=_init_worker,
-                                     mp_context=_pool_context()) as ex:
-                for fut in as_completed([ex.submit(_run_job, job) for job in jobs]):
-                    done(*fut.result())
-        except (BrokenProcessPool, OSError) as e:
-            # workers could not start (e.g. an unguarded __main__ script re-run by the fork server):
-            # finish inline rather than fail the session
-            warnings.warn(f"detection workers failed ({e.__class__.__name__}); detecting in this process",
-                          RuntimeWarning, stacklevel=2)
+        _detect_pooled(jobs, workers, done)
     for job in jobs:
         if job.capture_id not in results:
             done(*_run_job(job))
