@@ -456,6 +456,22 @@ def _mask_board(gray: np.ndarray, H: np.ndarray, spec: CharucoSpec, fill: int) -
     return out
 
 
+def _mask_corner_hull(gray: np.ndarray, corners: np.ndarray, fill: int) -> np.ndarray:
+    """Without the board's spec: paint the hull of its detected corners, grown by about one square
+    (the median distance between neighbouring corners), with `fill`."""
+    pts = np.asarray(corners, float)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    d[np.arange(len(pts)), np.arange(len(pts))] = np.inf
+    step = float(np.median(d.min(axis=1)))
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(float)
+    c = hull.mean(axis=0)
+    r = np.linalg.norm(hull - c, axis=1, keepdims=True)
+    grown = c + (hull - c) * (r + 1.25 * step) / np.maximum(r, 1e-9)
+    out = gray.copy()
+    cv2.fillConvexPoly(out, np.round(grown * 16).astype(np.int32), int(fill), cv2.LINE_8, 4)
+    return out
+
+
 def _search_roi(shape, H: np.ndarray | None, spec: CharucoSpec | None, reach: float = 1.6):
     """(x0, y0, x1, y1): where on the board's plane a projected pattern can be: the ChArUco area grown by
     `reach` times its size on every side, clipped to the image (whole image when unknown)."""
@@ -713,11 +729,13 @@ def _detect_pattern_gray(gray, pattern, mirrored, board=None, board_spec=None):
     W = gray.shape[1]
     img = cv2.flip(gray, 1) if mirrored else gray
     H = None
+    fill = 0 if pattern.kind == "circles" else int(np.median(img[::8, ::8]))
     if board is not None and board_spec is not None:
         H = _board_homography(board, board_spec, W, mirrored)
         if H is not None:
-            fill = 0 if pattern.kind == "circles" else int(np.median(img[::8, ::8]))
             img = _mask_board(img, H, board_spec, fill)
+    elif board is not None and len(board.ids) >= 3:
+        img = _mask_corner_hull(img, _flip_x(board.corners_px, W) if mirrored else board.corners_px, fill)
     roi = _search_roi(img.shape, H, board_spec)
     if pattern.kind == "circles":
         pts = _find_circles(img, pattern, roi)
