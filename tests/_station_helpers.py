@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.boards import CharucoSpec
-from calib.observations import VIEW_DIRECT, VIEW_MIRROR
+from calib.observations import VIEW_MIRROR
 from calib.pattern import PatternSpec
 from calib.session import RigInfo, SessionManifest, SessionStore
 from calib.synthetic import make_rig

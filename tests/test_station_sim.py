@@ -5,7 +5,7 @@ calibrated for real."""
 import numpy as np
 import pytest
 
-from app.station.machine import CALIBRATION, MIRROR_CAPTURE, PROJECTOR_CAPTURE, ActionRefused, Plan, SessionMachine
+from app.station.machine import CALIBRATION, ActionRefused, Plan
 from app.station.setup import RigRequest, create_session, make_machine, open_rig
 from app.station.station import Station, StationOptions
 from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL

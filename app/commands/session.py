@@ -7,7 +7,6 @@ board, reading the instructions printed in the terminal, and auto-capture takes 
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 

@@ -9,7 +9,7 @@ Pixel coordinates are in the original camera image (calib.detect maps mirrored v
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np

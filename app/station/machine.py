@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -133,35 +133,14 @@ class Event:
 
 def load_intrinsics(path, camera_size: tuple[int, int] | None = None) -> CameraModel:
     """A camera model from a file (the calibration core's reader: calibration.json or OpenCV YAML);
-    FormatError when unreadable or made for another image size."""
-    path = Path(path)
-    try:
-        from calib.pipeline import load_camera_intrinsics
-    except ImportError:
-        load_camera_intrinsics = None
-    if load_camera_intrinsics is not None:
-        cam = load_camera_intrinsics(path, camera_size)
-        if camera_size is not None and tuple(cam.size) != tuple(camera_size):
-            raise FormatError(path, "camera", f"is for a {cam.width}x{cam.height} camera, this camera is "
-                                              f"{camera_size[0]}x{camera_size[1]}")
-        return cam
-    import json
+    FormatError when it does not load or is made for another image size."""
+    from calib.pipeline import load_camera_intrinsics
 
-    try:
-        data = json.loads(path.read_text())
-    except OSError as e:
-        raise FormatError(path, "<file>", f"cannot be read: {e.strerror}") from None
-    except json.JSONDecodeError as e:
-        raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
-    where = "camera"
-    if isinstance(data, dict) and "camera" in data:
-        data = data["camera"]
-    else:
-        where = "<root>"
-    cam = CameraModel.from_dict(data, where, path)
+    path = Path(path)
+    cam = load_camera_intrinsics(path, camera_size)
     if camera_size is not None and tuple(cam.size) != tuple(camera_size):
-        raise FormatError(path, where, f"is for a {cam.width}x{cam.height} camera, this camera is "
-                                       f"{camera_size[0]}x{camera_size[1]}")
+        raise FormatError(path, "camera", f"is for a {cam.width}x{cam.height} camera, this camera is "
+                                          f"{camera_size[0]}x{camera_size[1]}")
     return cam
 
 
@@ -731,6 +710,10 @@ class SessionMachine:
 
     def _persist(self) -> None:
         self.store.update(state=self.state_dict())
+
+    def log(self, text: str) -> None:
+        """Add a line to the session's event log (the panel shows the last ones)."""
+        self._log(text)
 
     def _log(self, text: str) -> None:
         self.events.append(Event(time.time(), text))

@@ -789,7 +789,7 @@ class StationPanel:
             try:
                 self.refresh()
             except Exception as e:  # keep the panel alive; the log shows what went wrong
-                self.machine._log(f"panel refresh failed: {e!r}")
+                self.machine.log(f"panel refresh failed: {e!r}")
             self._stop.wait(0.25)
 
     def _image_loop(self, rate_hz: float = 12.0) -> None:
@@ -812,7 +812,7 @@ class StationPanel:
                                   f"detection {self.station.detection_fps:.0f}/s. Green: board "
                                   "corners; yellow: board in the mirror; violet: projected pattern.")
             except Exception as e:  # keep drawing; the log shows what went wrong
-                self.machine._log(f"live image failed: {e!r}")
+                self.machine.log(f"live image failed: {e!r}")
                 time.sleep(0.5)
             time.sleep(max(0.0, period - (time.monotonic() - t0)))
 

@@ -196,7 +196,7 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
                 m.report = VerificationReport.from_json(vfile)
                 m._persist()
             except Exception as e:  # a report that does not load is simply re-measured
-                m._log(f"the saved verification does not load ({e}); verify again")
+                m.log(f"the saved verification does not load ({e}); verify again")
     else:
         m = SessionMachine(store, plan or Plan.from_dict((store.manifest.state or {}).get("plan")),
                            calibrate_fn=calibrate, verify_fn=verify_fn)

@@ -30,7 +30,6 @@ from app.station.machine import (
     CALIBRATION,
     CAPTURE_STATES,
     CHECK_RIG,
-    DONE,
     MIRROR_CAPTURE,
     PROJECTOR_CAPTURE,
     STATE_TITLES,
@@ -41,7 +40,8 @@ from app.station.machine import (
     Target,
 )
 from calib.errors import ProcamError, SessionError, SpecError
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_MIRROR
+from calib.observations import STEP_PROJECTOR, VIEW_MIRROR
+from drivers.base import Frame
 from drivers.errors import DeviceError
 
 
@@ -405,12 +405,8 @@ class Station:
         if not live.detection.ok:
             raise ActionRefused("capture", f"the current frame is not usable: {live.detection.failure}")
 
-        class _F:  # the frame the detection was made on
-            image = live.image
-            frame_number = live.frame_number
-            timestamp_ms = live.timestamp_s * 1000.0
-
-        return self._capture(_F, live.detection, live.decision, "button")
+        frame = Frame(live.image, live.frame_number, live.timestamp_s * 1000.0)  # the frame detected on
+        return self._capture(frame, live.detection, live.decision, "button")
 
     # ---- the station leads a whole session --------------------------------------------------------
     def _default_mirror_method(self) -> str:
@@ -512,7 +508,7 @@ class Station:
             self._shown = None
             check = verify_pixel(self.rig.camera, self.rig.projector, m.result, (float(x), float(y)))
         self.pixel_check = check
-        m._log("pixel check " + check.label())
+        m.log("pixel check " + check.label())
         return check
 
     # ---- background loop (panel) ------------------------------------------------------------------
