@@ -287,3 +287,22 @@ def test_available_actions_name_a_reason_for_each_refusal(tmp_path):
     m.busy = "calibrating"
     assert "busy" in m.why_not("back")
     refused(m.go_back, match="busy")
+
+
+def test_board_thickness_for_the_real_mirror_method(tmp_path):
+    m, _ = machine(tmp_path)
+    refused(m.set_board_thickness, -1, match="0 or more")
+    refused(m.set_board_thickness, "thick", match="must be a number")
+    m.start_session(OK)
+    m.choose_mirror_method("real-mirror")
+    m.set_board_thickness(3.0)
+    assert SessionStore.open(m.store.folder).manifest.board_thickness == 3.0
+    fill_mirror(m, 2)
+    m.proceed()
+    fill_projector(m)
+    m.calibrate()
+    m.set_board_thickness(2.5)  # changes the mirror plane: the calibration is out of date
+    assert m.result_stale
+    m.calibrate()
+    m.verify()
+    refused(m.set_board_thickness, 2.0, match="go back")

@@ -47,6 +47,9 @@ def add_arguments(p) -> None:
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
     p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
     p.add_argument("--mirror-board", default=None, help="real rig: mirror board spec (default: --board)")
+    p.add_argument("--board-thickness", type=float, default=None, metavar="T",
+                   help="real-mirror: height of the board's printed face above the mirror, board units "
+                        "(default: the scenario's on the simulated rig, else 0)")
     p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
     p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
@@ -127,6 +130,7 @@ def run(args) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        stop.set()
         close = getattr(rig, "close", None)
         if callable(close):
             close()

@@ -47,8 +47,8 @@ STATE_TITLES = {
     DONE: "Done",
 }
 
-ACTIONS = ("start", "choose_mirror_method", "capture", "delete", "retake", "proceed", "back", "skip_camera",
-           "use_camera_calibration", "calibrate", "verify", "finish")
+ACTIONS = ("start", "choose_mirror_method", "set_board_thickness", "capture", "delete", "retake", "proceed", "back",
+           "skip_camera", "use_camera_calibration", "calibrate", "verify", "finish")
 
 _OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake", "mirror_method",
                    "camera_intrinsics", "plan", "calibrated", "result_stale", "verified", "updated_unix_s")
@@ -344,6 +344,17 @@ class SessionMachine:
                     return (f"{len(others)} {self.mirror_method} capture(s) are taken; delete them first to "
                             f"switch to {arg}")
             return None
+        if action == "set_board_thickness":
+            if s in (VERIFICATION, DONE):
+                return "the board thickness cannot change now; go back to the calibration step first"
+            if arg is not None:
+                try:
+                    v = float(arg)
+                except (TypeError, ValueError):
+                    return f"the board thickness must be a number ({self.manifest.units}), got '{arg}'"
+                if not v >= 0 or v != v:
+                    return f"the board thickness must be 0 or more ({self.manifest.units}), got {arg}"
+            return None
         if action == "capture":
             if s not in CAPTURE_STATES:
                 return f"nothing is captured in the {title} step; go back to a capture step to add captures"
@@ -448,7 +459,7 @@ class SessionMachine:
 
     def available(self) -> dict[str, str | None]:
         """Every action with None (possible) or the reason it is refused."""
-        return {a: self.why_not(a) for a in ACTIONS if a not in ("delete", "retake", "skip_camera")}
+        return {a: self.why_not(a) for a in ACTIONS if a not in ("delete", "retake", "skip_camera", "set_board_thickness")}
 
     def _refuse(self, action: str, arg=None) -> None:
         reason = self.why_not(action, arg)
@@ -487,6 +498,18 @@ class SessionMachine:
                 self.store.update(mirror_method=method)
                 self._mark_stale()
                 self._log(f"mirror method: {method}")
+            self._persist()
+
+    def set_board_thickness(self, value) -> None:
+        """Real-mirror: how far the board's printed face is above the mirror surface (board units)."""
+        with self._lock:
+            self._refuse("set_board_thickness", value)
+            value = float(value)
+            if value != self.manifest.board_thickness:
+                self.store.update(board_thickness=value)
+                if self.mirror_method == "real-mirror":
+                    self._mark_stale()
+                self._log(f"board thickness on the mirror: {value:g} {self.manifest.units}")
             self._persist()
 
     def record_capture(self, image, meta: dict | None = None, pattern_points_px=None) -> Capture:

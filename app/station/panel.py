@@ -524,6 +524,10 @@ class StationPanel:
             with g.add_folder("Mirror method"):
                 h["real-virtual"] = g.add_button("Mirror: real-virtual")
                 h["real-mirror"] = g.add_button("Mirror: real-mirror")
+                h["thickness"] = g.add_number(f"Board thickness ({self.machine.manifest.units})",
+                                              float(self.machine.manifest.board_thickness), min=0.0, step=0.1,
+                                              hint="real-mirror: height of the printed face above the mirror")
+                h["set_thickness"] = g.add_button("Set thickness")
             with g.add_folder("Capture"):
                 h["capture"] = g.add_button("Capture")
                 if sim:
@@ -568,6 +572,7 @@ class StationPanel:
             "calibrate": lambda: st.run_long("calibrate", st.calibrate),
             "skip_camera": lambda: m.skip_camera(h["intrinsics"].value.strip()),
             "use_camera": lambda: m.use_camera_calibration(),
+            "set_thickness": lambda: m.set_board_thickness(h["thickness"].value),
             "verify": lambda: st.run_long("verify", st.verify),
             "finish": lambda: m.finish(),
             "check_pixel": lambda: self._check_pixel(h),
@@ -706,6 +711,7 @@ class StationPanel:
                 "the camera model cannot change now; go back to the calibration step first"
                 if m.state in (VERIFICATION, DONE) else None),
             "use_camera": m.why_not("use_camera_calibration"),
+            "set_thickness": m.why_not("set_board_thickness"),
             "verify": m.why_not("verify"),
             "finish": m.why_not("finish"),
             "check_pixel": ("calibrate first" if m.result is None else
