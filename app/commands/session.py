@@ -47,6 +47,11 @@ def add_arguments(p) -> None:
                         "(default: the scenario's on the simulated rig, else 0)")
     p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
+    p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
+    p.add_argument("--projector-screen", type=int, default=None,
+                   help="real rig: display the projector is connected to (default: the last one)")
+    p.add_argument("--settle-s", type=float, default=None,
+                   help="real rig: projector latency to wait after each image (seconds)")
     p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
     p.add_argument("--method", default=None,
                    help="calibration method (default: the calibration core's default; 'paper' is the method of "
@@ -67,6 +72,14 @@ def plan_from_args(args, base=None):
     return Plan(**kw)
 
 
+def rig_options(args, kind: str) -> dict:
+    """Device options for drivers.factory.open_rig (real rigs only)."""
+    if kind == "sim":
+        return {}
+    opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
+    return {k: v for k, v in opts.items() if v is not None}
+
+
 def open_session(args, log=print):
     """(rig, store, machine, request) for --out (new) or --resume (existing) from the arguments."""
     from app.station.setup import (
@@ -81,7 +94,7 @@ def open_session(args, log=print):
     if args.resume:
         folder = Path(args.resume)
         req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
-        rig = open_rig(req)
+        rig = open_rig(req, **rig_options(args, req.kind))
         store = SessionStore.open(folder)
         check_same_rig(store, rig)
         plan = None
@@ -100,7 +113,7 @@ def open_session(args, log=print):
         req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
         if kind != "sim" and not args.board:
             raise SessionError("a real rig needs the board spec: --board COLSxROWS:DICT:SQUARE[:MARKER]")
-        rig = open_rig(req)
+        rig = open_rig(req, **rig_options(args, kind))
         kw = {}
         if kind != "sim":
             board = CharucoSpec.parse(args.board, args.units)

@@ -52,6 +52,11 @@ def add_arguments(p) -> None:
                         "(default: the scenario's on the simulated rig, else 0)")
     p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
+    p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
+    p.add_argument("--projector-screen", type=int, default=None,
+                   help="real rig: display the projector is connected to (default: the last one)")
+    p.add_argument("--settle-s", type=float, default=None,
+                   help="real rig: projector latency to wait after each image (seconds)")
     p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
     p.add_argument("--method", default=None,
                    help="calibration method (default: the calibration core's default; 'paper' is the method of "

@@ -42,7 +42,7 @@ from app.station.machine import (
 from calib.errors import ProcamError, SessionError, SpecError
 from calib.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
-from drivers.errors import DeviceError
+from drivers.errors import DeviceDisconnected, DeviceError
 
 
 def _rate(times, window_s: float = 2.0) -> float:
@@ -177,6 +177,21 @@ class Station:
                                    f"window is {pw}x{ph}, the session expects {man.rig.projector_size}"))
         except (DeviceError, ProcamError) as e:
             checks.append(RigCheck("projector", False, str(e)))
+        lock = getattr(self.rig.camera, "lock_exposure", None)
+        if callable(lock) and all(c.ok for c in checks):
+            # auto exposure fights the projector: lock it while the pattern lights the board as it will
+            try:
+                self._show(self.pattern_image(man.pattern.positions // 2))
+                time.sleep(0.5)
+                settings = lock()
+                self._show(self._black())
+                from dataclasses import replace as _replace
+
+                self.machine.store.update(rig=_replace(man.rig, camera_settings=dict(settings)))
+                exp = settings.get("exposure_us")
+                checks.append(RigCheck("camera exposure", True, "locked" + (f" at {exp:g} us" if exp else "")))
+            except (DeviceError, ProcamError) as e:
+                checks.append(RigCheck("camera exposure", False, f"could not be locked: {e}"))
         checks.append(RigCheck("projector board", True, str(man.projector_board)))
         if man.rig.view == VIEW_MIRROR:
             checks.append(RigCheck("mirror board", man.mirror_board is not None,
@@ -218,6 +233,21 @@ class Station:
         self._changed()
         return self.operator_says
 
+    def _camera_lost(self, e: DeviceError) -> None:
+        """A camera error: say so in the panel; a disconnected device is reopened when it comes back."""
+        self.device_problem = f"camera: {e}; waiting for it to come back"
+        reconnect = getattr(self.rig.camera, "reconnect", None)
+        if isinstance(e, DeviceDisconnected) and callable(reconnect):
+            try:
+                reconnect(timeout_s=2.0)
+                self.device_problem = None
+                self.machine.log("camera reconnected")
+                self._changed()
+            except DeviceError:
+                pass
+        else:
+            time.sleep(0.2)
+
     def _grab(self):
         """The next frame for detection: from the preview thread when it runs, else from the camera."""
         if self._grab_thread is not None:
@@ -233,8 +263,7 @@ class Station:
             frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
                                               newer_than=self._last_frame if self._last_frame >= 0 else None)
         except DeviceError as e:
-            self.device_problem = f"camera: {e}; waiting for it to come back"
-            time.sleep(0.2)
+            self._camera_lost(e)
             return None
         self.device_problem = None
         self._last_frame = frame.frame_number
@@ -255,8 +284,7 @@ class Station:
                 frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
                                                   newer_than=last_n if last_n >= 0 else None)
             except DeviceError as e:
-                self.device_problem = f"camera: {e}; waiting for it to come back"
-                time.sleep(0.5)
+                self._camera_lost(e)
                 continue
             if self.device_problem and self.device_problem.startswith("camera"):
                 self.device_problem = None
