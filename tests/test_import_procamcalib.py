@@ -230,3 +230,46 @@ def test_command_line(recording, tmp_path, capsys):
     code = main(["import-procamcalib", str(root / "missing"), str(pdir), "--board", "8x6:DICT_5X5_50:4.43",
                  "--out", str(tmp_path / "y"), "--no-progress"])
     assert code == 2 and "does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_simulated_recording_imports_and_calibrates(tmp_path):
+    """A recording laid out as ProcamCalib writes it, from the simulator (13 patterns x 1 pose + 3
+    real-virtual images): import, detect and calibrate; the result matches the simulator's truth."""
+    import shutil
+    from dataclasses import replace
+
+    from app.commands.simulate import simulate_session
+    from calib.metrics import compare
+    from calib.pipeline import calibrate_session
+    from drivers.sim.scenarios import get_scenario
+
+    sc = replace(get_scenario("nonoverlap-136", seed=5), per_position=2, mirror_count=4)
+    sim = simulate_session(sc, tmp_path / "sim", quality="live", workers=1, progress=False)
+    m = sim.manifest
+    rec, mir = tmp_path / "rec" / "S1_0", tmp_path / "rec" / "M_4_0"
+    pat = tmp_path / "patterns" / f"Circles_{m.pattern.cols}_{m.pattern.rows}"
+    for d in (rec, mir, pat):
+        d.mkdir(parents=True)
+    W, H = m.rig.projector_size
+    for pos in range(m.pattern.positions):
+        img = cv2.cvtColor(m.pattern.render(W, H, pos)[0], cv2.COLOR_GRAY2BGR)
+        # a small blue label in the top margin, where no position draws circles
+        cv2.putText(img, f"{pos + 1}", (W // 2, 6), cv2.FONT_HERSHEY_SIMPLEX, 0.25, (255, 0, 0), 1)
+        cv2.imwrite(str(pat / f"{pos + 1:02d}.png"), img)
+    proj = m.captures_of(STEP_PROJECTOR)
+    for k, cap in enumerate(proj):
+        shutil.copy(sim.image_path(cap), rec / f"{k}.png")
+    for k, cap in enumerate(m.captures_of(STEP_REAL_VIRTUAL)):
+        shutil.copy(sim.image_path(cap), mir / f"{k}.png")
+    store = import_procamcalib(rec, pat, m.projector_board, tmp_path / "session", mir, m.mirror_board)
+    imported = store.manifest
+    assert imported.pattern.spacing_px == pytest.approx(m.pattern.spacing_px, abs=0.01)
+    for a, b in zip(imported.captures_of(STEP_PROJECTOR), proj):
+        assert a.pattern_position == b.pattern_position
+        assert np.abs(a.pattern_points_px - b.pattern_points_px).max() < 0.02
+    result = calibrate_session(tmp_path / "session", method="paper")
+    assert not result.skipped
+    metrics = compare(result, sc.ground_truth())
+    assert metrics.distance < 5.0 and metrics.angle_deg < 0.3  # the paper: ~3.2 mm, 0.18 deg
+    assert metrics.mirror_angle_deg < 0.3
