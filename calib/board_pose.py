@@ -156,6 +156,18 @@ def _residuals(camera: CameraModel, T: np.ndarray, X: np.ndarray, uv: np.ndarray
     return r
 
 
+def zhang_flags(fix_k3: bool = False, rational: bool = False, fix_tangential: bool = False) -> int:
+    """cv2.calibrateCamera flags for the distortion model a stage asks for."""
+    flags = 0
+    if fix_k3:
+        flags |= cv2.CALIB_FIX_K3
+    if rational:
+        flags |= cv2.CALIB_RATIONAL_MODEL
+    if fix_tangential:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    return flags
+
+
 def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, int], flags: int = 0,
                     max_restarts: int = 4):
     """cv2.calibrateCameraExtended, restarted from its own answer (CALIB_USE_INTRINSIC_GUESS) while the

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from calib.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, solve_board_pose,
-                              usable_reason, view_object_points)
+                              usable_reason, view_object_points, zhang_flags)
 from calib.boards import CharucoSpec
 from calib.camera import CameraModel
 from calib.errors import CalibrationError
@@ -102,13 +102,7 @@ def calibrate_camera(obs: SessionObservations, camera: CameraModel | None = None
             f"cannot calibrate the camera: only {len(used)} usable board view(s) (need at least {min_views}, "
             f"ideally 10 or more at varied tilts); capture more images with the whole board visible, or give "
             f"pre-calibrated intrinsics with --camera-intrinsics")
-    flags = 0
-    if fix_k3:
-        flags |= cv2.CALIB_FIX_K3
-    if rational:
-        flags |= cv2.CALIB_RATIONAL_MODEL
-    if fix_tangential:
-        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    flags = zhang_flags(fix_k3, rational, fix_tangential)
 
     cam, rms, poses, std = _zhang(used, (W, H), flags)
     if reject_outlier_views and len(used) > min_views:

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from calib.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, point_residuals, solve_board_pose,
-                              usable_reason)
+                              usable_reason, zhang_flags)
 from calib.camera import CameraModel
 from calib.errors import CalibrationError
 from calib.observations import VIEW_DIRECT, VIEW_MIRROR, ProjectorView, SessionObservations
@@ -120,13 +120,7 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
             + (f"; skipped: {_summarize(skipped)}" if skipped else ""))
 
     # -- projector intrinsics (Zhang) --------------------------------------------------------------
-    flags = 0
-    if fix_k3:
-        flags |= cv2.CALIB_FIX_K3
-    if fix_tangential:
-        flags |= cv2.CALIB_ZERO_TANGENT_DIST
-    if rational:
-        flags |= cv2.CALIB_RATIONAL_MODEL
+    flags = zhang_flags(fix_k3, rational, fix_tangential)
     keep = [np.ones(len(X), bool) for _, _, X, _, _ in views]
     n_rejected = 0
 
