@@ -123,6 +123,7 @@ class Station:
         self._variant = 0  # auto mode: how many times the operator was asked for another pose
         self.started_s = time.monotonic()
         self.last_capture_s = -1e9
+        self.problem: str | None = None  # the last error of the background loop (not a device's)
         self.pixel_check = None  # the last live epipolar check (app.verification.PixelCheck)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
@@ -320,6 +321,14 @@ class Station:
         return out
 
     def tick(self) -> LiveView | None:
+        view = self._tick()
+        if view is not None:
+            self.problem = None
+            if self.device_problem and self._grab_thread is not None and self.preview_fps > 0:
+                self.device_problem = None  # frames flow again
+        return view
+
+    def _tick(self) -> LiveView | None:
         m = self.machine
         if m.busy == "verifying":  # the verification drives camera and projector itself
             time.sleep(0.05)
@@ -447,7 +456,7 @@ class Station:
     def _drive(self) -> None:
         """Auto mode: take the step the guideline asks for next."""
         m = self.machine
-        if m.busy:
+        if m.busy or (self._worker is not None and self._worker.is_alive()):
             return
         s = m.state
         if s == CHECK_RIG:
@@ -552,8 +561,12 @@ class Station:
             while not self._stop.is_set():
                 try:
                     self.tick()
-                except ProcamError as e:
+                except DeviceError as e:
                     self.device_problem = str(e)
+                    self.log(str(e))
+                    time.sleep(0.5)
+                except ProcamError as e:  # e.g. auto mode could not go on: shown until the next good tick
+                    self.problem = str(e)
                     self.log(str(e))
                     time.sleep(0.5)
 
@@ -576,6 +589,8 @@ class Station:
         live = self.live
         if self.device_problem:
             return f"Device problem: {self.device_problem}."
+        if self.problem:
+            return f"Problem: {self.problem}."
         if m.busy == "calibrating":
             return "Calibrating the captures. This takes a little while."
         if m.busy == "verifying":
