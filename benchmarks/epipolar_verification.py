@@ -122,7 +122,7 @@ def table_b(noises, seeds, n_poses=5):
     for noise in noises:
         for seed in seeds:
             try:
-                est = calibrate_observations(observe(ss, noise_px=noise, seed=seed))
+                est = calibrate_observations(observe(ss, noise_px=noise, seed=seed), method="paper")
             except CalibrationError as e:
                 print(f"{noise:>8.2f} {seed:>4}  calibration failed: {e}")
                 continue

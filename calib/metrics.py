@@ -47,6 +47,7 @@ class PaperMetrics:
     stereo_rms_px: float | None
     mirror_rms: float | None  # plane residual RMS, board units
     units: str = "mm"
+    joint_rms_px: float | None = None  # the joint adjustment's RMS over all its observations (camera px)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -71,7 +72,7 @@ class PaperMetrics:
             ("ProjRMS", f(self.proj_rms_px, 4), "px"),
             ("StereoRMS", f(self.stereo_rms_px, 4), "px"),
             ("MirrorRMS", f(self.mirror_rms, 4), u),
-        ]
+        ] + ([("JointRMS", f(self.joint_rms_px, 4), "px")] if self.joint_rms_px is not None else [])
 
     def format_table(self) -> str:
         rows = self.rows()
@@ -117,4 +118,5 @@ def compare(result: CalibrationResult, ground_truth: CalibrationResult) -> Paper
         stereo_rms_px=r("stereo"),
         mirror_rms=r("mirror_plane"),
         units=result.units,
+        joint_rms_px=r("joint"),
     )

@@ -128,7 +128,7 @@ from calib.joint import calibrate_joint  # noqa: E402  (paper first, then one jo
 METHODS["joint"] = calibrate_joint
 
 
-def calibrate_observations(obs: SessionObservations, method: str = "paper", camera: CameraModel | None = None,
+def calibrate_observations(obs: SessionObservations, method: str = "joint", camera: CameraModel | None = None,
                            progress: Progress | None = None, method_options: dict | None = None) -> CalibrationResult:
     """Calibrate from detected observations with a registered method; `camera` skips the camera stage."""
     fn = METHODS.get(method)

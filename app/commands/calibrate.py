@@ -101,6 +101,26 @@ def _fmt_model(name: str, cam) -> list[str]:
             f"{' ' * len(name)}  distortion [k1 k2 p1 p2 k3...] = [{d}]"]
 
 
+def _fmt_uncertainty(unc, units: str) -> list[str]:
+    """1-sigma lines from result.uncertainty (docs/JOINT.md key layout); none when absent."""
+    if not isinstance(unc, dict):
+        return []
+    lines = ["1-sigma:"]
+    for name in ("camera", "projector"):
+        dev = unc.get(name) or {}
+        if dev.get("fixed"):
+            lines.append(f"  {name}: fixed (given)")
+        elif all(k in dev for k in ("fx", "fy", "cx", "cy")):
+            lines.append(f"  {name}: fx {dev['fx']:.2f}  fy {dev['fy']:.2f}  cx {dev['cx']:.2f}  cy {dev['cy']:.2f} px")
+    T = unc.get("T_cam_proj") or {}
+    if "t_total" in T and "rot_total_deg" in T:
+        lines.append(f"  T_cam_proj: position {T['t_total']:.3f} {units}, rotation {T['rot_total_deg']:.4f} deg")
+    m = unc.get("mirror")
+    if isinstance(m, dict) and "normal_deg" in m and "d" in m:
+        lines.append(f"  mirror: normal {m['normal_deg']:.4f} deg, d {m['d']:.3f} {units}")
+    return lines if len(lines) > 1 else []
+
+
 def format_summary(result) -> str:
     """A readable multi-line summary of a CalibrationResult."""
     from calib.transforms import invert_T, rotation_angle_deg
@@ -137,6 +157,7 @@ def format_summary(result) -> str:
         if key not in ("camera", "mirror_plane", "projector", "stereo") and isinstance(v, (int, float)):
             parts.append(f"{key} {v:.3f}")
     lines.append("RMS: " + ", ".join(parts))
+    lines += _fmt_uncertainty(result.uncertainty, u)
     timing = result.diagnostics.get("timing_s", {}) if isinstance(result.diagnostics, dict) else {}
     if timing:
         lines.append("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in timing.items()))
