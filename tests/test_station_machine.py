@@ -306,3 +306,21 @@ def test_board_thickness_for_the_real_mirror_method(tmp_path):
     m.calibrate()
     m.verify()
     refused(m.set_board_thickness, 2.0, match="go back")
+
+
+def test_rerun_calibration_and_verification_from_later_states(tmp_path):
+    m, rec = machine(tmp_path, view=VIEW_DIRECT)
+    m.start_session(OK)
+    fill_projector(m)
+    refused(m.finish, match="verify the calibration first")
+    m.calibrate()
+    m.verify()
+    m.verify()  # verification again, in the verification step
+    assert m.state == VERIFICATION and len(rec.verifications) == 2
+    m.calibrate()  # re-run from the verification step: back to calibration, the old report is dropped
+    assert m.state == CALIBRATION and m.report is None and len(rec.calibrations) == 2
+    m.verify()
+    m.finish()
+    m.calibrate()  # and from the end of the session
+    assert m.state == CALIBRATION and len(rec.calibrations) == 3
+    assert saved_state(m)["verified"] is None
