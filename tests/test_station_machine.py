@@ -312,8 +312,9 @@ def test_rerun_calibration_and_verification_from_later_states(tmp_path):
     m, rec = machine(tmp_path, view=VIEW_DIRECT)
     m.start_session(OK)
     fill_projector(m)
-    refused(m.finish, match="verify the calibration first")
+    refused(m.finish, match="after calibration and verification")
     m.calibrate()
+    refused(m.finish, match="verify the calibration first")
     m.verify()
     m.verify()  # verification again, in the verification step
     assert m.state == VERIFICATION and len(rec.verifications) == 2
