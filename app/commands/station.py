@@ -13,6 +13,8 @@ import threading
 import time
 from pathlib import Path
 
+from app.commands._rig_options import add_rig_options
+
 NAME = "station"
 HELP = "the guided capture-and-calibrate station, operated from a browser panel"
 DESCRIPTION = (
@@ -33,34 +35,10 @@ def add_arguments(p) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--session", metavar="DIR", help="new session folder (default: ./session-YYYYmmdd-HHMMSS)")
     g.add_argument("--resume", metavar="DIR", help="continue the session in DIR where it stopped")
-    p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
-    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
-    p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
     p.add_argument("--auto", action="store_true",
                    help="simulated rig: the simulated operator moves the board by itself and the station runs "
                         "the whole session (watch it in the browser)")
-    p.add_argument("--poses-per-position", type=int, default=None,
-                   help="board poses per pattern position (default 4)")
-    p.add_argument("--mirror-captures", type=int, default=None,
-                   help="mirror captures to take (default 6 real-virtual, 3 real-mirror)")
-    p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
-                   help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
-    p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
-    p.add_argument("--mirror-board", default=None, help="real rig: mirror board spec (default: --board)")
-    p.add_argument("--board-thickness", type=float, default=None, metavar="T",
-                   help="real-mirror: height of the board's printed face above the mirror, board units "
-                        "(default: the scenario's on the simulated rig, else 0)")
-    p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
-    p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
-    p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
-    p.add_argument("--projector-screen", type=int, default=None,
-                   help="real rig: display the projector is connected to (default: the last one)")
-    p.add_argument("--settle-s", type=float, default=None,
-                   help="real rig: projector latency to wait after each image (seconds)")
-    p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
-    p.add_argument("--method", default=None,
-                   help="calibration method (default: the calibration core's default; 'paper' is the method of "
-                        "Vanherck et al.)")
+    add_rig_options(p)
     p.add_argument("--mirror-method", choices=("real-virtual", "real-mirror"), default=None,
                    help="with --auto: the mirror method the station chooses (default: the scenario's)")
 

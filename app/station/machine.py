@@ -607,6 +607,23 @@ class SessionMachine:
             self._log("camera calibrated from the captures")
             self._persist()
 
+    def _run_busy(self, work, error_attr: str, failure_text: str):
+        """Run a long step outside the lock; on failure clear `busy`, and for a project error record it
+        in `error_attr`, log it and persist the state before re-raising."""
+        try:
+            return work()
+        except ProcamError as e:
+            with self._lock:
+                self.busy = None
+                setattr(self, error_attr, str(e))
+                self._log(f"{failure_text}: {e}")
+                self._persist()
+            raise
+        except BaseException:
+            with self._lock:
+                self.busy = None
+            raise
+
     def calibrate(self, progress=None) -> CalibrationResult:
         """Calibrate (or re-run the calibration) on the captures taken so far; writes calibration.json."""
         with self._lock:
@@ -617,19 +634,8 @@ class SessionMachine:
             self.report = None
             self._log(f"calibrating {len(self.manifest.captures)} captures"
                       + (" with the given camera intrinsics" if self.camera_intrinsics else ""))
-        try:
-            result = self._calibrate_fn(self.store.folder, self.camera_intrinsics, progress)
-        except ProcamError as e:
-            with self._lock:
-                self.busy = None
-                self.calibration_error = str(e)
-                self._log(f"calibration failed: {e}")
-                self._persist()
-            raise
-        except BaseException:
-            with self._lock:
-                self.busy = None
-            raise
+        result = self._run_busy(lambda: self._calibrate_fn(self.store.folder, self.camera_intrinsics, progress),
+                                "calibration_error", "calibration failed")
         with self._lock:
             result.save_json(self.store.folder / CALIBRATION_FILE)
             try:
@@ -652,19 +658,8 @@ class SessionMachine:
             self.busy = "verifying"
             self.verification_error = None
             result = self.result
-        try:
-            report = self._verify_fn(result, **kw)
-        except ProcamError as e:
-            with self._lock:
-                self.busy = None
-                self.verification_error = str(e)
-                self._log(f"verification failed to run: {e}")
-                self._persist()
-            raise
-        except BaseException:
-            with self._lock:
-                self.busy = None
-            raise
+        report = self._run_busy(lambda: self._verify_fn(result, **kw), "verification_error",
+                                "verification failed to run")
         with self._lock:
             self.report = report
             self.busy = None

@@ -1,0 +1,30 @@
+"""Options shared by `procam session` and `procam station`: the simulated rig, the capture plan and
+the real rig's devices and boards (a private module: not a sub-command)."""
+
+
+def add_rig_options(p) -> None:
+    p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
+    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
+    p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
+    p.add_argument("--poses-per-position", type=int, default=None,
+                   help="board poses per pattern position (default 4)")
+    p.add_argument("--mirror-captures", type=int, default=None,
+                   help="mirror captures to take (default 6 real-virtual, 3 real-mirror)")
+    p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
+                   help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
+    p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
+    p.add_argument("--mirror-board", default=None, help="real rig: mirror board spec (default: --board)")
+    p.add_argument("--board-thickness", type=float, default=None, metavar="T",
+                   help="real-mirror: height of the board's printed face above the mirror, board units "
+                        "(default: the scenario's on the simulated rig, else 0)")
+    p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
+    p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
+    p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
+    p.add_argument("--projector-screen", type=int, default=None,
+                   help="real rig: display the projector is connected to (default: the last one)")
+    p.add_argument("--settle-s", type=float, default=None,
+                   help="real rig: projector latency to wait after each image (seconds)")
+    p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
+    p.add_argument("--method", default=None,
+                   help="calibration method (default: the calibration core's default; 'paper' is the method of "
+                        "Vanherck et al.)")
