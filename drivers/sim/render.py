@@ -468,10 +468,11 @@ class Renderer:
         if float(T_pb[:3, 2] @ T_pb[:3, 3]) <= 0:
             return np.float32(0.0)
         Hp = T_pb[:3, [0, 1, 3]].astype(np.float32)
-        X = Hp[0, 0] * bx + Hp[0, 1] * by + Hp[0, 2]
-        Y = Hp[1, 0] * bx + Hp[1, 1] * by + Hp[1, 2]
-        Z = Hp[2, 0] * bx + Hp[2, 1] * by + Hp[2, 2]
+        # rays that miss the board carry inf board coordinates (masked out by the caller)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            X = Hp[0, 0] * bx + Hp[0, 1] * by + Hp[0, 2]
+            Y = Hp[1, 0] * bx + Hp[1, 1] * by + Hp[1, 2]
+            Z = Hp[2, 0] * bx + Hp[2, 1] * by + Hp[2, 2]
             return self._projector_light_rays(T_pb, X, Y, Z, levels, st, s, depth_c)
 
     def _projector_light_rays(self, T_pb, X, Y, Z, levels, st: RenderSettings, s: int, depth_c: float):
