@@ -15,7 +15,6 @@ of GEOMETRY.md, so that column is not a detection error alone).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import replace
@@ -49,39 +48,10 @@ def make_session(work: Path) -> Path:
 
 
 def truth_for(folder: Path):
-    """{capture id: (board corners (n, 2), pattern centres (N, 2) or None)} from the simulator's scene."""
-    path = folder / "scene.json"
-    if not path.exists():
-        return None
-    from calib.boards import CharucoSpec
-    from calib.pattern import PatternSpec
-    from calib.result import MirrorPlane
-    from calib.transforms import invert_T, transform_points
+    """{capture id: ExpectedPoints} from the simulator's scene.json, or None for other sessions."""
+    from drivers.sim.scene_file import expected_points
 
-    s = json.loads(path.read_text())
-    cam = CameraModel.from_dict(s["camera"])
-    proj = CameraModel.from_dict(s["projector"])
-    T_cp = np.array(s["T_cam_proj"])
-    S = MirrorPlane(s["mirror"]["normal"], s["mirror"]["d"]).reflection() if s["mirror"] else np.eye(4)
-    pboard = CharucoSpec.from_dict(s["projector_board"])
-    mboard = CharucoSpec.from_dict(s["mirror_board"]) if s.get("mirror_board") else None
-    pattern = PatternSpec.from_dict(s["pattern"])
-    out = {}
-    for c in s["captures"]:
-        T = np.array(c["T_cam_board"])
-        if c["step"] == STEP_PROJECTOR:
-            corners = cam.project(transform_points(S @ T, pboard.corner_points()))
-            q = pattern.points_px(proj.width, proj.height, c["pattern_position"])
-            T_bp = invert_T(T) @ T_cp
-            rays = proj.rays(q) @ T_bp[:3, :3].T
-            t = -T_bp[2, 3] / rays[:, 2]
-            Xb = T_bp[:3, 3] + t[:, None] * rays
-            out[c["id"]] = (corners, cam.project(transform_points(S @ T, Xb)))
-        elif mboard is not None:
-            real = cam.project(transform_points(T, mboard.corner_points()))
-            virt = cam.project(transform_points(S @ T, mboard.corner_points())) if c["step"] == STEP_REAL_VIRTUAL else None
-            out[c["id"]] = (real, virt)
-    return out
+    return expected_points(folder) if (folder / "scene.json").exists() else None
 
 
 def stats(v):
@@ -127,7 +97,7 @@ def main() -> int:
                 failures += 1
                 continue
             if truth and c.id in truth:
-                corners, centres = truth[c.id]
+                corners, centres, _ = truth[c.id]
                 err_board.extend(np.linalg.norm(board.corners_px - corners[board.ids], axis=1))
                 err_pattern.extend(np.linalg.norm(pts - centres, axis=1))
         else:
@@ -138,7 +108,7 @@ def main() -> int:
                 failures += 1
                 continue
             if truth and c.id in truth:
-                real, virt = truth[c.id]
+                real, _, virt = truth[c.id]
                 err_mirror.extend(np.linalg.norm(mv.real.corners_px - real[mv.real.ids], axis=1))
                 if virt is not None and mv.virtual is not None:
                     err_mirror.extend(np.linalg.norm(mv.virtual.corners_px - virt[mv.virtual.ids], axis=1))

@@ -241,38 +241,3 @@ def pinhole_rig(angle_deg: float = 136.0):
 
     cam, proj = d455_camera(), portable_projector()
     return make_rig(angle_deg, camera=cam.with_params(dist=np.zeros(5)), projector=proj.with_params(dist=np.zeros(5)))
-
-
-def sim_truth(folder):
-    """{capture id: (board corners (n, 2), pattern points (N, 2) | None, virtual corners | None)}: exact
-    projections (with lens distortion) of a `procam simulate` session, from its scene.json. Pattern
-    points are the images of the circle centres (not the blob centroids: GEOMETRY.md's bias)."""
-    import json
-    from pathlib import Path
-
-    from calib.camera import CameraModel
-    from calib.result import MirrorPlane
-    from calib.synthetic import SyntheticRig, projector_points_on_board
-    from calib.transforms import transform_points
-
-    s = json.loads((Path(folder) / "scene.json").read_text())
-    cam, proj = CameraModel.from_dict(s["camera"]), CameraModel.from_dict(s["projector"])
-    mirror = MirrorPlane(s["mirror"]["normal"], s["mirror"]["d"]) if s["mirror"] else None
-    rig = SyntheticRig(cam, proj, np.array(s["T_cam_proj"]), mirror, None, np.zeros(3), 0.0, 0.0)
-    S = rig.S()
-    pboard = CharucoSpec.from_dict(s["projector_board"])
-    mboard = CharucoSpec.from_dict(s["mirror_board"]) if s.get("mirror_board") else None
-    pattern = PatternSpec.from_dict(s["pattern"])
-    out = {}
-    for c in s["captures"]:
-        T = np.array(c["T_cam_board"])
-        if c["step"] == "projector":
-            q = pattern.points_px(proj.width, proj.height, c["pattern_position"])
-            Xb = projector_points_on_board(rig, T, q)
-            out[c["id"]] = (cam.project(transform_points(S @ T, pboard.corner_points())),
-                            cam.project(transform_points(S @ T, Xb)), None)
-        else:
-            X = transform_points(T, mboard.corner_points())
-            virt = cam.project(transform_points(S, X)) if c["step"] == "mirror-real-virtual" else None
-            out[c["id"]] = (cam.project(X), None, virt)
-    return out

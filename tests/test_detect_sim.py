@@ -6,10 +6,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from _detect_helpers import sim_truth
 from app.commands.simulate import simulate_session
 from calib.detect import detect_session
 from drivers.sim.scenarios import get_scenario
+from drivers.sim.scene_file import expected_points
 
 
 @pytest.mark.slow
@@ -18,7 +18,7 @@ def test_detect_session_on_a_simulated_session(tmp_path, name):
     sc = replace(get_scenario(name, seed=3), per_position=1, mirror_count=2)
     store = simulate_session(sc, tmp_path / "s", quality="live", workers=1, progress=False)
     obs = detect_session(store, workers=2)
-    truth = sim_truth(tmp_path / "s")
+    truth = expected_points(tmp_path / "s")
     assert not obs.skipped, obs.skipped
     assert len(obs.projector_views) == 13 and len(obs.mirror_views) == (2 if sc.mirror_method else 0)
     board_err, pattern_err, mirror_err = [], [], []
