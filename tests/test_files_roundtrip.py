@@ -308,3 +308,22 @@ def test_camera_model_dict_round_trip():
                               "camera")
     assert e.value.field.startswith("camera.dist")
     assert MirrorPlane([0, 0, -2.0], -100.0).to_dict() == {"normal": [0.0, 0.0, 1.0], "d": 50.0}
+
+
+def test_capture_images_round_trip_losslessly(tmp_path):
+    """Colour, gray-as-colour (stored with one channel), gray and 16-bit captures read back exactly."""
+    store = SessionStore.create(tmp_path / "s", _manifest(captures=()))
+    gray = _image(3)
+    colour = np.dstack([_image(4), _image(5), _image(6)])
+    gray_as_bgr = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    deep = np.random.default_rng(7).integers(0, 65536, (80, 120), dtype=np.uint16)
+    caps = [store.add_capture(STEP_REAL_VIRTUAL, im) for im in (colour, gray_as_bgr, gray, deep)]
+    again = SessionStore.open(tmp_path / "s")
+    assert np.array_equal(again.load_image(caps[0]), colour)
+    assert np.array_equal(again.load_image(caps[1]), gray_as_bgr)
+    assert np.array_equal(again.load_image(caps[1], cv2.IMREAD_GRAYSCALE), gray)
+    assert np.array_equal(again.load_image(caps[2], cv2.IMREAD_UNCHANGED), gray)
+    assert np.array_equal(again.load_image(caps[3], cv2.IMREAD_UNCHANGED), deep)
+    # equal channels are stored once: the file holds one channel
+    assert cv2.imread(str(again.image_path(caps[1])), cv2.IMREAD_UNCHANGED).ndim == 2
+    assert cv2.imread(str(again.image_path(caps[0])), cv2.IMREAD_UNCHANGED).shape == colour.shape
