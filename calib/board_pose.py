@@ -168,28 +168,130 @@ def zhang_flags(fix_k3: bool = False, rational: bool = False, fix_tangential: bo
     return flags
 
 
+def zhang_closed_form(object_points: list, image_points: list) -> np.ndarray | None:
+    """K (3x3, zero skew) from Zhang's closed form over the homographies of planar views (z = 0), with
+    the principal point free; None when the views do not determine it (fewer than 3, or degenerate).
+
+    OpenCV's own initialisation fixes the principal point at the image centre, which is far off for a
+    projector (its lens is shifted: cy is often near the bottom edge), and its LM then needs hundreds
+    of iterations or stops early; started from this K it converges in a few."""
+    rows = []
+    for X, u in zip(object_points, image_points):
+        X = np.asarray(X, float).reshape(-1, 3)
+        u = np.asarray(u, float).reshape(-1, 2)
+        if len(X) < 4 or np.ptp(X[:, 2]) > 1e-9 * max(1.0, float(np.ptp(X[:, :2]))):
+            return None
+        H, _ = cv2.findHomography(X[:, :2], u, 0)
+        if H is None:
+            continue
+        h = H.T  # h[i] = i-th column of H
+
+        def v(i, j):
+            a, b = h[i], h[j]
+            return [a[0] * b[0], a[0] * b[1] + a[1] * b[0], a[1] * b[1],
+                    a[2] * b[0] + a[0] * b[2], a[2] * b[1] + a[1] * b[2], a[2] * b[2]]
+        v12, v11, v22 = np.array(v(0, 1)), np.array(v(0, 0)), np.array(v(1, 1))
+        for r in (v12, v11 - v22):
+            rows.append(r / max(np.linalg.norm(r), 1e-300))
+    if len(rows) < 6:
+        return None
+    V = np.array(rows)
+    V = np.vstack([V, [0.0, 1.0, 0.0, 0.0, 0.0, 0.0]])  # zero skew: B12 = 0
+    b = np.linalg.svd(V)[2][-1]
+    B11, B12, B22, B13, B23, B33 = b
+    den = B11 * B22 - B12 ** 2
+    if abs(B11) < 1e-300 or abs(den) < 1e-300:
+        return None
+    v0 = (B12 * B13 - B11 * B23) / den
+    lam = B33 - (B13 ** 2 + v0 * (B12 * B13 - B11 * B23)) / B11
+    if not (lam / B11 > 0 and lam * B11 / den > 0):
+        return None
+    fx = np.sqrt(lam / B11)
+    fy = np.sqrt(lam * B11 / den)
+    u0 = -B13 * fx ** 2 / lam
+    K = np.array([[fx, 0.0, u0], [0.0, fy, v0], [0.0, 0.0, 1.0]])
+    return K if np.all(np.isfinite(K)) else None
+
+
 def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, int], flags: int = 0,
                     max_restarts: int = 4):
-    """cv2.calibrateCameraExtended, restarted from its own answer (CALIB_USE_INTRINSIC_GUESS) while the
-    RMS keeps dropping: OpenCV's LM sometimes stops far from the minimum when the principal point is
-    far from the image centre (a projector's is), and a restart finishes the job.
+    """cv2.calibrateCamera started from Zhang's closed form (zhang_closed_form; OpenCV's default start
+    when that fails), then restarted from its own answer (CALIB_USE_INTRINSIC_GUESS) while the RMS
+    keeps dropping: OpenCV's LM sometimes stops short of the minimum. The 1-sigma of the intrinsics and
+    the per-view RMS are computed here (zhang_statistics) as calibrateCameraExtended defines them, at a
+    fraction of its cost.
 
     Returns (rms, K, dist, rvecs, tvecs, std_intrinsics, per_view_errors). Raises cv2.error."""
     objp = [np.ascontiguousarray(o, np.float32).reshape(-1, 3) for o in object_points]
     imgp = [np.ascontiguousarray(i, np.float32).reshape(-1, 2) for i in image_points]
-    out = cv2.calibrateCameraExtended(objp, imgp, size, None, None, flags=flags, criteria=_ZHANG_CRITERIA)
+    K0 = None if flags & cv2.CALIB_USE_INTRINSIC_GUESS else zhang_closed_form(objp, imgp)
+    if K0 is not None and 0 < K0[0, 2] < size[0] * 2 and -size[1] < K0[1, 2] < size[1] * 2:
+        out = cv2.calibrateCamera(objp, imgp, size, K0, None, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS,
+                                  criteria=_ZHANG_CRITERIA)
+    else:
+        out = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags, criteria=_ZHANG_CRITERIA)
     for _ in range(max_restarts):
         rms, K, dist = out[0], out[1], out[2]
-        nxt = cv2.calibrateCameraExtended(objp, imgp, size, K.copy(), dist.copy(),
-                                          flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS, criteria=_ZHANG_CRITERIA)
+        nxt = cv2.calibrateCamera(objp, imgp, size, K.copy(), dist.copy(),
+                                  flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS, criteria=_ZHANG_CRITERIA)
         if not nxt[0] < rms * (1 - 1e-6):
             if nxt[0] <= rms:
                 out = nxt
             break
         out = nxt
-    rms, K, dist, rvecs, tvecs, std_i, _std_e, pve = out
-    return float(rms), K, np.asarray(dist, float).reshape(-1), rvecs, tvecs, np.asarray(std_i, float).reshape(-1), \
-        np.asarray(pve, float).reshape(-1)
+    rms, K, dist, rvecs, tvecs = out
+    dist = np.asarray(dist, float).reshape(-1)
+    std_i, pve = zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags)
+    return float(rms), K, dist, rvecs, tvecs, std_i, pve
+
+
+#: calibrateCamera's distortion coefficients in order, and the flag that holds each fixed (at 0 unless
+#: a guess is given); the rational and thin-prism terms are free only with their model flag.
+_DIST_FIXED_BY = (cv2.CALIB_FIX_K1, cv2.CALIB_FIX_K2, cv2.CALIB_ZERO_TANGENT_DIST, cv2.CALIB_ZERO_TANGENT_DIST,
+                  cv2.CALIB_FIX_K3, cv2.CALIB_FIX_K4, cv2.CALIB_FIX_K5, cv2.CALIB_FIX_K6)
+
+
+def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(1-sigma of fx, fy, cx, cy and the 14 distortion slots (18 values, 0 for fixed ones), per-view
+    RMS in pixels) of a Zhang calibration, as calibrateCameraExtended reports them: sigma^2 = sum of
+    squared residuals / (2 N - free parameters), covariance = sigma^2 (J^T J)^-1 over intrinsics and
+    all poses; the poses are eliminated view by view (Schur complement), so the cost is linear in the
+    number of views."""
+    dist = np.asarray(dist, float).reshape(-1)
+    nd = dist.size
+    free_d = np.zeros(nd, bool)
+    for i in range(min(nd, 8)):
+        free_d[i] = not (flags & _DIST_FIXED_BY[i])
+        if i >= 5 and not flags & cv2.CALIB_RATIONAL_MODEL:
+            free_d[i] = False
+    free_d[8:] = False  # thin prism / tilted models are not used here
+    free = np.concatenate([[not flags & cv2.CALIB_FIX_FOCAL_LENGTH] * 2,
+                           [not flags & cv2.CALIB_FIX_PRINCIPAL_POINT] * 2, free_d])
+    ni = int(free.sum())
+    U = np.zeros((ni, ni))
+    rss, n_res, pve = 0.0, 0, []
+    K = np.asarray(K, float)
+    for X, u, r, t in zip(objp, imgp, rvecs, tvecs):
+        proj, J = cv2.projectPoints(np.asarray(X, float).reshape(-1, 3), r, t, K, dist)
+        res = proj.reshape(-1, 2) - np.asarray(u, float).reshape(-1, 2)
+        rss += float(np.sum(res ** 2))
+        n_res += res.size
+        pve.append(float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))))
+        B = J[:, :6]  # rvec, tvec
+        A = J[:, 6:10 + nd][:, free]  # focal, principal point, distortion
+        W = A.T @ B
+        V = B.T @ B
+        U += A.T @ A - W @ np.linalg.solve(V, W.T)
+    dof = n_res - ni - 6 * len(objp)
+    sigma2 = rss / dof if dof > 0 else float("nan")
+    std = np.zeros(18)
+    try:
+        cov = np.linalg.inv(U) * sigma2
+        std[np.flatnonzero(np.concatenate([free, np.zeros(18 - free.size, bool)]))] = \
+            np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    except np.linalg.LinAlgError:
+        std[:] = np.nan
+    return std, np.array(pve)
 
 
 _ZHANG_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)

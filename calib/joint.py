@@ -33,8 +33,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.sparse as sp
-from scipy.optimize import least_squares
 
 from calib.camera import CameraModel
 from calib.errors import CalibrationError
@@ -483,7 +481,7 @@ class JointProblem:
         self._jcols = np.concatenate([c_g] + c_p)
         self._jmask = [ok for ok in (self.pose_ndof[rows_pose] > k for k in range(6))]
         self._jmask_full = np.stack(self._jmask, axis=1)
-        self.pose_sum = sp.csr_matrix((np.ones(N), (rows_pose, np.arange(N))), shape=(len(self.poses), N))
+        self.pose_sum = _RowSums(rows_pose, len(self.poses))
         self.row_pose = rows_pose
         self.n_res = N
         # global parameters a residual does not depend on are structural zeros
@@ -503,8 +501,6 @@ class JointProblem:
         self._gdep_p = dep[nc2:].any(axis=0)
         keep = np.concatenate([dep.reshape(-1)] + [np.ones(len(r), bool) for r in r_p])
         self._jkeep = keep
-        self.sparsity = sp.csr_matrix((np.ones(int(keep.sum())), (self._jrows[keep], self._jcols[keep])),
-                                      shape=(N, self.n_params))
 
     def _camera_columns(self, X: np.ndarray, cd: np.ndarray, cK: np.ndarray) -> np.ndarray:
         """Analytic d(u, v)/d(camera fx, fy, cx, cy, free distortion) of points X: (2N, n_cam)."""
@@ -575,13 +571,16 @@ class JointProblem:
         Jl /= self.row_scale[:, None]
         return Jg, Jl
 
-    def to_sparse(self, Jg: np.ndarray, Jl: np.ndarray) -> sp.csr_matrix:
+    def to_sparse(self, Jg: np.ndarray, Jl: np.ndarray):
+        """The Jacobian blocks as one scipy.sparse (N, P) CSR matrix."""
+        import scipy.sparse as sp
+
         vals = [Jg.reshape(-1)] + [Jl[self._jmask[k], k] for k in range(6)]
         data = np.concatenate(vals)[self._jkeep]
         return sp.csr_matrix((data, (self._jrows[self._jkeep], self._jcols[self._jkeep])),
                              shape=(self.n_res, self.n_params))
 
-    def jacobian(self, x: np.ndarray) -> sp.csr_matrix:
+    def jacobian(self, x: np.ndarray):
         """The Jacobian as a sparse (N, P) matrix (see jacobian_blocks)."""
         return self.to_sparse(*self.jacobian_blocks(x))
 
@@ -791,12 +790,30 @@ def _loss_cost_weights(r: np.ndarray, loss: str, f: float) -> tuple[float, np.nd
     return float(f * f * rho.sum()), np.repeat(w, 2)
 
 
+class _RowSums:
+    """`P @ M` for the (V, N) 0/1 matrix P that sums the rows of M belonging to each pose: rows come in
+    runs of one pose (view by view, corners then pattern points), so np.add.reduceat over the runs,
+    then one scatter-add of the few run sums, does it without copying M (and without scipy.sparse)."""
+
+    def __init__(self, row_pose: np.ndarray, n_poses: int):
+        row_pose = np.asarray(row_pose, int)
+        self.starts = np.flatnonzero(np.r_[True, row_pose[1:] != row_pose[:-1]]) if len(row_pose) else \
+            np.zeros(0, int)
+        self.run_pose = row_pose[self.starts]
+        self.n_poses = n_poses
+
+    def __matmul__(self, M: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.n_poses,) + M.shape[1:], np.result_type(M, float))
+        if len(self.starts):
+            np.add.at(out, self.run_pose, np.add.reduceat(M, self.starts, axis=0))
+        return out
+
+
 def normal_blocks(prob: JointProblem, Jg: np.ndarray, Jl: np.ndarray, w: np.ndarray, r: np.ndarray):
     """Blocks of the weighted normal equations J^T W J = [[A, B], [B^T, D]] (D block-diagonal, one
     6x6 block per pose, padded with identity beyond the pose's DOF) and the gradient J^T W r."""
     V = len(prob.poses)
     G = prob.n_global
-    pose = prob.row_pose
     wJg = Jg * w[:, None]
     # einsum, not BLAS: threaded GEMM stalls on a busy machine, and these products are small
     A = np.einsum("ni,nj->ij", Jg, wJg)
@@ -893,6 +910,8 @@ def solve(prob: JointProblem, loss: str = "linear", f_scale: float = 1.0, max_nf
     Jacobian, typically 3-5x more iterations."""
     prob._xu_cache = None
     if solver == "scipy":
+        from scipy.optimize import least_squares  # only here: importing scipy.optimize takes ~0.8 s
+
         res = least_squares(prob.residuals, prob.x0(), jac=prob.jacobian, method="trf", loss=loss,
                             f_scale=f_scale, x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev,
                             tr_solver="lsmr", jac_sparsity=None)

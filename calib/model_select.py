@@ -28,12 +28,29 @@ RSS; if it no longer holds, the 5-coefficient model is kept. A model forced by t
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 
-from scipy.stats import chi2
-
 from calib.joint import DIST_MODELS, MODEL_NAMES, normal_blocks, solve
+
+
+def chi2_sf(x: float, k: int) -> float:
+    """P(X > x) for X ~ chi-squared with k (integer >= 1) degrees of freedom: the regularised upper
+    incomplete gamma Q(k/2, x/2), summed in closed form (Q(1/2, y) = erfc(sqrt y), Q(1, y) = e^-y,
+    Q(s + 1, y) = Q(s, y) + y^s e^-y / Gamma(s + 1)). Exact to rounding for the few degrees of freedom
+    a distortion-model test has; scipy.stats would cost a second of import for one function."""
+    if k < 1 or int(k) != k:
+        raise ValueError(f"degrees of freedom must be a positive integer, got {k}")
+    if x <= 0:
+        return 1.0
+    y = x / 2.0
+    s, q = (0.5, math.erfc(math.sqrt(y))) if k % 2 else (1.0, math.exp(-y))
+    while s < k / 2.0:
+        q += math.exp(s * math.log(y) - y - math.lgamma(s + 1.0))
+        s += 1.0
+    return min(max(q, 0.0), 1.0)
+
 
 RSS_FLOOR_PX2 = 1e-6
 ALPHA_DROP = 0.05
@@ -133,9 +150,9 @@ def select_models(prob, options) -> dict:
         for name in ("none", "k1", "k1k2"):
             k = 5 - len(DIST_MODELS[name])
             W = max(table[key(name)]["rss_px2"] - ref, 0.0) / sigma2
-            tests[name] = (W, k, float(chi2.sf(W, k)))
+            tests[name] = (W, k, float(chi2_sf(W, k)))
         W = max(ref - table[key("rational")]["rss_px2"], 0.0) / sigma2
-        tests["rational"] = (W, 3, float(chi2.sf(W, 3)))
+        tests["rational"] = (W, 3, float(chi2_sf(W, 3)))
         for name in ("none", "k1", "k1k2"):
             if tests[name][2] > ALPHA_DROP:
                 return name, tests
@@ -239,12 +256,12 @@ def select_models(prob, options) -> dict:
             refit["test"] = "BIC of the refit vs the 5-coefficient fit"
         elif k_drop:
             W = max(rss_fit - float(r0 @ r0), 0.0) / sigma2
-            pv = float(chi2.sf(W, k_drop))
+            pv = float(chi2_sf(W, k_drop))
             keep = pv > ALPHA_DROP
             refit["test"] = f"refit W = {W:.2f} on {k_drop} dof, p = {pv:.3g} (keep if > {ALPHA_DROP})"
         else:
             W = max(float(r0 @ r0) - rss_fit, 0.0) / sigma2
-            pv = float(chi2.sf(W, k_add))
+            pv = float(chi2_sf(W, k_add))
             keep = pv < ALPHA_ADD
             refit["test"] = f"refit W = {W:.2f} on {k_add} dof, p = {pv:.3g} (keep if < {ALPHA_ADD})"
         report["refit"] = refit

@@ -126,3 +126,51 @@ def test_a_misdetected_corner_is_dropped_not_the_view():
     gt = session("136").rig.camera
     pose = solve_board_pose(gt, session("136").layout.charuco, pv[11].board)
     assert pose.n_outliers == 1 and not pose.inliers[7] and pose.rms_px < 0.4
+
+
+@pytest.mark.parametrize("flags", [0, "fix_k3", "rational"])
+def test_zhang_statistics_equal_opencvs_extended_calibration(flags):
+    """calibrate_zhang's 1-sigma intrinsics and per-view RMS (computed by zhang_statistics) are the ones
+    cv2.calibrateCameraExtended reports, and its closed-form start finds a projector's off-centre
+    principal point."""
+    import cv2
+
+    from calib.board_pose import calibrate_zhang, zhang_closed_form, zhang_statistics
+
+    flags = {0: 0, "fix_k3": cv2.CALIB_FIX_K3, "rational": cv2.CALIB_RATIONAL_MODEL}[flags]
+    obs = observations("136", noise_px=0.1)
+    views = [v.board for v in obs.projector_views]
+    spec = obs.projector_board
+    objp = [view_object_points(spec, b).astype(np.float32) for b in views]
+    imgp = [np.asarray(b.corners_px, np.float32) for b in views]
+    ref = cv2.calibrateCameraExtended(objp, imgp, obs.camera_size, None, None, flags=flags)
+    std, pve = zhang_statistics(objp, imgp, ref[1], ref[2], ref[3], ref[4], flags)
+    ref_std = np.asarray(ref[5], float).ravel()
+    assert np.count_nonzero(ref_std) == np.count_nonzero(std) > 4
+    assert np.allclose(std, ref_std, rtol=1e-3, atol=0)
+    assert np.allclose(pve, np.asarray(ref[7], float).ravel(), rtol=1e-9)
+    rms, K, _d, _r, _t, std2, _pve = calibrate_zhang(objp, imgp, obs.camera_size, flags)
+    assert rms <= ref[0] * (1 + 1e-6) and rel_err(K, ref[1]) < 1e-3 and std2.shape == (18,)
+
+
+
+def test_zhang_closed_form_finds_an_off_centre_principal_point():
+    """A projector's principal point lies near its bottom edge; the closed form (used to start OpenCV's
+    LM, whose own start fixes it at the image centre) recovers it exactly from noise-free planar views."""
+    from calib.board_pose import zhang_closed_form
+    from calib.camera import CameraModel
+    from calib.transforms import T_from_rvec_tvec
+
+    K = np.array([[2300.0, 0, 975.0], [0, 2300.0, 1010.0], [0, 0, 1]])
+    proj = CameraModel(1920, 1080, K, np.zeros(5))
+    X = np.array([[x, y, 0.0] for x in np.linspace(-200, 200, 9) for y in np.linspace(-150, 150, 7)])
+    rng = np.random.default_rng(3)
+    objp, imgp = [], []
+    for _ in range(8):
+        T = T_from_rvec_tvec(rng.normal(0, 0.35, 3), np.array([0, -150, 1600.0]) + rng.normal(0, 60, 3))
+        objp.append(X)
+        imgp.append(proj.project(transform_points(T, X)))
+    K0 = zhang_closed_form(objp, imgp)
+    assert K0 is not None and rel_err(K0, K) < 1e-6
+    assert zhang_closed_form(objp[:2], imgp[:2]) is None  # two views cannot fix five unknowns
+    assert zhang_closed_form([X * [1, 1, 0] + [0, 0, 1] * np.arange(len(X))[:, None]] * 3, imgp[:3]) is None

@@ -71,3 +71,16 @@ def test_bic_penalises_parameters_and_floors_exact_fits():
     assert bic(100.0, 1000, 10) < bic(100.0, 1000, 11)
     assert bic(100.0, 1000, 10) < bic(101.0, 1000, 10)
     assert bic(0.0, 1000, 10) == bic(1e-9, 1000, 10)
+
+
+def test_chi2_survival_function_matches_scipy():
+    from scipy.stats import chi2
+
+    from calib.model_select import chi2_sf
+
+    for k in range(1, 13):
+        for x in (1e-8, 0.01, 0.5, 1.0, 3.84, 7.8, 15.0, 40.0, 120.0, 400.0):
+            assert chi2_sf(x, k) == pytest.approx(chi2.sf(x, k), rel=1e-10, abs=1e-300)
+    assert chi2_sf(0.0, 3) == 1.0
+    with pytest.raises(ValueError):
+        chi2_sf(1.0, 0)
