@@ -12,7 +12,8 @@ The layout it reads (described in issue 2):
 - an optional mirror folder: name starting with "M" = real-virtual images, "F" = real-mirror images.
 
 The result is an ordinary session folder (calib.session), written through SessionStore: images are
-copied losslessly (decoded and re-encoded as PNG with every channel and bit depth kept), each projector
+copied losslessly (decoded and re-encoded as PNG with every pixel and bit depth kept; equal colour
+channels stored once, as calib.session does), each projector
 capture records the projector pixels of the pattern it showed.
 """
 

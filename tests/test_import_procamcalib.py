@@ -135,7 +135,8 @@ def test_import_then_detect(recording, tmp_path):
         assert cap.meta["source"] == f"S0_0/{k}.png" and cap.pattern_position == k // PER
         assert cap.meta["pattern_image"] == f"{k // PER + 1:02d}.png"
         assert np.abs(cap.pattern_points_px - truth_pts[k // PER]).max() < 0.02
-        assert np.array_equal(cv2.imread(str(store.image_path(cap)), cv2.IMREAD_UNCHANGED),
+        # (an image whose channels are equal is stored with one: the same pixels, read back as BGR)
+        assert np.array_equal(store.load_image(cap, cv2.IMREAD_COLOR),
                               cv2.imread(str(rdir / f"{k}.png"), cv2.IMREAD_UNCHANGED))
     obs = detect_session(store, workers=1)
     assert not obs.skipped, obs.skipped
