@@ -24,7 +24,7 @@ def add_rig_options(p) -> None:
                    help="real rig: display the projector is connected to (default: the last one)")
     p.add_argument("--settle-s", type=float, default=None,
                    help="real rig: projector latency to wait after each image (seconds)")
-    p.add_argument("--workers", type=int, default=2, help="detection processes for the calibration (default 2)")
+    p.add_argument("--workers", type=int, default=2, help="detection threads for the calibration (default 2)")
     p.add_argument("--method", default=None,
                    help="calibration method (default: the calibration core's default; 'paper' is the method of "
                         "Vanherck et al.)")

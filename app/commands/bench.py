@@ -50,7 +50,7 @@ def add_arguments(p) -> None:
     a.add_argument("--blur", type=float, default=None, metavar="SIGMA", help="optical blur override (px)")
     a.add_argument("--keep", metavar="DIR", default=None, help="keep the simulated sessions under DIR")
     a.add_argument("--json", metavar="FILE", default=None, help="also write every run's numbers to FILE")
-    a.add_argument("--workers", type=int, default=2, help="processes for rendering and detection (default 2)")
+    a.add_argument("--workers", type=int, default=2, help="render processes and detection threads (default 2)")
     r = sub.add_parser("render", help="frames per second of the simulated camera per render mode")
     r.add_argument("--scenario", default="nonoverlap-136")
     r.add_argument("--frames", type=int, default=20, help="frames per mode (default 20)")

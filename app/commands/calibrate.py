@@ -31,7 +31,7 @@ def add_arguments(p) -> None:
                         "distortion_coefficients; skips the camera stage")
     p.add_argument("--out", metavar="FILE", default=None,
                    help="result file (default SESSION/calibration.json); the YAML export goes beside it")
-    p.add_argument("--workers", type=int, default=2, help="detection worker processes (default 2)")
+    p.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
