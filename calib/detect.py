@@ -646,11 +646,13 @@ def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi):
 def _find_chessboard(gray: np.ndarray, pattern: PatternSpec, roi):
     x0, y0, x1, y1 = roi
     crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
-    ok, corners = cv2.findChessboardCorners(
-        crop, pattern.pattern_size,
-        flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK)
+    # the sector-based finder first: on projected chessboards it finds the grid in 0.1-0.2 s where the
+    # classic finder spends up to a second before failing; the classic one is the fallback
+    ok, corners = cv2.findChessboardCornersSB(crop, pattern.pattern_size)
     if not ok:
-        ok, corners = cv2.findChessboardCornersSB(crop, pattern.pattern_size)
+        ok, corners = cv2.findChessboardCorners(
+            crop, pattern.pattern_size,
+            flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK)
     if not ok:
         return DetectionFailure("pattern not found")
     pts = np.asarray(corners, float).reshape(-1, 2)
