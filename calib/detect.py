@@ -13,7 +13,8 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import lru_cache
+import threading
+from functools import lru_cache, wraps
 
 import cv2
 import numpy as np
@@ -81,7 +82,22 @@ def _aruco_params(windows) -> cv2.aruco.DetectorParameters:
     return params
 
 
-@lru_cache(maxsize=16)
+def _per_thread(fn):
+    """lru_cache, one cache per thread: OpenCV's detector objects keep scratch state (the blob
+    detector clears a member in detect()), so threads of detect_session do not share them."""
+    local = threading.local()
+
+    @wraps(fn)
+    def wrapper(*args):
+        cached = getattr(local, "fn", None)
+        if cached is None:
+            cached = local.fn = lru_cache(maxsize=16)(fn)
+        return cached(*args)
+
+    return wrapper
+
+
+@_per_thread
 def _detectors(spec: CharucoSpec, legacy: bool = False):
     """((fast, full) ArucoDetectors, (strict, relaxed) CharucoDetectors, {marker id: (4, 2) board
     corners}) for a board spec."""
@@ -512,12 +528,12 @@ def _blob_params(max_area: float) -> cv2.SimpleBlobDetector_Params:
     return p
 
 
-@lru_cache(maxsize=8)
+@_per_thread
 def _blob_detector(max_area: int):
     return cv2.SimpleBlobDetector_create(_blob_params(float(max_area)))
 
 
-@lru_cache(maxsize=1)
+@_per_thread
 def _dot_detector():
     """Finds the dots of a clean binary image in one threshold pass (the grid finder's input)."""
     p = cv2.SimpleBlobDetector_Params()
