@@ -11,9 +11,9 @@ reason a person can read, never an exception.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-import threading
 from functools import lru_cache, wraps
 
 import cv2
@@ -794,35 +794,56 @@ class _Job:
     board: CharucoSpec
     pattern: PatternSpec | None
     camera_size: tuple[int, int]
+    cached: dict | None = None  # this capture's detections.json entry, if any (calib.detect_cache)
+
+
+def _read_file(path: str) -> np.ndarray:
+    """An image file's bytes (the one place detect_session reads images)."""
+    return np.fromfile(path, np.uint8)
 
 
 def _run_job(job: _Job):
-    """(capture_id, result) with result a BoardObservation/pattern tuple, MirrorView or DetectionFailure."""
+    """(capture_id, result, image SHA-1 or None) with result a BoardObservation/pattern tuple, MirrorView
+    or DetectionFailure. The file is read once: hashed, then decoded and detected unless `job.cached`
+    holds the result for exactly these bytes."""
+    from calib import detect_cache
+
+    digest = None
     try:
         if not os.path.exists(job.image_path):
-            return job.capture_id, DetectionFailure(f"image missing: {job.image_path}")
-        gray = cv2.imread(job.image_path, cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            return job.capture_id, DetectionFailure(f"image unreadable: {job.image_path} cannot be decoded")
-        h, w = gray.shape
-        if (w, h) != tuple(job.camera_size):
-            return job.capture_id, DetectionFailure(
-                f"image is {w}x{h}, the session's camera is {job.camera_size[0]}x{job.camera_size[1]}")
-        if job.step == STEP_REAL_VIRTUAL:
-            return job.capture_id, detect_real_virtual(gray, job.board, job.capture_id)
-        if job.step == STEP_REAL_MIRROR:
-            return job.capture_id, detect_real_mirror(gray, job.board, job.capture_id)
-        board = _detect_board_gray(gray, job.board, job.mirrored)
-        if isinstance(board, DetectionFailure):
-            return job.capture_id, board
-        pts = _detect_pattern_gray(gray, job.pattern, job.mirrored, board, job.board)
-        if isinstance(pts, DetectionFailure):
-            return job.capture_id, pts
-        return job.capture_id, (board, pts)
+            return job.capture_id, DetectionFailure(f"image missing: {job.image_path}"), None
+        data = _read_file(job.image_path)
+        digest = detect_cache.image_digest(data)
+        if job.cached is not None and job.cached.get("image_sha1") == digest:
+            try:
+                return job.capture_id, detect_cache.decode_result(job.cached["result"]), digest
+            except (KeyError, TypeError, ValueError):
+                pass  # a malformed entry: detect again
+        return job.capture_id, _detect_job(job, data), digest
     except Exception as e:  # noqa: BLE001 - a pathological image must not stop the whole session
         lines = str(e).strip().splitlines()
         msg = lines[-1] if lines else ""
-        return job.capture_id, DetectionFailure(f"detection failed ({e.__class__.__name__}): {msg}".rstrip(": "))
+        return job.capture_id, DetectionFailure(f"detection failed ({e.__class__.__name__}): {msg}".rstrip(": ")), digest
+
+
+def _detect_job(job: _Job, data: np.ndarray):
+    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    if gray is None:
+        return DetectionFailure(f"image unreadable: {job.image_path} cannot be decoded")
+    h, w = gray.shape
+    if (w, h) != tuple(job.camera_size):
+        return DetectionFailure(f"image is {w}x{h}, the session's camera is {job.camera_size[0]}x{job.camera_size[1]}")
+    if job.step == STEP_REAL_VIRTUAL:
+        return detect_real_virtual(gray, job.board, job.capture_id)
+    if job.step == STEP_REAL_MIRROR:
+        return detect_real_mirror(gray, job.board, job.capture_id)
+    board = _detect_board_gray(gray, job.board, job.mirrored)
+    if isinstance(board, DetectionFailure):
+        return board
+    pts = _detect_pattern_gray(gray, job.pattern, job.mirrored, board, job.board)
+    if isinstance(pts, DetectionFailure):
+        return pts
+    return board, pts
 
 
 def _detect_threaded(jobs, workers: int, done) -> None:
@@ -834,31 +855,47 @@ def _detect_threaded(jobs, workers: int, done) -> None:
     cv2.setNumThreads(1)
     try:
         with ThreadPoolExecutor(max_workers=workers) as ex:
-            for cid, res in ex.map(_run_job, jobs):  # in job order; `done` runs in this thread only
-                done(cid, res)
+            for out in ex.map(_run_job, jobs):  # in job order; `done` runs in this thread only
+                done(*out)
     finally:
         cv2.setNumThreads(threads)
 
 
-def detect_session(store, workers: int = 2, progress=None) -> SessionObservations:
+def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -> SessionObservations:
     """Detect every capture of a session (SessionStore) -> SessionObservations.
 
     Each image is read once; detection runs in `workers` threads (1 = inline). A capture whose image
     is missing or unreadable, or whose board/pattern is not found, is listed in `skipped` with the
-    reason. `progress(done, total, capture_id)` is called after each capture."""
+    reason. `progress(done, total, capture_id)` is called after each capture.
+
+    `cache`: "use" takes the results of earlier runs from the session's detections.json for captures
+    whose image, job and detector are unchanged (calib.detect_cache) and writes the file back;
+    "refresh" detects every image and writes the file; "off" neither reads nor writes it."""
+    from calib import detect_cache
+
+    if cache not in ("use", "refresh", "off"):
+        raise ValueError(f"cache must be 'use', 'refresh' or 'off', not {cache!r}")
     m = store.manifest
     mirrored = m.rig.view == VIEW_MIRROR
     mboard = m.mirror_board or m.projector_board
-    jobs = []
+    old = detect_cache.load(store.folder) if cache == "use" else {}
+    jobs, keys = [], {}
     for c in m.captures:
         board = m.projector_board if c.step == STEP_PROJECTOR else mboard
-        jobs.append(_Job(c.id, str(store.image_path(c)), c.step, mirrored and c.step == STEP_PROJECTOR, board,
-                         m.pattern if c.step == STEP_PROJECTOR else None, tuple(m.rig.camera_size)))
+        flip = mirrored and c.step == STEP_PROJECTOR
+        pattern = m.pattern if c.step == STEP_PROJECTOR else None
+        keys[c.id] = detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size)
+        entry = old.get(c.id)
+        cached = entry if isinstance(entry, dict) and entry.get("job") == keys[c.id] else None
+        jobs.append(_Job(c.id, str(store.image_path(c)), c.step, flip, board, pattern, tuple(m.rig.camera_size),
+                         cached))
     results: dict[str, object] = {}
+    digests: dict[str, str | None] = {}
     total = len(jobs)
 
-    def done(cid, res):
+    def done(cid, res, digest=None):
         results[cid] = res
+        digests[cid] = digest
         if progress is not None:
             progress(len(results), total, cid)
 
@@ -867,6 +904,13 @@ def detect_session(store, workers: int = 2, progress=None) -> SessionObservation
     else:
         for job in jobs:
             done(*_run_job(job))
+
+    if cache != "off":
+        entries = {cid: {"image_sha1": digests[cid], "job": keys[cid],
+                         "result": detect_cache.encode_result(results[cid])}
+                   for cid in results if digests.get(cid)}
+        if entries != old:
+            detect_cache.save(store.folder, entries)
 
     pviews, mviews, skipped = [], [], []
     for c in m.captures:

@@ -145,16 +145,18 @@ def calibrate_observations(obs: SessionObservations, method: str = "joint", came
 
 def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, workers: int = 2,
                       progress: Progress | None = None, detect_progress: Progress | None = None,
-                      method_options: dict | None = None) -> CalibrationResult:
+                      method_options: dict | None = None, detect_cache: str = "use") -> CalibrationResult:
     """Detect and calibrate a session folder. `camera_intrinsics`: None, a CameraModel, or a file
     (calibration.json or OpenCV YAML, see load_camera_intrinsics). `detect_progress` (default:
-    `progress`) follows detection, `progress` the calibration stages."""
+    `progress`) follows detection, `progress` the calibration stages. `detect_cache`: "use" (reuse
+    the detections of earlier runs kept in the session folder), "refresh" or "off" (detect_session)."""
     from calib.detect import detect_session
     from calib.session import SessionStore
 
     store = SessionStore.open(folder)
     t0 = time.perf_counter()
-    obs = detect_session(store, workers, detect_progress if detect_progress is not None else progress)
+    obs = detect_session(store, workers, detect_progress if detect_progress is not None else progress,
+                         cache=detect_cache)
     t_detect = time.perf_counter() - t0
     camera = camera_intrinsics
     if camera is not None and not isinstance(camera, CameraModel):

@@ -63,7 +63,7 @@ def session(tmp_path_factory):
 def test_detect_session_keeps_good_captures_and_skips_bad_ones(session):
     store, truth, ids = session
     calls = []
-    obs = detect_session(store, workers=2, progress=lambda d, t, c: calls.append((d, t, c)))
+    obs = detect_session(store, workers=2, progress=lambda d, t, c: calls.append((d, t, c)), cache="off")
     n = len(store.manifest.captures)
     assert [c[0] for c in calls] == list(range(1, n + 1)) and all(c[1] == n for c in calls)
     assert sorted(c[2] for c in calls) == sorted(c.id for c in store.manifest.captures)
@@ -99,17 +99,19 @@ def test_detect_session_keeps_good_captures_and_skips_bad_ones(session):
 
 
 def test_detect_session_inline_reads_each_image_once_and_matches_pool(session, monkeypatch):
+    import calib.detect as D
+
     store, _, _ = session
-    pooled = detect_session(store, workers=2)
+    pooled = detect_session(store, workers=2, cache="off")
     counts = Counter()
-    real_imread = cv2.imread
+    real_read = D._read_file
 
-    def counting_imread(path, *a, **k):
+    def counting_read(path):
         counts[str(path)] += 1
-        return real_imread(path, *a, **k)
+        return real_read(path)
 
-    monkeypatch.setattr(cv2, "imread", counting_imread)
-    inline = detect_session(store, workers=1)
+    monkeypatch.setattr(D, "_read_file", counting_read)
+    inline = detect_session(store, workers=1, cache="off")
     present = [str(store.image_path(c)) for c in store.manifest.captures if store.image_path(c).exists()]
     assert counts and set(counts) == set(present) and set(counts.values()) == {1}
     assert [v.capture_id for v in inline.projector_views] == [v.capture_id for v in pooled.projector_views]
@@ -117,3 +119,4 @@ def test_detect_session_inline_reads_each_image_once_and_matches_pool(session, m
         assert np.array_equal(a.board.ids, b.board.ids)
         assert np.allclose(a.board.corners_px, b.board.corners_px) and np.allclose(a.pattern_cam_px, b.pattern_cam_px)
     assert inline.skipped == pooled.skipped
+    assert not (store.folder / "detections.json").exists()  # cache="off" writes nothing

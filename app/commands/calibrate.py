@@ -32,6 +32,9 @@ def add_arguments(p) -> None:
     p.add_argument("--out", metavar="FILE", default=None,
                    help="result file (default SESSION/calibration.json); the YAML export goes beside it")
     p.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
+    p.add_argument("--redetect", action="store_true",
+                   help="detect every image again instead of reusing the session's detections.json (results "
+                        "of earlier runs, kept per image and detector version)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -81,7 +84,7 @@ def run(args) -> int:
             raise SessionError("--camera-model / --projector-model apply to --method joint only")
         result = calibrate_session(session, args.method, args.camera_intrinsics, args.workers,
                                    progress=bars.callback("calibrate"), detect_progress=bars.callback("detect"),
-                                   method_options=opts or None)
+                                   method_options=opts or None, detect_cache="refresh" if args.redetect else "use")
     finally:
         bars.close()
     out = Path(args.out) if args.out else session / "calibration.json"

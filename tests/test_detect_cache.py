@@ -1,0 +1,140 @@
+"""detections.json: a session is decoded and detected once; a changed image, job or detector is detected
+again; a broken cache file is ignored with a warning; the format round-trips exactly."""
+
+import json
+import shutil
+from collections import Counter
+
+import numpy as np
+import pytest
+
+import calib.detect as D
+from calib import detect_cache
+from calib.detect import DetectionFailure, detect_session
+from calib.observations import BoardObservation, MirrorView
+from calib.session import SessionStore
+from test_detect_session import session  # noqa: F401  (the module-scoped session fixture)
+
+
+@pytest.fixture
+def store(session, tmp_path):  # noqa: F811
+    """A private copy of the detect_session test folder (this module writes detections.json)."""
+    src, _, ids = session
+    folder = tmp_path / "copy"
+    shutil.copytree(src.folder, folder)
+    return SessionStore.open(folder), ids
+
+
+def _count_detections(monkeypatch):
+    detected = Counter()
+    real = D._detect_job
+
+    def counting(job, data):
+        detected[job.capture_id] += 1
+        return real(job, data)
+
+    monkeypatch.setattr(D, "_detect_job", counting)
+    return detected
+
+
+def _same(a, b):
+    assert [v.capture_id for v in a.projector_views] == [v.capture_id for v in b.projector_views]
+    for x, y in zip(a.projector_views, b.projector_views):
+        assert np.array_equal(x.board.ids, y.board.ids) and np.array_equal(x.board.corners_px, y.board.corners_px)
+        assert np.array_equal(x.pattern_cam_px, y.pattern_cam_px) and x.board.mirrored == y.board.mirrored
+    for x, y in zip(a.mirror_views, b.mirror_views):
+        assert x.capture_id == y.capture_id and x.method == y.method
+        assert np.array_equal(x.real.corners_px, y.real.corners_px)
+        assert np.array_equal(x.virtual.corners_px, y.virtual.corners_px)
+    assert a.skipped == b.skipped
+
+
+def test_second_run_detects_nothing_and_gives_identical_observations(store, monkeypatch):
+    st, ids = store
+    first = detect_session(st, workers=2)
+    assert (st.folder / detect_cache.CACHE_FILE).exists()
+    detected = _count_detections(monkeypatch)
+    again = detect_session(st, workers=2)
+    assert not detected  # every present image came from the cache (bit-exact)
+    _same(first, again)
+    # a missing image is never cached: it stays missing (and is reported) on every run
+    assert ids["missing"] not in json.loads((st.folder / detect_cache.CACHE_FILE).read_text())["captures"]
+    # "refresh" detects every present image again and rewrites the file
+    refreshed = detect_session(st, workers=1, cache="refresh")
+    present = {c.id for c in st.manifest.captures if st.image_path(c).exists()}
+    assert set(detected) == present and set(detected.values()) == {1}
+    _same(first, refreshed)
+
+
+def test_changed_image_or_job_is_detected_again(store, monkeypatch):
+    st, ids = store
+    first = detect_session(st, workers=1)
+    # p0001 replaced by p0000's image: its entry no longer matches the file's bytes
+    (st.folder / "images" / "p0001.png").write_bytes((st.folder / "images" / "p0000.png").read_bytes())
+    detected = _count_detections(monkeypatch)
+    again = detect_session(st, workers=1)
+    assert set(detected) == {"p0001"}
+    v0, v1 = again.projector_views[0], again.projector_views[1]
+    assert np.array_equal(v0.board.corners_px, v1.board.corners_px)
+    assert not np.array_equal(v1.board.corners_px, first.projector_views[1].board.corners_px)
+    # another board spec in the manifest: every board job changed, nothing may come from the cache
+    data = json.loads((st.folder / "session.json").read_text())
+    data["mirror_board"]["marker_length"] = 17.0
+    (st.folder / "session.json").write_text(json.dumps(data))
+    detected.clear()
+    detect_session(SessionStore.open(st.folder), workers=1)
+    assert set(detected) == {ids["rv"], ids["bad_rv"]}  # the mirror captures use the mirror board
+
+
+def test_other_detector_or_broken_file_means_detecting_again(store, monkeypatch):
+    st, _ = store
+    first = detect_session(st, workers=1)
+    path = st.folder / detect_cache.CACHE_FILE
+    present = {c.id for c in st.manifest.captures if st.image_path(c).exists()}
+
+    monkeypatch.setattr(detect_cache, "detector_fingerprint", lambda: "another detector")
+    detected = _count_detections(monkeypatch)
+    detect_session(st, workers=1)
+    assert set(detected) == present
+    assert json.loads(path.read_text())["detector"] == "another detector"
+    monkeypatch.undo()
+
+    for broken, field in (("{ not json", "Expecting"), ('{"format": "procam-detections", "version": 1}', "captures"),
+                          ('{"format": "something else", "version": 1, "captures": {}}', "format")):
+        path.write_text(broken)
+        detected = _count_detections(monkeypatch)
+        with pytest.warns(RuntimeWarning, match=field):
+            obs = detect_session(st, workers=1)
+        assert set(detected) == present
+        _same(first, obs)
+        assert json.loads(path.read_text())["format"] == detect_cache.FORMAT  # rewritten whole
+        monkeypatch.undo()
+
+    # a malformed entry is detected again, the rest still comes from the cache
+    data = json.loads(path.read_text())
+    data["captures"]["p0000"]["result"] = {"board": {"ids": [1]}}
+    path.write_text(json.dumps(data))
+    detected = _count_detections(monkeypatch)
+    _same(first, detect_session(st, workers=1))
+    assert set(detected) == {"p0000"}
+
+
+def test_results_round_trip_exactly():
+    rng = np.random.default_rng(4)
+    board = BoardObservation(np.array([0, 3, 7]), rng.uniform(0, 1000, (3, 2)), True)
+    real = BoardObservation(np.array([1, 2]), rng.uniform(0, 1000, (2, 2)), False)
+    pts = rng.uniform(0, 1000, (36, 2))
+    for res in (DetectionFailure("pattern partial: 30 of 36 points"), (board, pts),
+                MirrorView("mrv0002", "mirror-real-virtual", real, board), MirrorView("mrm0000", "mirror-real-mirror", real)):
+        back = detect_cache.decode_result(json.loads(json.dumps(detect_cache.encode_result(res))))
+        if isinstance(res, DetectionFailure):
+            assert back == res
+        elif isinstance(res, MirrorView):
+            assert (back.capture_id, back.method) == (res.capture_id, res.method)
+            assert np.array_equal(back.real.corners_px, res.real.corners_px) and back.real.mirrored == res.real.mirrored
+            assert (back.virtual is None) == (res.virtual is None)
+            if res.virtual is not None:
+                assert np.array_equal(back.virtual.ids, res.virtual.ids) and back.virtual.mirrored
+        else:
+            assert np.array_equal(back[0].corners_px, board.corners_px) and np.array_equal(back[0].ids, board.ids)
+            assert np.array_equal(back[1], pts)  # floats survive JSON bit for bit
