@@ -1,6 +1,7 @@
 """Detection stage: ChArUco boards and projected patterns in camera images -> SessionObservations.
 
-Entry function: `detect_session(store)`. Everything else is a pure function on numpy images.
+Entry function: `detect_session(store)` (its results kept in detections.json: calib.detect_cache).
+Everything else is a pure function on numpy images.
 
 Mirrored views (seen through the mirror) are detected in the horizontally flipped image and the points
 are mapped back with x -> (W - 1) - x, so every returned pixel coordinate is in the ORIGINAL image

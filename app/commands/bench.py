@@ -94,7 +94,7 @@ def accuracy_runs(scenarios, seeds: int, methods, quality: str = "session", keep
                 simulate_session(sc, folder, quality=quality, workers=workers, force=True, progress=False)
                 t_sim = time.perf_counter() - t0
                 t0 = time.perf_counter()
-                obs = detect_session(SessionStore.open(folder), workers)
+                obs = detect_session(SessionStore.open(folder), workers, cache="refresh")  # always timed
                 t_det = time.perf_counter() - t0
                 gt = sc.ground_truth()
                 for method in methods:
