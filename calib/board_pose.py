@@ -217,7 +217,9 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
                     max_restarts: int = 4):
     """cv2.calibrateCamera started from Zhang's closed form (zhang_closed_form; OpenCV's default start
     when that fails), then restarted from its own answer (CALIB_USE_INTRINSIC_GUESS) while the RMS
-    keeps dropping: OpenCV's LM sometimes stops short of the minimum. The 1-sigma of the intrinsics and
+    keeps dropping: OpenCV's LM sometimes stops short of the minimum. No restart once a Gauss-Newton
+    step from the answer would move every intrinsic by less than 1% of its sigma. The 1-sigma of the
+    intrinsics and
     the per-view RMS are computed here (zhang_statistics) as calibrateCameraExtended defines them, at a
     fraction of its cost.
 
@@ -232,6 +234,8 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
         out = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags, criteria=_ZHANG_CRITERIA)
     for _ in range(max_restarts):
         rms, K, dist = out[0], out[1], out[2]
+        if _converged(objp, imgp, out, flags):
+            break
         nxt = cv2.calibrateCamera(objp, imgp, size, K.copy(), dist.copy(),
                                   flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS, criteria=_ZHANG_CRITERIA)
         if not nxt[0] < rms * (1 - 1e-6):
@@ -251,12 +255,10 @@ _DIST_FIXED_BY = (cv2.CALIB_FIX_K1, cv2.CALIB_FIX_K2, cv2.CALIB_ZERO_TANGENT_DIS
                   cv2.CALIB_FIX_K3, cv2.CALIB_FIX_K4, cv2.CALIB_FIX_K5, cv2.CALIB_FIX_K6)
 
 
-def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(1-sigma of fx, fy, cx, cy and the 14 distortion slots (18 values, 0 for fixed ones), per-view
-    RMS in pixels) of a Zhang calibration, as calibrateCameraExtended reports them: sigma^2 = sum of
-    squared residuals / (2 N - free parameters), covariance = sigma^2 (J^T J)^-1 over intrinsics and
-    all poses; the poses are eliminated view by view (Schur complement), so the cost is linear in the
-    number of views."""
+def _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags: int):
+    """Normal equations of Zhang's problem with the poses eliminated view by view (Schur complement):
+    (U, b, rss, number of residuals, per-view RMS, mask of the free intrinsics among fx, fy, cx, cy and
+    the distortion slots) with U the reduced J^T J and b the reduced J^T r over the free intrinsics."""
     dist = np.asarray(dist, float).reshape(-1)
     nd = dist.size
     free_d = np.zeros(nd, bool)
@@ -269,6 +271,7 @@ def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple
                            [not flags & cv2.CALIB_FIX_PRINCIPAL_POINT] * 2, free_d])
     ni = int(free.sum())
     U = np.zeros((ni, ni))
+    b = np.zeros(ni)
     rss, n_res, pve = 0.0, 0, []
     K = np.asarray(K, float)
     for X, u, r, t in zip(objp, imgp, rvecs, tvecs):
@@ -281,8 +284,38 @@ def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple
         A = J[:, 6:10 + nd][:, free]  # focal, principal point, distortion
         W = A.T @ B
         V = B.T @ B
-        U += A.T @ A - W @ np.linalg.solve(V, W.T)
-    dof = n_res - ni - 6 * len(objp)
+        WVinv = np.linalg.solve(V, W.T).T
+        rv = res.reshape(-1)
+        U += A.T @ A - WVinv @ W.T
+        b += A.T @ rv - WVinv @ (B.T @ rv)
+    return U, b, rss, n_res, np.array(pve), free
+
+
+def _converged(objp, imgp, out, flags: int, tol_sigma: float = 0.01) -> bool:
+    """Whether a Gauss-Newton step from calibrateCamera's answer `out` would move every free intrinsic
+    by less than tol_sigma of its 1-sigma (then a restart cannot improve it)."""
+    _rms, K, dist, rvecs, tvecs = out
+    U, b, rss, n_res, _pve, free = _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags)
+    dof = n_res - len(b) - 6 * len(objp)
+    if dof <= 0 or not np.all(np.isfinite(U)):
+        return False
+    try:
+        cov = np.linalg.inv(U)
+    except np.linalg.LinAlgError:
+        return False
+    step = -cov @ b
+    sigma = np.sqrt(np.clip(np.diag(cov) * rss / dof, 1e-300, None))
+    return bool(np.all(np.abs(step) < tol_sigma * sigma))
+
+
+def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(1-sigma of fx, fy, cx, cy and the 14 distortion slots (18 values, 0 for fixed ones), per-view
+    RMS in pixels) of a Zhang calibration, as calibrateCameraExtended reports them: sigma^2 = sum of
+    squared residuals / (2 N - free parameters), covariance = sigma^2 (J^T J)^-1 over intrinsics and
+    all poses; the poses are eliminated view by view (Schur complement), so the cost is linear in the
+    number of views."""
+    U, _b, rss, n_res, pve, free = _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags)
+    dof = n_res - len(_b) - 6 * len(objp)
     sigma2 = rss / dof if dof > 0 else float("nan")
     std = np.zeros(18)
     try:
@@ -291,7 +324,7 @@ def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple
             np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
         std[:] = np.nan
-    return std, np.array(pve)
+    return std, pve
 
 
 _ZHANG_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)

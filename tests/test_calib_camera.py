@@ -174,3 +174,33 @@ def test_zhang_closed_form_finds_an_off_centre_principal_point():
     assert K0 is not None and rel_err(K0, K) < 1e-6
     assert zhang_closed_form(objp[:2], imgp[:2]) is None  # two views cannot fix five unknowns
     assert zhang_closed_form([X * [1, 1, 0] + [0, 0, 1] * np.arange(len(X))[:, None]] * 3, imgp[:3]) is None
+
+
+def test_zhang_restarts_only_when_a_gauss_newton_step_would_still_move_the_intrinsics(monkeypatch):
+    """_converged: False for an answer OpenCV's LM left short of the minimum (two iterations), True at
+    the minimum; calibrate_zhang then restarts only in the first case."""
+    import cv2
+
+    from calib import board_pose as BP
+
+    obs = observations("136", noise_px=0.1)
+    spec = obs.projector_board
+    objp = [view_object_points(spec, v.board).astype(np.float32) for v in obs.projector_views]
+    imgp = [np.asarray(v.board.corners_px, np.float32) for v in obs.projector_views]
+    size = obs.camera_size
+    short = cv2.calibrateCamera(objp, imgp, size, None, None, criteria=(cv2.TERM_CRITERIA_COUNT, 2, 0))
+    full = cv2.calibrateCamera(objp, imgp, size, None, None, criteria=BP._ZHANG_CRITERIA)
+    assert short[0] > full[0] * (1 + 1e-4)  # two iterations are not enough here
+    assert not BP._converged(objp, imgp, short, 0)
+    assert BP._converged(objp, imgp, full, 0)
+
+    calls = []
+    real = cv2.calibrateCamera
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(cv2, "calibrateCamera", counting)
+    rms, K, *_ = BP.calibrate_zhang(objp, imgp, size)
+    assert len(calls) == 1 and rms == pytest.approx(full[0], rel=1e-6)  # converged at once: no restart
