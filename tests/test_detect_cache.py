@@ -138,3 +138,15 @@ def test_results_round_trip_exactly():
         else:
             assert np.array_equal(back[0].corners_px, board.corners_px) and np.array_equal(back[0].ids, board.ids)
             assert np.array_equal(back[1], pts)  # floats survive JSON bit for bit
+
+
+def test_unwritable_folder_still_detects_and_warns(store, monkeypatch):
+    st, _ = store
+
+    def refuse(path, text):
+        raise PermissionError(13, "Read-only file system")
+
+    monkeypatch.setattr(detect_cache, "atomic_write_text", refuse)
+    with pytest.warns(RuntimeWarning, match="could not write the detection cache.*Read-only"):
+        obs = detect_session(st, workers=1)
+    assert len(obs.projector_views) == 3 and not (st.folder / detect_cache.CACHE_FILE).exists()
