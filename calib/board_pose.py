@@ -219,9 +219,8 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
     when that fails), then restarted from its own answer (CALIB_USE_INTRINSIC_GUESS) while the RMS
     keeps dropping: OpenCV's LM sometimes stops short of the minimum. No restart once a Gauss-Newton
     step from the answer would move every intrinsic by less than 1% of its sigma. The 1-sigma of the
-    intrinsics and
-    the per-view RMS are computed here (zhang_statistics) as calibrateCameraExtended defines them, at a
-    fraction of its cost.
+    intrinsics and the per-view RMS are computed here (zhang_statistics) as calibrateCameraExtended
+    defines them, at a fraction of its cost, from the same normal equations as that test.
 
     Returns (rms, K, dist, rvecs, tvecs, std_intrinsics, per_view_errors). Raises cv2.error."""
     objp = [np.ascontiguousarray(o, np.float32).reshape(-1, 3) for o in object_points]
@@ -232,20 +231,24 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
                                   criteria=_ZHANG_CRITERIA)
     else:
         out = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags, criteria=_ZHANG_CRITERIA)
+    normal = None  # the normal equations at `out`, once computed
     for _ in range(max_restarts):
         rms, K, dist = out[0], out[1], out[2]
-        if _converged(objp, imgp, out, flags):
+        normal = _zhang_normal(objp, imgp, *out[1:], flags)
+        if _converged(normal, len(objp)):
             break
         nxt = cv2.calibrateCamera(objp, imgp, size, K.copy(), dist.copy(),
                                   flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS, criteria=_ZHANG_CRITERIA)
-        if not nxt[0] < rms * (1 - 1e-6):
-            if nxt[0] <= rms:
-                out = nxt
+        improved = nxt[0] < rms * (1 - 1e-6)
+        if nxt[0] <= rms:
+            out, normal = nxt, None
+        if not improved:
             break
-        out = nxt
     rms, K, dist, rvecs, tvecs = out
     dist = np.asarray(dist, float).reshape(-1)
-    std_i, pve = zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags)
+    if normal is None:
+        normal = _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags)
+    std_i, pve = _statistics(normal, len(objp))
     return float(rms), K, dist, rvecs, tvecs, std_i, pve
 
 
@@ -291,21 +294,38 @@ def _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags: int):
     return U, b, rss, n_res, np.array(pve), free
 
 
-def _converged(objp, imgp, out, flags: int, tol_sigma: float = 0.01) -> bool:
-    """Whether a Gauss-Newton step from calibrateCamera's answer `out` would move every free intrinsic
-    by less than tol_sigma of its 1-sigma (then a restart cannot improve it)."""
-    _rms, K, dist, rvecs, tvecs = out
-    U, b, rss, n_res, _pve, free = _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags)
-    dof = n_res - len(b) - 6 * len(objp)
+def _covariance(normal, n_views: int) -> np.ndarray | None:
+    """sigma^2 U^-1 over the free intrinsics (sigma^2 = RSS / degrees of freedom), or None when the
+    views leave them undetermined."""
+    U, b, rss, n_res, _pve, _free = normal
+    dof = n_res - len(b) - 6 * n_views
     if dof <= 0 or not np.all(np.isfinite(U)):
-        return False
+        return None
     try:
-        cov = np.linalg.inv(U)
+        return np.linalg.inv(U) * (rss / dof)
     except np.linalg.LinAlgError:
+        return None
+
+
+def _converged(normal, n_views: int, tol_sigma: float = 0.01) -> bool:
+    """Whether a Gauss-Newton step from the solution `normal` was computed at would move every free
+    intrinsic by less than tol_sigma of its 1-sigma (then a restart cannot improve it)."""
+    cov = _covariance(normal, n_views)
+    if cov is None:
         return False
-    step = -cov @ b
-    sigma = np.sqrt(np.clip(np.diag(cov) * rss / dof, 1e-300, None))
-    return bool(np.all(np.abs(step) < tol_sigma * sigma))
+    U, b = normal[0], normal[1]
+    step = -np.linalg.solve(U, b)
+    return bool(np.all(np.abs(step) < tol_sigma * np.sqrt(np.clip(np.diag(cov), 1e-300, None))))
+
+
+def _statistics(normal, n_views: int) -> tuple[np.ndarray, np.ndarray]:
+    """(18 1-sigma values, per-view RMS) from the normal equations (see zhang_statistics)."""
+    free, pve = normal[5], normal[4]
+    std = np.zeros(18)
+    cov = _covariance(normal, n_views)
+    idx = np.flatnonzero(np.concatenate([free, np.zeros(18 - free.size, bool)]))
+    std[idx] = np.nan if cov is None else np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return std, pve
 
 
 def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -314,17 +334,7 @@ def zhang_statistics(objp, imgp, K, dist, rvecs, tvecs, flags: int = 0) -> tuple
     squared residuals / (2 N - free parameters), covariance = sigma^2 (J^T J)^-1 over intrinsics and
     all poses; the poses are eliminated view by view (Schur complement), so the cost is linear in the
     number of views."""
-    U, _b, rss, n_res, pve, free = _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags)
-    dof = n_res - len(_b) - 6 * len(objp)
-    sigma2 = rss / dof if dof > 0 else float("nan")
-    std = np.zeros(18)
-    try:
-        cov = np.linalg.inv(U) * sigma2
-        std[np.flatnonzero(np.concatenate([free, np.zeros(18 - free.size, bool)]))] = \
-            np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    except np.linalg.LinAlgError:
-        std[:] = np.nan
-    return std, pve
+    return _statistics(_zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags), len(objp))
 
 
 _ZHANG_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)

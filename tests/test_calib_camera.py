@@ -191,8 +191,8 @@ def test_zhang_restarts_only_when_a_gauss_newton_step_would_still_move_the_intri
     short = cv2.calibrateCamera(objp, imgp, size, None, None, criteria=(cv2.TERM_CRITERIA_COUNT, 2, 0))
     full = cv2.calibrateCamera(objp, imgp, size, None, None, criteria=BP._ZHANG_CRITERIA)
     assert short[0] > full[0] * (1 + 1e-4)  # two iterations are not enough here
-    assert not BP._converged(objp, imgp, short, 0)
-    assert BP._converged(objp, imgp, full, 0)
+    assert not BP._converged(BP._zhang_normal(objp, imgp, *short[1:], 0), len(objp))
+    assert BP._converged(BP._zhang_normal(objp, imgp, *full[1:], 0), len(objp))
 
     calls = []
     real = cv2.calibrateCamera
