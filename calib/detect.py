@@ -20,6 +20,7 @@ from functools import lru_cache, wraps
 import cv2
 import numpy as np
 
+from calib import detect_cache
 from calib.boards import CharucoSpec
 from calib.observations import (
     STEP_PROJECTOR,
@@ -796,6 +797,7 @@ class _Job:
     pattern: PatternSpec | None
     camera_size: tuple[int, int]
     cached: dict | None = None  # this capture's detections.json entry, if any (calib.detect_cache)
+    hash_image: bool = True  # the image's SHA-1 is needed (the cache is not off)
 
 
 def _read_file(path: str) -> np.ndarray:
@@ -805,15 +807,15 @@ def _read_file(path: str) -> np.ndarray:
 
 def _run_job(job: _Job):
     """(capture_id, result, image SHA-1 or None) with result a BoardObservation/pattern tuple, MirrorView
-    or DetectionFailure. The file is read once: hashed, then decoded and detected unless `job.cached`
-    holds the result for exactly these bytes."""
-    from calib import detect_cache
-
+    or DetectionFailure. The file is read once: hashed (when the session's cache is on), then decoded
+    and detected unless `job.cached` holds the result for exactly these bytes."""
     digest = None
     try:
         if not os.path.exists(job.image_path):
             return job.capture_id, DetectionFailure(f"image missing: {job.image_path}"), None
         data = _read_file(job.image_path)
+        if not job.hash_image:
+            return job.capture_id, _detect_job(job, data), None
         digest = detect_cache.image_digest(data)
         if job.cached is not None and job.cached.get("image_sha1") == digest:
             try:
@@ -824,7 +826,8 @@ def _run_job(job: _Job):
     except Exception as e:  # noqa: BLE001 - a pathological image must not stop the whole session
         lines = str(e).strip().splitlines()
         msg = lines[-1] if lines else ""
-        return job.capture_id, DetectionFailure(f"detection failed ({e.__class__.__name__}): {msg}".rstrip(": ")), digest
+        why = f"detection failed ({e.__class__.__name__}): {msg}".rstrip(": ")
+        return job.capture_id, DetectionFailure(why), digest
 
 
 def _detect_job(job: _Job, data: np.ndarray):
@@ -872,8 +875,6 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
     `cache`: "use" takes the results of earlier runs from the session's detections.json for captures
     whose image, job and detector are unchanged (calib.detect_cache) and writes the file back;
     "refresh" detects every image and writes the file; "off" neither reads nor writes it."""
-    from calib import detect_cache
-
     if cache not in ("use", "refresh", "off"):
         raise ValueError(f"cache must be 'use', 'refresh' or 'off', not {cache!r}")
     m = store.manifest
@@ -885,16 +886,17 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
         board = m.projector_board if c.step == STEP_PROJECTOR else mboard
         flip = mirrored and c.step == STEP_PROJECTOR
         pattern = m.pattern if c.step == STEP_PROJECTOR else None
-        keys[c.id] = detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size)
+        keys[c.id] = None if cache == "off" else \
+            detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size)
         entry = old.get(c.id)
-        cached = entry if isinstance(entry, dict) and entry.get("job") == keys[c.id] else None
+        cached = entry if entry is not None and entry.get("job") == keys[c.id] else None
         jobs.append(_Job(c.id, str(store.image_path(c)), c.step, flip, board, pattern, tuple(m.rig.camera_size),
-                         cached))
+                         cached, hash_image=cache != "off"))
     results: dict[str, object] = {}
     digests: dict[str, str | None] = {}
     total = len(jobs)
 
-    def done(cid, res, digest=None):
+    def done(cid, res, digest):
         results[cid] = res
         digests[cid] = digest
         if progress is not None:
