@@ -22,6 +22,7 @@ import numpy as np
 
 from calib import detect_cache
 from calib.boards import CharucoSpec
+from calib.errors import SessionError
 from calib.observations import (
     STEP_PROJECTOR,
     STEP_REAL_MIRROR,
@@ -850,6 +851,49 @@ def _detect_job(job: _Job, data: np.ndarray):
     return board, pts
 
 
+#: serialises detections.json read-modify-writes within one process (the station detects each capture in
+#: the background while it captures the next; calibration may run detect_session on the same folder)
+_CACHE_LOCK = threading.Lock()
+
+
+def _job_for(store, c, old: dict, cache_on: bool):
+    """(_Job, job key or None) of capture `c` of a SessionStore; `old` its detections.json entries."""
+    m = store.manifest
+    board = m.projector_board if c.step == STEP_PROJECTOR else (m.mirror_board or m.projector_board)
+    flip = m.rig.view == VIEW_MIRROR and c.step == STEP_PROJECTOR
+    pattern = m.pattern if c.step == STEP_PROJECTOR else None
+    key = detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size) if cache_on else None
+    entry = old.get(c.id)
+    cached = entry if entry is not None and entry.get("job") == key else None
+    return _Job(c.id, str(store.image_path(c)), c.step, flip, board, pattern, tuple(m.rig.camera_size), cached,
+                hash_image=cache_on), key
+
+
+def detect_capture(store, capture_id: str):
+    """Detect one capture of a SessionStore now and keep the result in the session's detections.json,
+    so that a later detect_session (calibration) finds it there instead of decoding and detecting the
+    image again. The station calls this in the background right after each capture: by the time the
+    operator presses Calibrate every image has been detected, once, from the bytes on disk (so the
+    result is bit for bit what detect_session would compute). Returns the result: a DetectionFailure
+    (with the reason calibration will skip this capture for), (board, pattern points) or a MirrorView.
+    Raises SessionError for an unknown capture id."""
+    c = next((c for c in store.manifest.captures if c.id == capture_id), None)
+    if c is None:
+        raise SessionError(f"no capture '{capture_id}' in this session")
+    with _CACHE_LOCK:
+        old = detect_cache.load(store.folder)
+    job, key = _job_for(store, c, old, True)
+    cid, result, digest = _run_job(job)
+    if digest is not None:
+        with _CACHE_LOCK:
+            entries = detect_cache.load(store.folder)
+            live = {x.id for x in store.manifest.captures} | {cid}
+            entries = {k: v for k, v in entries.items() if k in live}
+            entries[cid] = {"image_sha1": digest, "job": key, "result": detect_cache.encode_result(result)}
+            detect_cache.save(store.folder, entries)
+    return result
+
+
 def _detect_threaded(jobs, workers: int, done) -> None:
     """Run jobs in `workers` threads. OpenCV releases the GIL in decoding and in every detector, which
     is nearly all of the time, so threads scale like processes here (1.9x on 2 cores) without the
@@ -878,20 +922,15 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
     if cache not in ("use", "refresh", "off"):
         raise ValueError(f"cache must be 'use', 'refresh' or 'off', not {cache!r}")
     m = store.manifest
-    mirrored = m.rig.view == VIEW_MIRROR
-    mboard = m.mirror_board or m.projector_board
-    old = detect_cache.load(store.folder) if cache == "use" else {}
+    if cache == "use":
+        with _CACHE_LOCK:
+            old = detect_cache.load(store.folder)
+    else:
+        old = {}
     jobs, keys = [], {}
     for c in m.captures:
-        board = m.projector_board if c.step == STEP_PROJECTOR else mboard
-        flip = mirrored and c.step == STEP_PROJECTOR
-        pattern = m.pattern if c.step == STEP_PROJECTOR else None
-        keys[c.id] = None if cache == "off" else \
-            detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size)
-        entry = old.get(c.id)
-        cached = entry if entry is not None and entry.get("job") == keys[c.id] else None
-        jobs.append(_Job(c.id, str(store.image_path(c)), c.step, flip, board, pattern, tuple(m.rig.camera_size),
-                         cached, hash_image=cache != "off"))
+        job, keys[c.id] = _job_for(store, c, old, cache != "off")
+        jobs.append(job)
     results: dict[str, object] = {}
     digests: dict[str, str | None] = {}
     total = len(jobs)
@@ -913,7 +952,8 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
                          "result": detect_cache.encode_result(results[cid])}
                    for cid in results if digests.get(cid)}
         if entries != old:
-            detect_cache.save(store.folder, entries)
+            with _CACHE_LOCK:
+                detect_cache.save(store.folder, entries)
 
     pviews, mviews, skipped = [], [], []
     for c in m.captures:

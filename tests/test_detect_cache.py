@@ -150,3 +150,23 @@ def test_unwritable_folder_still_detects_and_warns(store, monkeypatch):
     with pytest.warns(RuntimeWarning, match="could not write the detection cache.*Read-only"):
         obs = detect_session(st, workers=1)
     assert len(obs.projector_views) == 3 and not (st.folder / detect_cache.CACHE_FILE).exists()
+
+
+def test_detect_capture_keeps_exactly_what_calibration_would_detect(store, monkeypatch):
+    """The station detects each capture in the background as it is taken (calib.detect.detect_capture);
+    calibrating afterwards decodes and detects nothing, and gets the same observations as a fresh run."""
+    st, ids = store
+    present = [c.id for c in st.manifest.captures if st.image_path(c).exists()]
+    results = {cid: D.detect_capture(st, cid) for cid in present}
+    assert isinstance(results[ids["bad_rv"]], DetectionFailure)  # the reason is known at capture time
+    assert not isinstance(results["p0000"], DetectionFailure)
+    detected = _count_detections(monkeypatch)
+    kept = detect_session(st, workers=2)
+    assert not detected
+    _same(kept, detect_session(st, workers=2, cache="off"))
+    # a deleted capture's entry goes with the next capture's write; an unknown id is an error
+    st.delete_capture("p0000")
+    D.detect_capture(st, "p0001")
+    assert "p0000" not in json.loads((st.folder / detect_cache.CACHE_FILE).read_text())["captures"]
+    with pytest.raises(D.SessionError, match="no capture 'p0000'"):
+        D.detect_capture(st, "p0000")

@@ -121,15 +121,33 @@ def test_operator_buttons_and_refusals(tmp_path):
 
 
 @pytest.mark.slow
-def test_small_session_calibrates_near_ground_truth(tmp_path):
-    """A short session (1 pose per pattern position, 3 mirror captures) run by the station itself."""
+def test_small_session_calibrates_near_ground_truth(tmp_path, monkeypatch):
+    """A short session (1 pose per pattern position, 3 mirror captures) run by the station itself. Each
+    capture is decoded and detected once, in the background while the next one is taken; calibrating
+    detects nothing again."""
+    import threading
+    from collections import Counter
+
+    import calib.detect as D
     from calib.metrics import compare
 
+    detected = Counter()
+    real = D._detect_job
+
+    def counting(job, data):
+        if job.image_path.startswith(str(tmp_path)):  # not a capture of an earlier test's station
+            detected[(job.capture_id, threading.current_thread().name.split("_")[0])] += 1
+        return real(job, data)
+
+    monkeypatch.setattr(D, "_detect_job", counting)
     rig, m = session(tmp_path)
     st = Station(rig, m, StationOptions(auto=True))
     tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=400)
     c = m.counts()
     assert c["mirror"] == 3 and c["projector"] == 13 and c["positions_done"] == 13
+    # (a capture the station deleted, to take its pose again, may or may not have been detected first)
+    assert {who for _, who in detected} == {"station-detect"}, detected
+    assert all(detected[(cap.id, "station-detect")] == 1 for cap in m.manifest.captures), (detected, m.manifest.captures)
     mt = compare(m.result, rig.ground_truth())
     # a quarter of the paper's protocol; still well within the paper's synthetic accuracy
     assert mt.distance < 3.2 and mt.angle_deg < 0.18

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -39,6 +40,7 @@ from app.station.machine import (
     SessionMachine,
     Target,
 )
+from calib.detect import DetectionFailure, detect_capture
 from calib.errors import ProcamError, SessionError, SpecError
 from calib.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
@@ -124,6 +126,9 @@ class Station:
         self.started_s = time.monotonic()
         self.last_capture_s = -1e9
         self.problem: str | None = None  # the last error of the background loop (not a device's)
+        # every capture is detected once, in the background, as calibration will (detections.json)
+        self._detector = ThreadPoolExecutor(max_workers=1, thread_name_prefix="station-detect")
+        self._detecting: list[Future] = []
         self.pixel_check = None  # the last live epipolar check (app.verification.PixelCheck)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
@@ -415,8 +420,31 @@ class Station:
         cap = self.machine.record_capture(frame.image, meta)
         self.last_capture_s = time.monotonic()
         self.log(f"captured {cap.id}: {self._describe(cap)}")
+        self._detect_in_background(cap.id)
         self._changed()
         return cap
+
+    def _detect_in_background(self, capture_id: str) -> None:
+        """Detect a new capture from its file exactly as calibration will (calib.detect.detect_capture) in
+        a background thread, keeping the result in the session's detections.json. Calibrate then finds
+        every image already detected, and a capture that calibration would leave out is reported now,
+        while the operator can still retake it."""
+        store = self.machine.store
+
+        def work():
+            try:
+                result = detect_capture(store, capture_id)
+            except ProcamError:
+                return  # deleted before its turn
+            if isinstance(result, DetectionFailure) and any(c.id == capture_id for c in store.manifest.captures):
+                self.log(f"{capture_id}: {result.reason}; calibration will leave it out (retake it to replace it)")
+
+        self._detecting = [f for f in self._detecting if not f.done()] + [self._detector.submit(work)]
+
+    def wait_for_detections(self, timeout_s: float | None = None) -> None:
+        """Block until every capture taken so far has been detected in the background."""
+        for f in list(self._detecting):
+            f.result(timeout_s)
 
     def _describe(self, cap) -> str:
         m = self.machine
@@ -525,6 +553,7 @@ class Station:
             if self.on_progress is not None:
                 self.on_progress(done, total, label)
 
+        self.wait_for_detections()  # the last capture's, at most a fraction of a second
         return self.machine.calibrate(progress=progress)
 
     def verify(self):
@@ -580,6 +609,7 @@ class Station:
         for t in (self._loop_thread, self._grab_thread, self._worker):
             if t is not None:
                 t.join(timeout_s)
+        self._detector.shutdown(wait=True, cancel_futures=True)
 
     # ---- what to do next ----------------------------------------------------------------------------
     def instruction(self) -> str:
