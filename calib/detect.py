@@ -870,7 +870,7 @@ def _job_for(store, c, old: dict, cache_on: bool):
 
 
 def detect_capture(store, capture_id: str):
-    """Detect one capture of a SessionStore now and keep the result in the session's detections.json,
+    """Detect one capture of a SessionStore now and put the result in the session's detections.json,
     so that a later detect_session (calibration) finds it there instead of decoding and detecting the
     image again. The station calls this in the background right after each capture: by the time the
     operator presses Calibrate every image has been detected, once, from the bytes on disk (so the
@@ -880,9 +880,7 @@ def detect_capture(store, capture_id: str):
     c = next((c for c in store.manifest.captures if c.id == capture_id), None)
     if c is None:
         raise SessionError(f"no capture '{capture_id}' in this session")
-    with _CACHE_LOCK:
-        old = detect_cache.load(store.folder)
-    job, key = _job_for(store, c, old, True)
+    job, key = _job_for(store, c, {}, True)  # detected now: the capture is new, it has no entry yet
     cid, result, digest = _run_job(job)
     if digest is not None:
         with _CACHE_LOCK:

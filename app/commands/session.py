@@ -23,8 +23,6 @@ DESCRIPTION = (
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--rig", choices=("sim", "realsense"), default=None,
-                   help="rig to use (default: realsense when one is connected, else sim)")
     p.add_argument("--auto", action="store_true",
                    help="the station leads the whole session itself (on the simulated rig the simulated "
                         "operator moves the board)")

@@ -26,8 +26,6 @@ DESCRIPTION = (
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--rig", choices=("sim", "realsense"), default=None,
-                   help="rig to use (default: realsense when one is connected, else sim)")
     p.add_argument("--port", type=int, default=8080, help="panel port (default 8080)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve the panel on (default 127.0.0.1; 0.0.0.0 serves the network and "
