@@ -226,9 +226,8 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
     objp = [np.ascontiguousarray(o, np.float32).reshape(-1, 3) for o in object_points]
     imgp = [np.ascontiguousarray(i, np.float32).reshape(-1, 2) for i in image_points]
     K0 = None if flags & cv2.CALIB_USE_INTRINSIC_GUESS else zhang_closed_form(objp, imgp)
-    if K0 is not None and 0 < K0[0, 2] < size[0] * 2 and -size[1] < K0[1, 2] < size[1] * 2:
-        out = cv2.calibrateCamera(objp, imgp, size, K0, None, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS,
-                                  criteria=_ZHANG_CRITERIA)
+    if K0 is not None and -size[0] < K0[0, 2] < size[0] * 2 and -size[1] < K0[1, 2] < size[1] * 2:
+        out = _calibrate_from_guess(objp, imgp, size, K0, None, flags)
     else:
         out = cv2.calibrateCamera(objp, imgp, size, None, None, flags=flags, criteria=_ZHANG_CRITERIA)
     normal = None  # the normal equations at `out`, once computed
@@ -237,8 +236,7 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
         normal = _zhang_normal(objp, imgp, *out[1:], flags)
         if _converged(normal, len(objp)):
             break
-        nxt = cv2.calibrateCamera(objp, imgp, size, K.copy(), dist.copy(),
-                                  flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS, criteria=_ZHANG_CRITERIA)
+        nxt = _calibrate_from_guess(objp, imgp, size, K.copy(), dist.copy(), flags)
         improved = nxt[0] < rms * (1 - 1e-6)
         if nxt[0] <= rms:
             out, normal = nxt, None
@@ -250,6 +248,29 @@ def calibrate_zhang(object_points: list, image_points: list, size: tuple[int, in
         normal = _zhang_normal(objp, imgp, K, dist, rvecs, tvecs, flags)
     std_i, pve = _statistics(normal, len(objp))
     return float(rms), K, dist, rvecs, tvecs, std_i, pve
+
+
+def _calibrate_from_guess(objp, imgp, size, K, dist, flags: int):
+    """cv2.calibrateCamera started from the intrinsics K (and dist). OpenCV refuses a start whose
+    principal point lies outside the image, and a projector's may (lens shift puts it near or beyond
+    the bottom edge, or the top edge when ceiling-mounted); with a start given, the image size serves
+    no other purpose. So the image points are shifted by whole pixels and the size enlarged until the
+    start's principal point lies inside, and the answer's principal point is shifted back: the same
+    problem, exactly (the distortion is centred on the principal point, which moves with the pixels)."""
+    K = np.array(K, float)
+    off = np.array([max(0.0, np.ceil(-K[0, 2]) + 1.0), max(0.0, np.ceil(-K[1, 2]) + 1.0)])
+    W = max(int(size[0] + off[0]), int(np.floor(K[0, 2] + off[0])) + 2)
+    H = max(int(size[1] + off[1]), int(np.floor(K[1, 2] + off[1])) + 2)
+    if off.any():
+        imgp = [(i + off).astype(np.float32) for i in imgp]
+        K[:2, 2] += off
+    out = cv2.calibrateCamera(objp, imgp, (W, H), K, dist, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS,
+                              criteria=_ZHANG_CRITERIA)
+    if off.any():
+        K_out = out[1].copy()
+        K_out[:2, 2] -= off
+        out = (out[0], K_out, *out[2:])
+    return out
 
 
 #: calibrateCamera's distortion coefficients in order, and the flag that holds each fixed (at 0 unless

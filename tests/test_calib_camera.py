@@ -204,3 +204,34 @@ def test_zhang_restarts_only_when_a_gauss_newton_step_would_still_move_the_intri
     monkeypatch.setattr(cv2, "calibrateCamera", counting)
     rms, K, *_ = BP.calibrate_zhang(objp, imgp, size)
     assert len(calls) == 1 and rms == pytest.approx(full[0], rel=1e-6)  # converged at once: no restart
+
+
+@pytest.mark.parametrize("cy", [1210.0, -130.0])
+def test_zhang_calibrates_a_projector_whose_principal_point_lies_outside_its_image(cy):
+    """Lens shift puts a projector's principal point beyond its bottom edge (or its top edge when it
+    hangs from the ceiling). OpenCV refuses to start from such a guess ("Principal point must be within
+    the image"); calibrate_zhang still recovers the intrinsics exactly from noise-free views."""
+    import cv2
+
+    from calib.board_pose import calibrate_zhang, zhang_closed_form
+    from calib.camera import CameraModel
+    from calib.transforms import T_from_rvec_tvec
+
+    K = np.array([[2300.0, 0, 975.0], [0, 2300.0, cy], [0, 0, 1]])
+    dist = np.array([0.02, -0.03, 0.0, 0.0, 0.0])
+    proj = CameraModel(1920, 1080, K, dist)
+    X = np.array([[x, y, 0.0] for x in np.linspace(-200, 200, 9) for y in np.linspace(-150, 150, 7)])
+    rng = np.random.default_rng(5)
+    objp, imgp = [], []
+    while len(objp) < 10:
+        T = T_from_rvec_tvec(rng.normal(0, 0.3, 3), np.array([0, 540.0 - cy, 2300.0]) + rng.normal(0, 60, 3))
+        uv = proj.project(transform_points(T, X))
+        if np.all((uv > 0) & (uv < [1919, 1079])):
+            objp.append(X.astype(np.float32))
+            imgp.append(uv.astype(np.float32))
+    K0 = zhang_closed_form(objp, imgp)
+    with pytest.raises(cv2.error, match="Principal point must be within the image"):
+        cv2.calibrateCamera(objp, imgp, (1920, 1080), K0, None, flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+    rms, K_est, d_est, *_ = calibrate_zhang(objp, imgp, (1920, 1080))
+    assert rms < 1e-3
+    assert np.abs(K_est - K).max() < 0.05 and np.abs(d_est[:5] - dist).max() < 1e-4
