@@ -10,6 +10,7 @@ import time
 import cv2
 import pytest
 
+from app.station.machine import Plan
 from calib.metrics import compare
 from calib.result import CalibrationResult
 from calib.session import SessionStore
@@ -97,7 +98,7 @@ def test_killed_session_resumes_and_completes(tmp_path):
     acked |= acknowledged(out.all)
     man = check_folder(folder, acked)
     assert man.state["step"] == "projector_capture"
-    assert len(man.captures_of("mirror-real-virtual")) == 6
+    assert len(man.captures_of("mirror-real-virtual")) == Plan().real_virtual_captures == 14
     # 3: resumed to the end
     p = popen_procam("session", "--rig", "sim", "--auto", "--resume", str(folder))
     out = Lines(p)
@@ -106,7 +107,7 @@ def test_killed_session_resumes_and_completes(tmp_path):
     acked |= acknowledged(lines)
     man = check_folder(folder, acked)
     assert man.state["step"] == "done"
-    assert len(man.captures_of("mirror-real-virtual")) == 6
+    assert len(man.captures_of("mirror-real-virtual")) == Plan().real_virtual_captures == 14
     proj = man.captures_of("projector")
     assert len(proj) == 52
     assert sorted((c.pattern_position, c.meta["pose_index"]) for c in proj) == [(p, k) for p in range(13) for k in range(4)]

@@ -11,7 +11,7 @@ def add_rig_options(p) -> None:
     p.add_argument("--poses-per-position", type=int, default=None,
                    help="board poses per pattern position (default 4)")
     p.add_argument("--mirror-captures", type=int, default=None,
-                   help="mirror captures to take (default 6 real-virtual, 3 real-mirror)")
+                   help="mirror captures to take (default 14, as in the published ProcamCalib recordings)")
     p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
     p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")

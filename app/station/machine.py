@@ -76,8 +76,8 @@ class Plan:
     at each of the pattern's positions (PatternSpec.positions)."""
 
     poses_per_position: int = 4
-    real_virtual_captures: int = 6
-    real_mirror_captures: int = 3
+    real_virtual_captures: int = 14
+    real_mirror_captures: int = 14
     min_real_virtual: int = 3
     min_real_mirror: int = 1
     min_projector_captures: int = 6

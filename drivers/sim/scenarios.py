@@ -69,7 +69,7 @@ class Scenario:
     render: RenderSettings = field(default_factory=RenderSettings)
     seed: int = 0
     per_position: int = 4
-    mirror_count: int = 7
+    mirror_count: int = 14  # as the published ProcamCalib recordings (52 projector + 14 mirror images)
 
     @property
     def projector_board(self) -> CharucoSpec:
