@@ -21,12 +21,17 @@ class Frame:
     `frame_number` increases strictly for every new frame a driver delivers, so a caller can ask for a
     frame newer than one it has already seen and never confuse a late frame with a new one.
     `timestamp_ms` is the device clock when there is one (RealSense), else the host clock.
+    `exposure_start_s` is the host clock (`time.monotonic()`, seconds) at which this frame's exposure
+    began, as well as the driver can tell; None when it cannot. A caller that needs a frame showing what
+    the projector shows accepts it only if `exposure_start_s` is at or after the moment the projector's
+    image became visible (`ProjectorDriver.wait_presented`).
     """
 
     image: np.ndarray
     frame_number: int
     timestamp_ms: float
     meta: dict = field(default_factory=dict)
+    exposure_start_s: float | None = None
 
 
 @runtime_checkable
@@ -54,6 +59,25 @@ class CameraDriver(Protocol):
 
 
 @runtime_checkable
+class ExposureControl(Protocol):
+    """A camera whose exposure can be set by hand (RealSense, the simulated camera).
+
+    On the D4xx RGB sensor exposure and gain are only meaningful in manual mode, so an exposure is
+    chosen by searching in manual mode (drivers/exposure.py), never read back from auto exposure."""
+
+    def exposure_limits(self) -> dict:
+        """{"exposure_us": (min, max, step), "gain": (min, max, step)}."""
+
+    def set_auto_exposure(self, enabled: bool) -> None: ...
+
+    def set_manual_exposure(self, exposure_us: float, gain: float) -> dict:
+        """Turn auto exposure off and apply; returns what the device applied: {"exposure_us", "gain"}."""
+
+    def set_emitter(self, enabled: bool) -> None:
+        """The depth sensor's IR dot projector (RealSense); on a camera without one, a no-op."""
+
+
+@runtime_checkable
 class ProjectorDriver(Protocol):
     """A projector showing full-screen images, pixel for pixel."""
 
@@ -67,6 +91,10 @@ class ProjectorDriver(Protocol):
     def wait_presented(self, ticket: int, timeout_s: float = 2.0) -> float:
         """Block until the image of `ticket` has been presented (after buffer swap and the projector's
         settle time); returns the host time (time.monotonic(), seconds) at which it counts as visible."""
+
+    @property
+    def refresh_hz(self) -> float:
+        """The display's refresh rate (exposures are whole numbers of its period, against banding)."""
 
     def close(self) -> None: ...
 
