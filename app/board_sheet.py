@@ -109,7 +109,13 @@ class BlankArea:
 
 def spec_argument(spec: CharucoSpec) -> str:
     """The --board string that parses back to `spec` (with --units spec.units)."""
-    return f"{spec.cols}x{spec.rows}:{spec.dictionary}:{_num(spec.square_length, 10)}:{_num(spec.marker_length, 10)}"
+    return f"{spec.cols}x{spec.rows}:{spec.dictionary}:{_exact(spec.square_length)}:{_exact(spec.marker_length)}"
+
+
+def _exact(v: float) -> str:
+    """The shortest text that parses back to exactly `v` (50.0 -> '50')."""
+    r = repr(float(v))
+    return r[:-2] if r.endswith(".0") else r
 
 
 def _num(v: float, digits: int = 6) -> str:

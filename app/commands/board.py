@@ -88,10 +88,10 @@ def asset_files() -> dict[str, bytes]:
 def _check_out(path: Path) -> None:
     from calib.errors import SpecError
 
+    if path.is_dir():
+        raise SpecError(f"--out {path} is a folder; give a file name such as {path / 'board.pdf'}")
     if path.suffix.lower() not in FORMATS:
         raise SpecError(f"--out {path}: the file name must end in {', '.join(FORMATS)} (it picks the format)")
-    if path.is_dir():
-        raise SpecError(f"--out {path} is a folder; give a file name such as {path / ('board' + path.suffix)}")
     if not path.parent.is_dir():
         raise SpecError(f"--out {path}: folder {path.parent} does not exist")
 
