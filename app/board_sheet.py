@@ -176,7 +176,7 @@ def _annotation_lines(spec: CharucoSpec, blank: BlankArea | None) -> tuple[str, 
 
     spec_line = f"Board spec for the station: --board {spec_argument(spec)} --units {u}"
     details = (f"{spec.cols} x {spec.rows} squares of {length(spec.square_length)}, "
-               f"ArUco markers of {length(spec.marker_length)} ({spec.dictionary}); "
+               f"{spec.dictionary} ArUco markers of {length(spec.marker_length)}; "
                f"squares area {_num(w)} x {_num(h)} {u}")
     if blank is not None:
         details += (f"; blank area {_num(blank.width)} x {_num(h)} {u}, {_num(blank.gap)} {u} right of the "
@@ -221,7 +221,7 @@ def layout_sheet(spec: CharucoSpec, blank: BlankArea | None = None, paper: str =
     def need(page_w):  # (width, height) the content needs on a page of this width
         text_w = page_w - PAGE_MARGIN_MM - notes_left(page_w)
         return (max(board_w, 150.0) + 2 * PAGE_MARGIN_MM,
-                board_h + _annotation_height(spec_line, lines, text_w, blank is not None) + 2 * PAGE_MARGIN_MM)
+                board_h + _annotation_height(spec_line, lines, text_w, blank is not None) + 2 * PAGE_MARGIN_MM + 0.5)
 
     candidates = []
     for name, (short, long) in PAPERS.items():

@@ -129,11 +129,11 @@ def rasterise(sheet: Sheet, dpi: float) -> np.ndarray:
     W, H = int(round(sheet.width_mm * s)), int(round(sheet.height_mm * s))
     if W * H > MAX_PNG_PIXELS:
         raise SpecError(f"a {sheet.describe()} page at {dpi:g} dpi is {W} x {H} pixels; lower --dpi or write a PDF")
-    img = np.ones((H, W), np.float32)
-    band = max(1, 16_000_000 // W)
+    out = np.empty((H, W), np.uint8)
+    band = max(1, 4_000_000 // W)  # rows rendered at a time, in float: the memory stays small
     for r0 in range(0, H, band):
         r1 = min(H, r0 + band)
-        view = img[r0:r1]
+        view = np.ones((r1 - r0, W), np.float32)
         for item in sheet.items:
             if not isinstance(item, Fill):
                 continue
@@ -146,7 +146,7 @@ def rasterise(sheet: Sheet, dpi: float) -> np.ndarray:
             np.minimum(cover, 1.0, out=cover)
             view *= 1.0 - cover
             view += np.float32(item.gray) * cover
-    out = np.round(img * 255.0).astype(np.uint8)
+        out[r0:r1] = np.round(view * 255.0)
     font = cv2.FONT_HERSHEY_SIMPLEX
     (_, cap_px), _ = cv2.getTextSize("H", font, 1.0, 1)
     for item in sheet.items:
