@@ -193,7 +193,7 @@ def _annotation_height(spec_line: str, lines: list[str], text_width_mm: float, h
     h = CROP_GAP_MM + CROP_LEN_MM + 2.0  # below the crop marks
     if has_blank:
         h += TEXT_FONT_MM * LINE_SPACING
-    h += SCALE_BAR_HEIGHT_MM + TEXT_FONT_MM * LINE_SPACING + 1.0  # bar and its labels
+    h += SCALE_BAR_HEIGHT_MM + TEXT_FONT_MM * LINE_SPACING + 1.5  # bar and its labels
     h += SPEC_FONT_MM * LINE_SPACING * len(_wrap(spec_line, SPEC_FONT_MM, text_width_mm))
     for line in lines:
         h += TEXT_FONT_MM * LINE_SPACING * len(_wrap(line, TEXT_FONT_MM, text_width_mm))
@@ -223,9 +223,9 @@ def layout_sheet(spec: CharucoSpec, blank: BlankArea | None = None, paper: str =
         return (max(board_w, 150.0) + 2 * PAGE_MARGIN_MM,
                 board_h + _annotation_height(spec_line, lines, text_w, blank is not None) + 2 * PAGE_MARGIN_MM + 0.5)
 
-    candidates = []
+    candidates = []  # (name, width, height) of the sheets it fits, smallest first
+    landscape = board_w >= board_h
     for name, (short, long) in PAPERS.items():
-        landscape = board_w >= board_h
         for w, h in (((long, short), (short, long)) if landscape else ((short, long), (long, short))):
             nw, nh = need(w)
             if nw <= w and nh <= h:
