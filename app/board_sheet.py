@@ -166,7 +166,7 @@ def _wrap(text: str, size_mm: float, width_mm: float) -> list[str]:
     return textwrap.wrap(text, chars)
 
 
-def _annotation_lines(spec: CharucoSpec, blank: BlankArea | None) -> tuple[str, list[str]]:
+def _annotation_lines(spec: CharucoSpec, blank: BlankArea | None, option: str) -> tuple[str, list[str]]:
     u = spec.units
     mm = MM_PER_UNIT[u]
     w, h = spec.size
@@ -174,7 +174,7 @@ def _annotation_lines(spec: CharucoSpec, blank: BlankArea | None) -> tuple[str, 
     def length(v):  # in the board's unit, with millimetres alongside when the unit is not mm
         return f"{_num(v)} {u}" if u == "mm" else f"{_num(v)} {u} ({_num(v * mm, 5)} mm)"
 
-    spec_line = f"Board spec for the station: --board {spec_argument(spec)} --units {u}"
+    spec_line = f"Board spec for the station: {option} {spec_argument(spec)} --units {u}"
     details = (f"{spec.cols} x {spec.rows} squares of {length(spec.square_length)}, "
                f"{spec.dictionary} ArUco markers of {length(spec.marker_length)}; "
                f"squares area {_num(w)} x {_num(h)} {u}")
@@ -200,9 +200,11 @@ def _annotation_height(spec_line: str, lines: list[str], text_width_mm: float, h
     return h
 
 
-def layout_sheet(spec: CharucoSpec, blank: BlankArea | None = None, paper: str = "auto") -> Sheet:
+def layout_sheet(spec: CharucoSpec, blank: BlankArea | None = None, paper: str = "auto",
+                 option: str = "--board") -> Sheet:
     """The sheet of `spec` (with its blank area, if any) at true scale on `paper` (a4..a0, or auto: the
-    smallest ISO sheet it fits, in either orientation; a page of its own size beyond A0)."""
+    smallest ISO sheet it fits, in either orientation; a page of its own size beyond A0). `option` is the
+    station option the spec is written for (--board, or --mirror-board for the mirror step's board)."""
     if paper not in PAPER_CHOICES:
         raise SpecError(f"unknown paper '{paper}' (one of {', '.join(PAPER_CHOICES)})")
     mm = MM_PER_UNIT[spec.units]
@@ -210,7 +212,7 @@ def layout_sheet(spec: CharucoSpec, blank: BlankArea | None = None, paper: str =
     ox0, oy0, ox1, oy1 = (v * mm for v in layout.outline)
     crop = CROP_GAP_MM + CROP_LEN_MM
     board_w, board_h = ox1 - ox0 + 2 * crop, oy1 - oy0 + crop  # crop marks above, left and right
-    spec_line, lines = _annotation_lines(spec, blank)
+    spec_line, lines = _annotation_lines(spec, blank, option)
 
     def board_left(page_w):  # the outline's left edge on the page: the board is centred
         return round((page_w - board_w) / 2 + crop, 1)

@@ -182,7 +182,7 @@ def test_committed_projector_board_is_the_default_with_its_blank_area(tmp_path):
     assert blank.shape[1] == pytest.approx((x1 - x0) * dpi / 25.4, abs=4) and blank.min() >= 250
     m = re.search(rb"--board (\S+) --units (\w+)\) Tj", pdf.read_bytes())
     assert CharucoSpec.parse(m.group(1).decode(), m.group(2).decode()) == spec
-    mirror = re.search(rb"--board (\S+) --units (\w+)\) Tj", (ASSETS / "mirror-board.pdf").read_bytes())
+    mirror = re.search(rb"--mirror-board (\S+) --units (\w+)\) Tj", (ASSETS / "mirror-board.pdf").read_bytes())
     assert CharucoSpec.parse(mirror.group(1).decode(), mirror.group(2).decode()) == default_mirror_board()
 
 

@@ -47,12 +47,13 @@ def _blank_for(spec, text):
     return None if text is None else BlankArea.parse(text, spec.units)
 
 
-def board_file(spec, blank, fmt: str, paper: str = "auto", dpi: float = DEFAULT_DPI) -> tuple[bytes, object]:
+def board_file(spec, blank, fmt: str, paper: str = "auto", dpi: float = DEFAULT_DPI,
+               option: str = "--board") -> tuple[bytes, object]:
     """(file bytes, Sheet) of `spec` with `blank` (a BlankArea or None) as '.pdf', '.svg' or '.png'."""
     from app.board_sheet import layout_sheet
     from app.sheet_writers import sheet_pdf, sheet_png, sheet_svg
 
-    sheet = layout_sheet(spec, blank, paper)
+    sheet = layout_sheet(spec, blank, paper, option)
     if fmt == ".pdf":
         return sheet_pdf(sheet), sheet
     if fmt == ".svg":
@@ -76,7 +77,7 @@ def asset_files() -> dict[str, bytes]:
     files = {
         "projector-board.pdf": board_file(layout.charuco, blank, ".pdf")[0],
         "projector-board-squares.pdf": board_file(layout.charuco, None, ".pdf")[0],
-        "mirror-board.pdf": board_file(default_mirror_board(), None, ".pdf")[0],
+        "mirror-board.pdf": board_file(default_mirror_board(), None, ".pdf", option="--mirror-board")[0],
     }
     for w, h in PATTERN_SIZES:
         spec = PatternSpec.default_for(w, h)
