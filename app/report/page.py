@@ -62,7 +62,8 @@ def fmt_pm(value: float, sigma, fixed: bool = False, unit: str = "") -> str:
 
 
 def _cell(key: str, value, sigma=None, fixed=False, unit="") -> str:
-    return f'<td data-key="{_e(key)}" data-value="{value!r}">{fmt_pm(value, sigma, fixed, unit)}</td>'
+    raw = "" if value is None else repr(float(value))
+    return f'<td data-key="{_e(key)}" data-value="{raw}">{fmt_pm(value, sigma, fixed, unit)}</td>'
 
 
 def _table(head: list[str], rows: list[str], cls_first: bool = True) -> str:
@@ -80,7 +81,10 @@ def _summary(d: ReportData) -> str:
     counts = {}
     for c in m.captures:
         counts[c.step] = counts.get(c.step, 0) + 1
-    rows = [f'<tr><td class="l">{_e(k)}</td><td data-key="rms.{_e(k)}" data-value="{v!r}">{v:.4f} px</td></tr>'
+    diag = r.diagnostics if isinstance(r.diagnostics, dict) else {}
+    units = diag.get("rms_units") if isinstance(diag.get("rms_units"), dict) else {}
+    rows = [f'<tr><td class="l">{_e(k)}</td><td data-key="rms.{_e(k)}" data-value="{v!r}">{v:.4f} '
+            f'{_e(units.get(k, "px"))}</td></tr>'
             for k, v in (cal.get("rms") or {}).items() if isinstance(v, (int, float))]
     ver = "not verified"
     if d.verification is not None:
@@ -96,7 +100,6 @@ def _summary(d: ReportData) -> str:
             ["capture", "stage", "reason"],
             [f'<tr><td class="l">{_e(s.get("capture_id", ""))}</td><td class="l">{_e(s.get("stage", ""))}</td>'
              f'<td class="l">{_e(s.get("reason", ""))}</td></tr>' for s in skipped if isinstance(s, dict)])
-    diag = r.diagnostics if isinstance(r.diagnostics, dict) else {}
     models = ""
     if diag.get("camera_model"):
         models = (f"; distortion models: camera <code>{_e(diag.get('camera_model'))}</code>, projector "
@@ -113,7 +116,7 @@ driver <code>{_e(m.rig.driver)}</code>; lengths in {_e(r.units)}</td></tr>
 {len(skipped)} not used</td></tr>
 <tr><td class="l">verification</td><td class="l" id="verification-verdict">{ver}</td></tr>
 </table>
-<h3>Reprojection RMS per observation class (camera pixels, from calibration.json)</h3>
+<h3>RMS per stage or observation class (from calibration.json; px: pixels of the image observed)</h3>
 {_table(["class", "RMS"], rows)}
 {sk}"""
 
@@ -236,7 +239,10 @@ carried onto the board and into the projector image, in projector pixels. Arrows
 def _per_view(d: ReportData) -> str:
     head = '<h2 id="per-view">Per-view RMS and the worst views</h2>'
     res = d.residuals
-    stored = {pv.get("capture_id"): pv for pv in d.result.per_view if isinstance(pv, dict)}
+    entries = [pv for pv in d.result.per_view if isinstance(pv, dict)]
+    ids = [pv.get("capture_id") for pv in entries]
+    # one entry per view (the joint method) is the view's RMS; a staged method lists a view per stage
+    stored = {pv.get("capture_id"): pv for pv in entries} if len(set(ids)) == len(ids) else {}
     recomputed = res.view_rms() if res is not None else {}
     step_of = {c.id: c.step for c in d.store.manifest.captures}
     rows = []
@@ -255,7 +261,9 @@ def _per_view(d: ReportData) -> str:
     if not rows:
         return head + '<p class="note">This calibration holds no per-view residuals.</p>'
     fig = figures.per_view_figure(rows, {w["capture_id"] for w in worst})
-    out = [head, f'<p class="note">RMS of every view in capture order (camera px; outlined: the worst views, from {source}).</p>',
+    what = "calibration.json's per_view" if stored else "the recomputed residuals"
+    out = [head, f'<p class="note">RMS of every view in capture order (camera px, from {what}; outlined: the worst '
+                 f'views, from {source}).</p>',
            _img(fig, "per-view RMS"), "<h3>Worst views</h3>", '<div class="thumbs">']
     for w in worst:
         cid = w["capture_id"]
