@@ -320,11 +320,14 @@ def _rig(d: ReportData) -> str:
             outline = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], float)
             boards.append((step, outline @ T[:3, :3].T + T[:3, 3]))
     fig = figures.rig_figure(r.camera, r.projector, r.T_cam_proj, r.mirror, boards, r.units)
+    mirror = (" the mirror plane (blue, a square around where the camera's optical axis meets it),"
+              if r.mirror is not None else "")
+    poses = "" if res is None else f" ({len(boards)}, {'from calibration.json' if res.poses_source != 'PnP' else 'by PnP'})"
     return f"""
 <h2 id="rig">The rig in 3D</h2>
-<p class="note">Camera frame (OpenCV axes, drawn with up = -y). Viewing pyramids of the camera (black) and the
-projector (red), the mirror plane (blue, around where the camera's optical axis meets it) and the real position of
-every board pose the calibration used.</p>
+<p class="note">Camera frame (OpenCV axes, drawn with up = -y), lengths in {_e(r.units)}. Viewing pyramids of the
+camera (black) and the projector (red),{mirror} and the real position of every board pose the calibration
+used{poses}.</p>
 {_img(fig, "the rig in 3D")}"""
 
 
