@@ -176,6 +176,30 @@ def test_a_session_without_verification_still_reports(calibrated, tmp_path):
     assert "not verified: verification.json cannot be read" in html and 'id="rig"' in html
 
 
+@pytest.mark.slow
+def test_odd_optional_fields_of_calibration_json_do_not_break_the_report(calibrated, tmp_path):
+    """calibration.json is untrusted: optional parts of the wrong type are left out, text is escaped."""
+    from app.report import write_report
+
+    folder = tmp_path / "s"
+    shutil.copytree(calibrated, folder)
+    cal = json.loads((folder / "calibration.json").read_text())
+    cal["units"] = "<b>mm</b>"
+    cal["uncertainty"]["camera"] = {"fx": "big", "dist": 3}
+    cal["uncertainty"]["T_cam_proj"] = [1, 2]
+    cal["diagnostics"]["worst_views"] = [{"capture_id": 7}, "x", {"capture_id": "p0003", "rms_px": "high"}]
+    cal["diagnostics"]["rejected"] = 5
+    cal["diagnostics"]["board_poses"]["p0000"] = "not a pose"
+    cal["per_view"] = [1, {"capture_id": "p0001", "rms_px": None}]
+    cal["rms"] = {"joint": "low", "board": 0.05}
+    (folder / "calibration.json").write_text(json.dumps(cal))
+    html = write_report(folder).read_text()
+    assert "<b>mm</b>" not in html and "&lt;b&gt;mm&lt;/b&gt;" in html
+    assert 'data-key="camera.fx" data-value="' in html and 'id="recomputed-rms"' in html
+    assert "board poses from PnP (calibration.json&#x27;s board poses are unreadable)" in html
+    assert 'data-key="worst.p0003" data-value="None">n/a<' in html
+
+
 def test_a_session_without_calibration_is_a_one_line_error(tmp_path, capsys):
     folder = tmp_path / "s"
     make_store(folder)

@@ -17,9 +17,10 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from calib.errors import FormatError, ProcamError, SessionError
+from calib.errors import ProcamError, SessionError
 from calib.result import CalibrationResult
 from calib.session import SessionStore
 from calib.transforms import invert_T
@@ -57,7 +58,7 @@ class Residuals:
     proj_view: np.ndarray
     proj_rejected: np.ndarray
     board_poses: dict  # capture id -> T_cam_board (real camera frame)
-    poses_source: str  # "calibration.json" or "PnP"
+    poses_source: str  # "calibration.json" or "PnP ..." (posed with the calibrated model)
 
     def view_rms(self) -> dict:
         """capture id -> RMS (camera px) of its inlier points."""
@@ -76,6 +77,65 @@ class Residuals:
         return float(np.sqrt(np.mean(np.einsum("ij,ij->i", self.cam_res[ok], self.cam_res[ok]))))
 
 
+# ---- the optional parts of calibration.json, checked (the file is untrusted) ------------------------------
+def _num(x) -> float | None:
+    """A finite number, else None."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return None
+    return float(x) if np.isfinite(x) else None
+
+
+def _nums(x, n: int | None = None) -> list:
+    if not isinstance(x, list) or (n is not None and len(x) != n):
+        return [None] * (n or 0)
+    return [_num(v) for v in x]
+
+
+def _dict(x) -> dict:
+    return x if isinstance(x, dict) else {}
+
+
+def _list(x) -> list:
+    return x if isinstance(x, list) else []
+
+
+def clean_uncertainty(u) -> dict | None:
+    """calibration.json's `uncertainty` (docs/JOINT.md) with every value the report prints either a
+    finite number or None; None when there is none."""
+    if not isinstance(u, dict):
+        return None
+    out = {"variance_factor": _num(u.get("variance_factor")), "dof": _num(u.get("dof"))}
+    for dev in ("camera", "projector"):
+        du = _dict(u.get(dev))
+        out[dev] = {k: _num(du.get(k)) for k in ("fx", "fy", "cx", "cy")}
+        out[dev]["dist"] = _nums(du.get("dist"))
+        out[dev]["fixed"] = du.get("fixed") is True
+    tu = _dict(u.get("T_cam_proj"))
+    out["T_cam_proj"] = {"t": _nums(tu.get("t"), 3), "t_total": _num(tu.get("t_total")),
+                         "rot_deg": _nums(tu.get("rot_deg"), 3), "rot_total_deg": _num(tu.get("rot_total_deg"))}
+    mu = _dict(u.get("mirror"))
+    out["mirror"] = {"normal_deg": _num(mu.get("normal_deg")), "d": _num(mu.get("d"))}
+    return out
+
+
+def clean_diagnostics(diag) -> dict:
+    """The parts of `diagnostics` the report shows: distortion model names, RMS units, worst views."""
+    diag = _dict(diag)
+    worst = []
+    for w in diag.get("worst_views") or []:
+        if isinstance(w, dict) and isinstance(w.get("capture_id"), str):
+            worst.append({"capture_id": w["capture_id"], "step": str(w.get("step", "")), "rms_px": _num(w.get("rms_px"))})
+    return {"camera_model": diag.get("camera_model") if isinstance(diag.get("camera_model"), str) else None,
+            "projector_model": diag.get("projector_model") if isinstance(diag.get("projector_model"), str) else None,
+            "rms_units": {k: str(v) for k, v in _dict(diag.get("rms_units")).items()},
+            "worst_views": worst}
+
+
+def clean_per_view(per_view) -> list[dict]:
+    return [{"capture_id": pv["capture_id"], "rms_px": _num(pv.get("rms_px"))}
+            for pv in per_view if isinstance(pv, dict) and isinstance(pv.get("capture_id"), str)]
+
+
 @dataclass(frozen=True, eq=False)
 class ReportData:
     session_dir: Path
@@ -86,7 +146,9 @@ class ReportData:
     verification_problem: str | None  # why verification.json could not be used, when it exists
     residuals: Residuals | None
     residuals_problem: str | None  # why the residuals could not be recomputed
-    skipped_detection: tuple = field(default_factory=tuple)
+    uncertainty: dict | None = None  # clean_uncertainty
+    diagnostics: dict = field(default_factory=dict)  # clean_diagnostics
+    per_view: list = field(default_factory=list)  # clean_per_view
 
 
 def gather(session_dir) -> ReportData:
@@ -107,12 +169,14 @@ def gather(session_dir) -> ReportData:
                           f"{result.projector.width}x{result.projector.height} projector, the session's are "
                           f"{cam_size[0]}x{cam_size[1]} and {proj_size[0]}x{proj_size[1]}: not this session's calibration")
     verification, vproblem = _read_verification(session_dir / VERIFICATION_FILE)
-    residuals, rproblem, skipped = None, None, ()
+    residuals, rproblem = None, None
     try:
-        residuals, skipped = recompute_residuals(store, result)
-    except ProcamError as e:
-        rproblem = str(e)
-    return ReportData(session_dir, store, result, calibration, verification, vproblem, residuals, rproblem, skipped)
+        residuals = recompute_residuals(store, result)
+    except (ProcamError, ValueError, TypeError, IndexError, np.linalg.LinAlgError, cv2.error) as e:
+        rproblem = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+    return ReportData(session_dir, store, result, calibration, verification, vproblem, residuals, rproblem,
+                      clean_uncertainty(calibration.get("uncertainty")), clean_diagnostics(calibration.get("diagnostics")),
+                      clean_per_view(calibration.get("per_view") or []))
 
 
 def _read_verification(path: Path) -> tuple[dict | None, str | None]:
@@ -121,10 +185,9 @@ def _read_verification(path: Path) -> tuple[dict | None, str | None]:
         return None, None
     from app.verification import VerificationReport
 
-    try:
-        VerificationReport.from_json(path)  # validates every field the report draws
-        return json.loads(path.read_text()), None
-    except (ProcamError, OSError, ValueError) as e:
+    try:  # validated field by field, and written back in its normal form
+        return VerificationReport.from_json(path).to_dict(), None
+    except (ProcamError, OSError, ValueError, TypeError) as e:
         return None, f"{path.name} cannot be read: {e}"
 
 
@@ -133,15 +196,15 @@ def _dist_model(dist) -> str:
     return "rational" if np.asarray(dist).size == 8 else "5coef"
 
 
-def recompute_residuals(store: SessionStore, result: CalibrationResult) -> tuple[Residuals, tuple]:
+def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Residuals:
     """Detections (from detections.json when it is current, else detected now) projected with `result`."""
     from calib.detect import detect_session
     from calib.joint import JointOptions, build_problem
 
     obs = detect_session(store, workers=2, cache="use")
     diag = result.diagnostics if isinstance(result.diagnostics, dict) else {}
-    left_out = {v.get("capture_id") for v in diag.get("views_left_out", []) or [] if isinstance(v, dict)}
-    rejected_views = {r.get("capture_id") for r in diag.get("rejected", []) or []
+    left_out = {v.get("capture_id") for v in _list(diag.get("views_left_out")) if isinstance(v, dict)}
+    rejected_views = {r.get("capture_id") for r in _list(diag.get("rejected"))
                       if isinstance(r, dict) and r.get("kind") == "view"}
     keep = lambda cid: cid not in left_out and cid not in rejected_views  # noqa: E731
     from dataclasses import replace
@@ -154,20 +217,22 @@ def recompute_residuals(store: SessionStore, result: CalibrationResult) -> tuple
     except ProcamError as e:
         raise ReportError(f"the residuals cannot be recomputed: {e}") from None
     # the board poses the calibration found, when it stored them
-    stored = diag.get("board_poses") if isinstance(diag.get("board_poses"), dict) else {}
+    stored = _dict(diag.get("board_poses"))
     source = "PnP"
     if stored and all(ps.capture_id in stored for ps in prob.poses):
         state = prob.state.copy()
         try:
             for v, ps in enumerate(prob.poses):
                 T = np.asarray(stored[ps.capture_id], float).reshape(4, 4)
+                if not np.isfinite(T).all():
+                    raise ValueError
                 state.R[v], state.t[v] = T[:3, :3], T[:3, 3]
                 if ps.on_mirror:
                     state.plane[v] = _plane_params(prob, T)
-        except (TypeError, ValueError):
-            raise FormatError(store.folder / CALIBRATION_FILE, "diagnostics.board_poses", "must map capture ids to 4x4 transforms") from None
-        prob.set_state(state)
-        source = "calibration.json"
+            prob.set_state(state)
+            source = "calibration.json"
+        except (TypeError, ValueError):  # unreadable: the poses PnP found with the calibrated model stay
+            source = "PnP (calibration.json's board poses are unreadable)"
     x = prob.x0()
     if prob.pattern_model == "conic":
         from calib import joint
@@ -202,7 +267,7 @@ def recompute_residuals(store: SessionStore, result: CalibrationResult) -> tuple
         cam_rejected=np.concatenate([rej_c, rej_p]),
         proj_q=np.asarray(prob.p["q"], float).reshape(-1, 2), proj_res=proj_res, proj_view=cview_p,
         proj_rejected=rej_p, board_poses=poses, poses_source=source)
-    return res, tuple(obs.skipped)
+    return res
 
 
 def _T(R, t) -> np.ndarray:
@@ -224,7 +289,7 @@ def _plane_params(prob, T: np.ndarray) -> np.ndarray:
 
 def _rejected_keys(diag: dict) -> set:
     out = set()
-    for r in diag.get("rejected", []) or []:
+    for r in _list(diag.get("rejected")):
         if isinstance(r, dict) and r.get("kind") in KINDS:
             try:
                 out.add((r.get("capture_id"), r["kind"], int(r.get("point"))))

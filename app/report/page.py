@@ -50,7 +50,7 @@ def _img(data: bytes, alt: str, mime: str = "image/png", cls: str = "fig") -> st
 def fmt_pm(value: float, sigma, fixed: bool = False, unit: str = "") -> str:
     """'value ± sigma unit' with sigma to 2 significant digits and value to the same decimal place;
     'value unit (fixed)' for a parameter held fixed; the value alone when no sigma is known."""
-    u = f" {unit}" if unit else ""
+    u = f" {html.escape(unit)}" if unit else ""
     if value is None or not math.isfinite(value):
         return "n/a"
     if fixed:
@@ -81,11 +81,12 @@ def _summary(d: ReportData) -> str:
     counts = {}
     for c in m.captures:
         counts[c.step] = counts.get(c.step, 0) + 1
-    diag = r.diagnostics if isinstance(r.diagnostics, dict) else {}
-    units = diag.get("rms_units") if isinstance(diag.get("rms_units"), dict) else {}
-    rows = [f'<tr><td class="l">{_e(k)}</td><td data-key="rms.{_e(k)}" data-value="{v!r}">{v:.4f} '
+    diag = d.diagnostics
+    units = diag["rms_units"]
+    rms = cal.get("rms") if isinstance(cal.get("rms"), dict) else {}
+    rows = [f'<tr><td class="l">{_e(k)}</td><td data-key="rms.{_e(k)}" data-value="{float(v)!r}">{v:.4f} '
             f'{_e(units.get(k, "px"))}</td></tr>'
-            for k, v in (cal.get("rms") or {}).items() if isinstance(v, (int, float))]
+            for k, v in rms.items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
     ver = "not verified"
     if d.verification is not None:
         v = d.verification
@@ -93,7 +94,7 @@ def _summary(d: ReportData) -> str:
                f" ({_e(v.get('verdict', ''))})")
     elif d.verification_problem:
         ver = f'<span class="warn">not verified: {_e(d.verification_problem)}</span>'
-    skipped = cal.get("skipped") or []
+    skipped = cal.get("skipped") if isinstance(cal.get("skipped"), list) else []
     sk = ""
     if skipped:
         sk = "<h3>Captures not used</h3>" + _table(
@@ -101,7 +102,7 @@ def _summary(d: ReportData) -> str:
             [f'<tr><td class="l">{_e(s.get("capture_id", ""))}</td><td class="l">{_e(s.get("stage", ""))}</td>'
              f'<td class="l">{_e(s.get("reason", ""))}</td></tr>' for s in skipped if isinstance(s, dict)])
     models = ""
-    if diag.get("camera_model"):
+    if diag["camera_model"]:
         models = (f"; distortion models: camera <code>{_e(diag.get('camera_model'))}</code>, projector "
                   f"<code>{_e(diag.get('projector_model'))}</code>")
     return f"""
@@ -122,14 +123,15 @@ driver <code>{_e(m.rig.driver)}</code>; lengths in {_e(r.units)}</td></tr>
 
 
 def _device_rows(name: str, prefix: str, model, unc: dict | None) -> tuple[list[str], list[str]]:
-    u = (unc or {}).get(prefix) if isinstance(unc, dict) else None
-    fixed = bool(u and u.get("fixed"))
+    """Table rows of one device's intrinsics and distortion; `unc` as data.clean_uncertainty."""
+    u = unc[prefix] if unc else None
+    fixed = bool(u and u["fixed"])
     rows = []
     for key, val in (("fx", model.fx), ("fy", model.fy), ("cx", model.cx), ("cy", model.cy)):
-        s = None if not u else u.get(key)
+        s = None if not u else u[key]
         rows.append(f'<tr><td class="l">{name} {key}</td>{_cell(f"{prefix}.{key}", float(val), s, fixed, "px")}</tr>')
     drows = []
-    sd = (u or {}).get("dist") or []
+    sd = u["dist"] if u else []
     for i, val in enumerate(np.asarray(model.dist, float).tolist()):
         s = sd[i] if i < len(sd) else None
         f = fixed or (u is not None and s == 0.0)  # not estimated: held by the distortion model or given
@@ -140,13 +142,12 @@ def _device_rows(name: str, prefix: str, model, unc: dict | None) -> tuple[list[
 
 
 def _parameters(d: ReportData) -> str:
-    r, unc = d.result, d.result.uncertainty if isinstance(d.result.uncertainty, dict) else None
+    r, unc = d.result, d.uncertainty
     cam_rows, cam_d = _device_rows("camera", "camera", r.camera, unc)
     proj_rows, proj_d = _device_rows("projector", "projector", r.projector, unc)
     T = r.T_cam_proj
-    tu = (unc or {}).get("T_cam_proj") or {}
-    ts = tu.get("t") or [None] * 3
-    rs = tu.get("rot_deg") or [None] * 3
+    tu = unc["T_cam_proj"] if unc else {"t": [None] * 3, "rot_deg": [None] * 3}
+    ts, rs = tu["t"], tu["rot_deg"]
     trows = [f'<tr><td class="l">t{a}</td>{_cell(f"T_cam_proj.t{a}", float(T[i, 3]), ts[i], unit=r.units)}</tr>'
              for i, a in enumerate("xyz")]
     base = float(np.linalg.norm(T[:3, 3]))
@@ -159,7 +160,7 @@ def _parameters(d: ReportData) -> str:
     R = "".join("<tr>" + "".join(f"<td>{v:.6f}</td>" for v in T[i]) + "</tr>" for i in range(4))
     mirror = '<p class="note">No mirror: a direct-view rig.</p>'
     if r.mirror is not None:
-        mu = (unc or {}).get("mirror") or {}
+        mu = unc["mirror"] if unc else {}
         n = r.mirror.normal
         mrows = [f'<tr><td class="l">normal n{a}</td><td data-key="mirror.n{a}" data-value="{float(n[i])!r}">'
                  f'{float(n[i]):.6f}</td></tr>' for i, a in enumerate("xyz")]
@@ -173,7 +174,7 @@ def _parameters(d: ReportData) -> str:
         sig = "<p class=\"note\">No 1-sigma values: this calibration did not compute its uncertainty.</p>"
     else:
         sig = (f"<p class=\"note\">± values are 1-sigma from the joint adjustment's covariance (variance factor "
-               f"{unc.get('variance_factor', float('nan')):.3g}, {unc.get('dof', '?')} degrees of freedom; board poses "
+               f"{unc['variance_factor'] or float('nan'):.3g}, {unc['dof'] or float('nan'):.0f} degrees of freedom; board poses "
                "marginalised). <span class=\"fixed\">fixed</span>: not estimated from this session: given "
                "intrinsics, or a coefficient the selected distortion model holds at its value.</p>")
     return f"""
@@ -189,7 +190,7 @@ def _parameters(d: ReportData) -> str:
 
 
 def _distortion(d: ReportData) -> str:
-    r, unc = d.result, d.result.uncertainty if isinstance(d.result.uncertainty, dict) else None
+    r, unc = d.result, d.uncertainty
     _, cam_d = _device_rows("camera", "camera", r.camera, unc)
     _, proj_d = _device_rows("projector", "projector", r.projector, unc)
     fig = figures.distortion_figure([("camera", r.camera), ("projector", r.projector)])
@@ -239,10 +240,10 @@ carried onto the board and into the projector image, in projector pixels. Arrows
 def _per_view(d: ReportData) -> str:
     head = '<h2 id="per-view">Per-view RMS and the worst views</h2>'
     res = d.residuals
-    entries = [pv for pv in d.result.per_view if isinstance(pv, dict)]
-    ids = [pv.get("capture_id") for pv in entries]
+    entries = d.per_view
+    ids = [pv["capture_id"] for pv in entries]
     # one entry per view (the joint method) is the view's RMS; a staged method lists a view per stage
-    stored = {pv.get("capture_id"): pv for pv in entries} if len(set(ids)) == len(ids) else {}
+    stored = {pv["capture_id"]: pv for pv in entries} if len(set(ids)) == len(ids) else {}
     recomputed = res.view_rms() if res is not None else {}
     step_of = {c.id: c.step for c in d.store.manifest.captures}
     rows = []
@@ -252,8 +253,7 @@ def _per_view(d: ReportData) -> str:
             v = recomputed.get(c.id)
         if v is not None:
             rows.append((c.id, c.step, float(v)))
-    diag = d.result.diagnostics if isinstance(d.result.diagnostics, dict) else {}
-    worst = [w for w in diag.get("worst_views", []) or [] if isinstance(w, dict) and w.get("capture_id")]
+    worst = d.diagnostics["worst_views"]
     source = "calibration.json's diagnostics.worst_views"
     if not worst:
         worst = [{"capture_id": cid, "step": st, "rms_px": v} for cid, st, v in sorted(rows, key=lambda t: -t[2])[:5]]
@@ -322,7 +322,7 @@ def _rig(d: ReportData) -> str:
     fig = figures.rig_figure(r.camera, r.projector, r.T_cam_proj, r.mirror, boards, r.units)
     mirror = (" the mirror plane (blue, a square around where the camera's optical axis meets it),"
               if r.mirror is not None else "")
-    poses = "" if res is None else f" ({len(boards)}, {'from calibration.json' if res.poses_source != 'PnP' else 'by PnP'})"
+    poses = "" if res is None else f" ({len(boards)}, {'from calibration.json' if res.poses_source == 'calibration.json' else 'found by PnP'})"
     return f"""
 <h2 id="rig">The rig in 3D</h2>
 <p class="note">Camera frame (OpenCV axes, drawn with up = -y), lengths in {_e(r.units)}. Viewing pyramids of the
