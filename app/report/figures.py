@@ -160,13 +160,13 @@ def per_view_figure(rows: list[tuple[str, str, float]], worst: set) -> bytes:
     ax.set_xticks(x)
     ax.set_xticklabels([r[0] for r in rows], rotation=90, fontsize=6)
     ax.set_xlim(-0.7, len(rows) - 0.3)
-    ax.set_ylim(0, (np.nanmax(vals) if len(vals) else 1) * 1.3)
+    ax.set_ylim(0, (np.nanmax(vals) if len(vals) else 1) * 1.45)
     ax.set_ylabel("RMS residual (camera px)", fontsize=8)
     ax.tick_params(axis="y", labelsize=7)
     for step, c in STEP_COLOURS.items():
         if any(r[1] == step for r in rows):
             ax.bar([0], [0], color=c, label=step)
-    ax.legend(fontsize=7, loc="upper left", ncols=3, frameon=False)
+    ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=3, frameon=False)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     return png(fig)
