@@ -14,7 +14,7 @@ out are kept apart: they are drawn, but not counted in the statistics.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -207,8 +207,6 @@ def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Resid
     rejected_views = {r.get("capture_id") for r in _list(diag.get("rejected"))
                       if isinstance(r, dict) and r.get("kind") == "view"}
     keep = lambda cid: cid not in left_out and cid not in rejected_views  # noqa: E731
-    from dataclasses import replace
-
     obs = replace(obs, projector_views=tuple(v for v in obs.projector_views if keep(v.capture_id)),
                   mirror_views=tuple(v for v in obs.mirror_views if keep(v.capture_id)))
     try:
