@@ -36,7 +36,7 @@ import numpy as np
 
 from calib.boards import CharucoSpec
 from calib.errors import FormatError, SessionError
-from calib.fileio import atomic_write_bytes, atomic_write_text
+from calib.fileio import atomic_write_bytes
 from calib.observations import STEP_PROJECTOR, STEPS, VIEW_DIRECT, VIEW_MIRROR
 from calib.pattern import PatternSpec
 from calib.session_lock import SessionLock
@@ -161,7 +161,8 @@ class SessionManifest:
         for obj, where in ((cam, "rig.camera."), (proj, "rig.projector.")):
             w, h = need(obj, "width", where, int), need(obj, "height", where, int)
             if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
-                raise FormatError(path, f"{where}width", f"width and height must be positive (at most {MAX_IMAGE_SIDE} pixels)")
+                raise FormatError(path, f"{where}width",
+                                  f"width and height must be positive (at most {MAX_IMAGE_SIDE} pixels)")
             sizes.append((w, h))
         view = need(rig, "view", "rig.", str)
         if view not in (VIEW_MIRROR, VIEW_DIRECT):
@@ -500,7 +501,8 @@ def _parse_manifest(raw: bytes, path: Path):
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
-        raise FormatError(path, "<file>", f"is not UTF-8 text (byte 0x{raw[e.start]:02x} at offset {e.start})") from None
+        bad = f"byte 0x{raw[e.start]:02x} at offset {e.start}"
+        raise FormatError(path, "<file>", f"is not UTF-8 text ({bad}); save it as UTF-8") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
