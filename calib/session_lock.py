@@ -89,10 +89,13 @@ def _same_file(path: Path, fd: int) -> bool:
 def read_holder(folder) -> dict | None:
     """The record in a folder's lock file ({pid, host, since, command}), or None."""
     try:
-        with open(Path(folder) / LOCK_FILE, "rb") as f:
-            return _parse(f.read(4096))
+        fd = os.open(Path(folder) / LOCK_FILE, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
     except OSError:
         return None
+    try:
+        return _read_fd(fd)
+    finally:
+        os.close(fd)
 
 
 def _parse(data: bytes) -> dict | None:
