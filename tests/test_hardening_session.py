@@ -188,9 +188,10 @@ def test_a_second_process_is_refused_and_a_stale_lock_is_taken_over(tmp_path):
             SessionStore.open(folder, lock=True)
         assert f"in use by pid {holder.pid} since " in str(e.value)
         # the real command: refused in one line, before opening the rig, the session untouched
-        r = run_procam("session", "--rig", "sim", "--auto", "--resume", str(folder), timeout=60)
-        assert r.returncode == 2 and "Traceback" not in r.stderr
-        assert len(r.stderr.strip().splitlines()) == 1 and f"in use by pid {holder.pid}" in r.stderr
+        for cmd in (("session", "--rig", "sim", "--auto"), ("station", "--rig", "sim", "--port", "0")):
+            r = run_procam(*cmd, "--resume", str(folder), timeout=60)
+            assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+            assert len(r.stderr.strip().splitlines()) == 1 and f"in use by pid {holder.pid}" in r.stderr
         # reading is allowed; a reader that tries to write is refused too
         reader = SessionStore.open(folder)
         with pytest.raises(SessionError, match=f"pid {holder.pid}"):
