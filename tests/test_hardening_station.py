@@ -128,6 +128,19 @@ def test_origin_rules():
     assert not everywhere.origin_allowed("http://evil.example:8080", 8080)
 
 
+def test_a_page_retrying_is_logged_without_flooding_the_log():
+    clock, lines = FakeClock(), []
+    gate = AccessGate("127.0.0.1", clock=clock, log=lines.append)
+    evil = {"Upgrade": "websocket", "Origin": "http://evil.example"}
+    for _ in range(7):  # a foreign page retrying every second
+        assert gate.check("/", evil, "127.0.0.1", 8080).status == 403
+        clock.t += 1.0
+    clock.t += 5.0
+    assert gate.check("/", evil, "127.0.0.1", 8080).status == 403
+    assert len(lines) == 2 and "evil.example" in lines[0] and "(6 more like it" in lines[1]
+    assert gate.refused_origins == 8
+
+
 # ---- item 3: the access code ------------------------------------------------------------------------
 def test_access_codes_are_long_and_forgiving_to_type():
     codes = {new_access_code() for _ in range(200)}

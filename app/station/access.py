@@ -187,6 +187,7 @@ class AccessGate:
         self.refused_origins = 0
         self._lock = threading.Lock()
         self._throttled_logged: dict[str, float] = {}
+        self._refusals_logged: dict = {}
 
     @property
     def code_required(self) -> bool:
@@ -230,6 +231,20 @@ class AccessGate:
                      + (f"; next try allowed in {wait:.0f} s" if wait > 0 else ""))
             return Verdict(403, "Wrong access code.")
 
+    def _log_refusal(self, key, text: str) -> None:
+        """Each refused handshake is logged, but the same one repeated (a page retrying every second) at
+        most every 10 s, with how many were not written."""
+        with self._lock:
+            last, skipped = self._refusals_logged.get(key, (-1e18, 0))
+            now = self.clock()
+            if now - last < 10.0:
+                self._refusals_logged[key] = (last, skipped + 1)
+                return
+            self._refusals_logged[key] = (now, 0)
+            if len(self._refusals_logged) > 1000:
+                self._refusals_logged.clear()
+        self.log(text + (f" ({skipped} more like it since the last line)" if skipped else ""))
+
     # ---- requests ---------------------------------------------------------------------------------
     def check(self, path: str, headers, client: str, port: int) -> Verdict:
         """One HTTP request or websocket handshake (`headers`: a mapping with .get)."""
@@ -243,7 +258,8 @@ class AccessGate:
         if origin is not None and not self.origin_allowed(origin, port):
             with self._lock:
                 self.refused_origins += 1
-            self.log(f"refused a websocket from {client}: Origin {origin[:80]!r} is not the panel's own")
+            self._log_refusal((client, origin[:80]), f"refused a websocket from {client}: Origin {origin[:80]!r} "
+                                                     "is not the panel's own")
             return Verdict(403, "Forbidden: this panel only answers pages it served itself.")
         code = _code_in_path(path)
         if code is not None:
@@ -252,7 +268,8 @@ class AccessGate:
                 return v
             return Verdict()
         if origin is None:
-            self.log(f"refused a websocket from {client}: no Origin header and no secret in the address")
+            self._log_refusal((client, None), f"refused a websocket from {client}: no Origin header and no secret "
+                                              "in the address")
             return Verdict(403, "Forbidden: a client without an Origin header must give the station's secret.")
         if self.code_required:
             return Verdict(403, "Forbidden: this panel needs the access code.")
