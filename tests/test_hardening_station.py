@@ -400,3 +400,43 @@ def test_the_page_says_so_when_the_station_process_is_gone(tmp_path):
     finally:
         st.stop()
     assert Path(tmp_path / "gone.png").stat().st_size > 10_000
+
+
+@pytest.mark.browser
+def test_the_operator_sees_a_loop_failure_in_the_browser(tmp_path):
+    from playwright.sync_api import expect, sync_playwright
+
+    from tests._station_helpers import launch_chromium
+
+    st = sim_station(tmp_path)
+    st.loop_backoff_s = (0.05, 0.2)
+    real_tick, failed = st._tick, []
+
+    def failing_tick():
+        if panel._clients and not failed:  # once, when the browser is there
+            failed.append(1)
+            raise ZeroDivisionError("injected for the test")
+        return real_tick()
+
+    st._tick = failing_tick
+    panel = StationPanel(st, "127.0.0.1", 0)
+    try:
+        with sync_playwright() as p:
+            browser = launch_chromium(p)
+            st.start_loop()
+            panel.start()
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(panel.url)
+            expect(page.get_by_text("Checklist").first).to_be_visible(timeout=30_000)
+            # a notification and a banner, and the traceback in the Log tab
+            expect(page.get_by_text("Capture loop failed").first).to_be_visible(timeout=30_000)
+            expect(page.get_by_text("The capture loop failed and was restarted").first).to_be_visible()
+            page.get_by_role("tab", name="Log").click()
+            expect(page.get_by_text(re.compile(r"ZeroDivisionError: injected for the test")).first).to_be_visible()
+            expect(page.get_by_text(re.compile(r"Traceback \(most recent call last\)")).first).to_be_visible()
+            page.screenshot(path=str(tmp_path / "loop.png"))
+            browser.close()
+        assert st._loop_thread.is_alive() and len(st.loop_errors) == 1
+    finally:
+        st.stop_loop()
+        panel.stop()
