@@ -155,7 +155,7 @@ def accuracy_table(runs, seeds: int) -> str:
     lines.append("  ".join("-" * w for w in widths))
     for r in rows:
         lines.append("  ".join(str(v).ljust(w) if i < 2 else str(v).rjust(w) for i, (v, w) in enumerate(zip(r, widths))))
-    note = f"(mean over {seeds} seed{'s' if seeds != 1 else ''}; lengths in mm; paper = its headline numbers, GEOMETRY.md)"
+    note = f"(mean over {seeds} seed{'s' if seeds != 1 else ''}; lengths in mm; paper = its headline numbers, docs/GEOMETRY.md)"
     return "\n".join(lines) + "\n" + note
 
 
@@ -213,6 +213,14 @@ def run_accuracy(args) -> int:
         raise SpecError(f"unknown method(s) {', '.join(unknown)} (registered: {', '.join(METHODS)})")
     if args.seeds < 1:
         raise SpecError("--seeds must be >= 1")
+    if args.workers < 1:
+        raise SpecError("--workers must be >= 1")
+    from app.commands._outputs import check_output_file, check_output_folder
+
+    if args.json:
+        check_output_file(args.json, "--json")
+    if args.keep:
+        check_output_folder(args.keep, "--keep")
     print(f"procam bench accuracy: {len(scenarios)} scenario(s) x {args.seeds} seed(s), methods {', '.join(methods)}",
           file=sys.stderr)
     runs = accuracy_runs(scenarios, args.seeds, methods, args.quality, args.keep, args.noise, args.blur,
@@ -223,7 +231,12 @@ def run_accuracy(args) -> int:
     if args.json:
         from calib.fileio import atomic_write_text
 
-        atomic_write_text(args.json, json.dumps(runs, indent=1) + "\n")
+        from app.commands._outputs import write_error
+
+        try:
+            atomic_write_text(args.json, json.dumps(runs, indent=1) + "\n")
+        except OSError as e:
+            raise write_error(args.json, e) from None
     return 0 if all("metrics" in r for r in runs) else 1
 
 
