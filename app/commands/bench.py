@@ -42,18 +42,18 @@ def add_arguments(p) -> None:
     a = sub.add_parser("accuracy", help="calibration accuracy on simulated sessions vs ground truth")
     a.add_argument("--scenarios", nargs="+", default=None, metavar="NAME",
                    help="scenarios (default: all; `procam simulate --list`)")
-    a.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds 0..N-1 per scenario (default 1)")
+    a.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds 0..N-1 per scenario (default %(default)s)")
     a.add_argument("--methods", default=None,
                    help="comma-separated calibration methods (default: every registered method)")
-    a.add_argument("--quality", choices=("live", "session"), default="session", help="render quality (default session)")
+    a.add_argument("--quality", choices=("live", "session"), default="session", help="render quality (default %(default)s)")
     a.add_argument("--noise", type=float, default=None, metavar="SIGMA", help="read noise override (levels)")
     a.add_argument("--blur", type=float, default=None, metavar="SIGMA", help="optical blur override (px)")
     a.add_argument("--keep", metavar="DIR", default=None, help="keep the simulated sessions under DIR")
     a.add_argument("--json", metavar="FILE", default=None, help="also write every run's numbers to FILE")
-    a.add_argument("--workers", type=int, default=2, help="render processes and detection threads (default 2)")
+    a.add_argument("--workers", type=int, default=2, help="render processes and detection threads (default %(default)s)")
     r = sub.add_parser("render", help="frames per second of the simulated camera per render mode")
-    r.add_argument("--scenario", default="nonoverlap-136")
-    r.add_argument("--frames", type=int, default=20, help="frames per mode (default 20)")
+    r.add_argument("--scenario", default="nonoverlap-136", help="scenario (default %(default)s)")
+    r.add_argument("--frames", type=int, default=20, help="frames per mode (default %(default)s)")
 
 
 # ---- accuracy ---------------------------------------------------------------------------------------------
@@ -277,6 +277,10 @@ def render_speed(scenario: str = "nonoverlap-136", frames: int = 20, modes=None)
 def run_render(args) -> int:
     from drivers.sim.scenarios import get_scenario
 
+    from calib.errors import SpecError
+
+    if args.frames < 1:
+        raise SpecError("--frames must be >= 1")
     sc = get_scenario(args.scenario)
     W, H = sc.rig.camera.size
     print(f"simulated camera {W}x{H}, scenario {args.scenario}, board in view, pattern shown")

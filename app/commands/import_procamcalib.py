@@ -25,7 +25,7 @@ def add_arguments(p) -> None:
     p.add_argument("--mirror", metavar="DIR", help="mirror-calibration folder (M... real-virtual, F... real-mirror)")
     p.add_argument("--mirror-board", metavar="SPEC", help="board of the mirror step (default: --board)")
     p.add_argument("--board-thickness", type=float, default=0.0, metavar="T",
-                   help="real-mirror: printed face above the mirror surface, in --units (default 0)")
+                   help="real-mirror: printed face above the mirror surface, in --units (default %(default)s)")
     p.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
                    help="length unit of the square/marker lengths (default mm)")
     p.add_argument("--out", required=True, metavar="SESSION", help="session folder to create (new or empty)")
