@@ -394,3 +394,16 @@ def test_a_second_method_keeps_the_first_and_a_replaced_calibration_makes_the_ve
     # --out names the main file on purpose: it is replaced, the other method's file stays
     assert main(["calibrate", str(S), "--method", "paper", "--out", str(main_cal), "--no-progress"]) == 0
     assert CalibrationResult.load_json(main_cal).method == "paper" and "stale" in capsys.readouterr().out
+
+
+def test_verify_out_is_checked_before_measuring(sim_session, capsys, monkeypatch):
+    import app.verification
+
+    measured = []
+    monkeypatch.setattr(app.verification, "verify", lambda *a, **kw: measured.append(1))
+    before = snapshot(sim_session)
+    for out, expected in ((sim_session / "session.json", "manifest"), (sim_session / "calibration.json", "also an input"),
+                          (sim_session, "is a folder")):
+        assert main(["verify", str(sim_session), "--rig", "sim", "--out", str(out)]) == 2
+        assert expected in one_error_line(capsys.readouterr().err, "verify")
+    assert measured == [] and snapshot(sim_session) == before
