@@ -8,7 +8,6 @@ scene: devices, mirror rectangle, board poses per capture, render settings).
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import replace
 from pathlib import Path
 
