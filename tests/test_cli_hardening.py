@@ -196,11 +196,15 @@ def test_option_errors_come_before_detection(tmp_path, capsys, count_detection):
     capsys.readouterr()
     junk = tmp_path / "junk.json"
     junk.write_text("{")
+    other_size = tmp_path / "720p.json"  # intrinsics of another resolution than the session's 1280x800
+    gt = CalibrationResult.load_json(S / "ground_truth.json")
+    gt.with_(camera=gt.camera.__class__(1280, 720, gt.camera.K, gt.camera.dist)).save_json(other_size)
     cases = [
         (["--method", "jiont"], "unknown calibration method 'jiont'"),
         (["--camera-intrinsics", str(tmp_path / "missing.yaml")], "does not exist"),
         (["--camera-intrinsics", str(tmp_path)], "is a folder"),
         (["--camera-intrinsics", str(junk)], "not valid JSON"),
+        (["--camera-intrinsics", str(other_size)], "is for 1280x720 images but the session's are 1280x800"),
         (["--method", "paper", "--camera-model", "k1"], "--method joint only"),
         (["--workers", "0"], "--workers"),
     ]

@@ -108,7 +108,12 @@ def validate(args):
             what = "is a folder, not a file" if Path(args.camera_intrinsics).is_dir() else "does not exist"
             raise SessionError(f"--camera-intrinsics {args.camera_intrinsics} {what} (give a calibration.json or "
                                f"an OpenCV YAML with camera_matrix and distortion_coefficients)")
-        camera = load_camera_intrinsics(args.camera_intrinsics, tuple(store.manifest.rig.camera_size))
+        size = tuple(store.manifest.rig.camera_size)
+        camera = load_camera_intrinsics(args.camera_intrinsics, size)
+        if tuple(camera.size) != size:
+            raise SessionError(f"--camera-intrinsics {args.camera_intrinsics} is for {camera.width}x{camera.height} "
+                               f"images but the session's are {size[0]}x{size[1]}; give intrinsics calibrated at the "
+                               f"session's resolution")
     note = None
     if args.out:
         json_path, yaml_path = result_paths(args.out)
