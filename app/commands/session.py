@@ -69,9 +69,9 @@ def open_session(args, log=print):
 
     if args.resume:
         folder = Path(args.resume)
+        store = SessionStore.open(folder, lock=True)  # one process per session folder: refused while in use
         req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
         rig = open_rig(req, **rig_options(args, req.kind))
-        store = SessionStore.open(folder)
         check_same_rig(store, rig)
         plan = None
         if args.poses_per_position or args.mirror_captures:
@@ -146,7 +146,7 @@ def summary(machine, folder, elapsed_s: float) -> str:
         lines.append(f"  verification {verdict} (threshold {getattr(r, 'threshold_px', float('nan')):.2f} projector px):")
         if hasattr(r, "summary"):
             lines.extend("    " + ln for ln in r.summary().splitlines())
-    files = [p.name for p in sorted(Path(folder).iterdir()) if p.is_file()]
+    files = [p.name for p in sorted(Path(folder).iterdir()) if p.is_file() and not p.name.startswith(".")]
     lines.append(f"  files: {', '.join(files)}")
     return "\n".join(lines)
 
