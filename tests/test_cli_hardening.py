@@ -411,3 +411,14 @@ def test_verify_out_is_checked_before_measuring(sim_session, capsys, monkeypatch
         assert main(["verify", str(sim_session), "--rig", "sim", "--out", str(out)]) == 2
         assert expected in one_error_line(capsys.readouterr().err, "verify")
     assert measured == [] and snapshot(sim_session) == before
+
+
+def test_board_out_never_replaces_a_session_image(sim_session, capsys):
+    before = snapshot(sim_session)
+    image = sorted((sim_session / "images").iterdir())[0]
+    assert image.suffix == ".png"
+    assert main(["board", "--board", "8x6:DICT_5X5_50:4.43", "--out", str(image)]) == 2
+    assert "images folder" in one_error_line(capsys.readouterr().err, "board")
+    assert main(["board", "--assets", str(sim_session / "images" / "assets")]) == 2
+    assert "inside the session" in one_error_line(capsys.readouterr().err, "board")
+    assert snapshot(sim_session) == before
