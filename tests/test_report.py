@@ -170,6 +170,15 @@ def test_a_session_without_verification_still_reports(calibrated, tmp_path):
     section = html[html.index('id="verification"'):]
     assert "<b>not verified</b>" in section and "<img" not in section
     assert 'id="verification-verdict">not verified<' in html
+    # a verification of another calibration (it records the file's SHA-256) is not shown as this one's
+    shutil.copy(calibrated / "verification.json", folder / "verification.json")
+    cal = json.loads((folder / "calibration.json").read_text())
+    (folder / "calibration-other.json").write_text(json.dumps(cal))
+    assert main(["report", str(folder), "--calibration", str(folder / "calibration-other.json")]) == 0
+    html = (folder / "report-other.html").read_text()
+    section = html[html.index('id="verification"'):]
+    assert "<b>not verified</b>" in section and "verified another calibration" in section and "<img" not in section
+    assert "PASS" not in html
     # an unreadable verification.json is said so, and the rest is still reported
     (folder / "verification.json").write_text("{not json")
     html = write_report(folder, tmp_path / "r.html").read_text()
@@ -217,4 +226,6 @@ def test_a_session_without_calibration_is_a_one_line_error(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert main(["report", str(folder), "--out", str(folder / "session.json")]) == 2
     assert ".html" in capsys.readouterr().err
+    assert main(["report", str(folder), "--out", str(folder / "images" / "r.html")]) == 2
+    assert "images folder" in capsys.readouterr().err
     assert json.loads((folder / "session.json").read_text())["format"] == "procam-session"

@@ -15,20 +15,32 @@ from .data import ReportError, gather
 DEFAULT_NAME = "report.html"
 
 
-def write_report(session_dir, out_path=None) -> Path:
+def default_out(session_dir, calibration_path=None) -> Path:
+    """SESSION/report.html for SESSION/calibration.json; report-paper.html for calibration-paper.json
+    (calibrate's name for a second method's result); report-NAME.html for any other NAME.json."""
+    if calibration_path is None:
+        return Path(session_dir) / DEFAULT_NAME
+    stem = Path(calibration_path).stem
+    if stem == "calibration":
+        return Path(session_dir) / DEFAULT_NAME
+    return Path(session_dir) / f"report-{stem.removeprefix('calibration-')}.html"
+
+
+def write_report(session_dir, out_path=None, calibration_path=None) -> Path:
     """Write the report of the calibrated session in `session_dir` to `out_path` (default
-    SESSION/report.html), atomically. Returns the path written. Raises ReportError (no
-    calibration.json, not this session's calibration), SessionError or FormatError with a one-line
+    `default_out`), atomically, for the calibration in `calibration_path` (default
+    SESSION/calibration.json). Returns the path written. Raises ReportError (no calibration, not this
+    session's calibration, an output that is not .html), SessionError or FormatError with a one-line
     reason."""
     from .page import render
 
     session_dir = Path(session_dir)
-    out = Path(out_path) if out_path is not None else session_dir / DEFAULT_NAME
+    out = Path(out_path) if out_path is not None else default_out(session_dir, calibration_path)
     if out.suffix.lower() not in (".html", ".htm"):
         raise ReportError(f"the report is HTML: give --out a file name ending in .html, not {out}")
     if out.is_dir():
         raise ReportError(f"--out {out} is a folder; give a file name such as {out / DEFAULT_NAME}")
-    data = gather(session_dir)  # before touching the output: a bad session leaves nothing behind
+    data = gather(session_dir, calibration_path)  # before writing: a bad session leaves nothing behind
     if not out.parent.is_dir():
         raise ReportError(f"cannot write {out}: the folder {out.parent} does not exist")
     text = render(data)
@@ -39,4 +51,4 @@ def write_report(session_dir, out_path=None) -> Path:
     return out
 
 
-__all__ = ["write_report", "ReportError", "DEFAULT_NAME"]
+__all__ = ["write_report", "default_out", "ReportError", "DEFAULT_NAME"]

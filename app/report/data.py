@@ -151,15 +151,18 @@ class ReportData:
     per_view: list = field(default_factory=list)  # clean_per_view
 
 
-def gather(session_dir) -> ReportData:
-    """Read everything the report needs. ReportError / SessionError / FormatError with a one-line reason
-    when the session or its calibration cannot be read."""
+def gather(session_dir, calibration_path=None) -> ReportData:
+    """Read everything the report needs; the calibration from `calibration_path` (default
+    SESSION/calibration.json). ReportError / SessionError / FormatError with a one-line reason when the
+    session or its calibration cannot be read."""
     session_dir = Path(session_dir)
     if not session_dir.is_dir():
         raise SessionError(f"session folder {session_dir} does not exist")
     store = SessionStore.open(session_dir)
-    cal_path = session_dir / CALIBRATION_FILE
+    cal_path = Path(calibration_path) if calibration_path is not None else session_dir / CALIBRATION_FILE
     if not cal_path.is_file():
+        if calibration_path is not None:
+            raise ReportError(f"{cal_path} does not exist or is not a file")
         raise ReportError(f"{session_dir} has no {CALIBRATION_FILE}: calibrate it first (procam calibrate {session_dir})")
     result = CalibrationResult.load_json(cal_path)
     calibration = json.loads(cal_path.read_text())
@@ -168,7 +171,7 @@ def gather(session_dir) -> ReportData:
         raise ReportError(f"{cal_path} is for a {result.camera.width}x{result.camera.height} camera and a "
                           f"{result.projector.width}x{result.projector.height} projector, the session's are "
                           f"{cam_size[0]}x{cam_size[1]} and {proj_size[0]}x{proj_size[1]}: not this session's calibration")
-    verification, vproblem = _read_verification(session_dir / VERIFICATION_FILE)
+    verification, vproblem = _read_verification(session_dir / VERIFICATION_FILE, cal_path)
     residuals, rproblem = None, None
     try:
         residuals = recompute_residuals(store, result)
@@ -179,11 +182,17 @@ def gather(session_dir) -> ReportData:
                       clean_per_view(calibration.get("per_view") or []))
 
 
-def _read_verification(path: Path) -> tuple[dict | None, str | None]:
-    """verification.json as checked by app.verification (None when absent), or the reason it is unusable."""
+def _read_verification(path: Path, cal_path: Path) -> tuple[dict | None, str | None]:
+    """verification.json as checked by app.verification (None when absent), or the reason it is unusable:
+    unreadable, or the verification of another calibration (it records the SHA-256 of the file it
+    verified; a report written before that was recorded is taken as it is)."""
     if not path.exists():
         return None, None
-    from app.verification import VerificationReport
+    from app.verification import VerificationReport, verification_is_stale
+
+    if verification_is_stale(path, cal_path):
+        return None, (f"{path.name} verified another calibration than {cal_path.name} (it was recalibrated since, "
+                      "or it is another method's result): verify this one with procam verify")
 
     try:  # validated field by field, and written back in its normal form
         return VerificationReport.from_json(path).to_dict(), None
