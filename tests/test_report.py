@@ -106,6 +106,10 @@ def test_report_is_self_contained_and_shows_the_calibration(calibrated, report):
     assert re.search(r'id="verification-status"><span class="pass">PASS', html)
     for i, c in enumerate(ver["checks"], 1):
         assert float(cells[f"check{i}.distance_proj_px"][0]) == c["distance_proj_px"]
+        assert float(cells[f"check{i}.distance_px"][0]) == c["distance_px"]
+    for key in ("mean_proj_px", "worst_proj_px", "mean_camera_px", "worst_camera_px"):
+        raw, text = cells[f"verification.{key}"]
+        assert float(raw) == ver[key] and _shown_matches(text, ver[key]), key
     assert 'alt="verification curves on the camera image"' in html
 
 

@@ -142,7 +142,7 @@ class ReportData:
     store: SessionStore
     result: CalibrationResult
     calibration: dict  # calibration.json as read (the numbers the report prints)
-    verification: dict | None
+    verification: object | None  # app.verification.VerificationReport
     verification_problem: str | None  # why verification.json could not be used, when it exists
     residuals: Residuals | None
     residuals_problem: str | None  # why the residuals could not be recomputed
@@ -182,8 +182,8 @@ def gather(session_dir, calibration_path=None) -> ReportData:
                       clean_per_view(calibration.get("per_view") or []))
 
 
-def _read_verification(path: Path, cal_path: Path) -> tuple[dict | None, str | None]:
-    """verification.json as checked by app.verification (None when absent), or the reason it is unusable:
+def _read_verification(path: Path, cal_path: Path):
+    """(app.verification.VerificationReport or None when absent, None or the reason it is unusable):
     unreadable, or the verification of another calibration (it records the SHA-256 of the file it
     verified; a report written before that was recorded is taken as it is)."""
     if not path.exists():
@@ -194,8 +194,8 @@ def _read_verification(path: Path, cal_path: Path) -> tuple[dict | None, str | N
         return None, (f"{path.name} verified another calibration than {cal_path.name} (it was recalibrated since, "
                       "or it is another method's result): verify this one with procam verify")
 
-    try:  # validated field by field, and written back in its normal form
-        return VerificationReport.from_json(path).to_dict(), None
+    try:  # validated field by field
+        return VerificationReport.from_json(path), None
     except (ProcamError, OSError, ValueError, TypeError) as e:
         return None, f"{path.name} cannot be read: {e}"
 

@@ -24,7 +24,7 @@ DPI = 100
 
 def png(fig: Figure) -> bytes:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight", pad_inches=0.08)
+    fig.savefig(buf, format="png", dpi=DPI)  # each figure is laid out by tight_layout already
     return buf.getvalue()
 
 
@@ -356,12 +356,12 @@ def rig_figure(camera: CameraModel, projector: CameraModel, T_cam_proj: np.ndarr
 VERDICT_COLOURS = {"pass": "#2ca02c", "above mean limit": "#ff9f1c", "fail": "#d62728", "not measured": "#7f7f7f"}
 
 
-def check_verdict(check: dict, threshold: float, worst_factor: float) -> str:
-    """A check's own verdict: within the threshold (pass), within the worst-case limit (above mean
-    limit: allowed for some pixels), beyond it (fail), or not measured."""
-    if not check.get("ok") or check.get("distance_proj_px") is None:
+def check_verdict(check, threshold: float, worst_factor: float) -> str:
+    """A check's (app.verification.PixelCheck) own verdict: within the threshold (pass), within the
+    worst-case limit (above mean limit: allowed for some pixels), beyond it (fail), or not measured."""
+    if not check.ok or check.distance_proj_px is None:
         return "not measured"
-    d = float(check["distance_proj_px"])
+    d = float(check.distance_proj_px)
     return "pass" if d <= threshold else "above mean limit" if d <= worst_factor * threshold else "fail"
 
 
@@ -373,7 +373,7 @@ def verification_figure(checks: list, cam_size, threshold: float, worst_factor: 
     fig = Figure(figsize=(11, 4.6))
     full = fig.add_subplot(1, 3, 1)
     ax = fig.add_subplot(1, 3, (2, 3))
-    pix = np.array([c["pixel"] for c in checks], float).reshape(-1, 2)
+    pix = np.array([c.pixel for c in checks], float).reshape(-1, 2)
     for a in (full, ax):
         a.add_patch(Rectangle((-0.5, -0.5), W, H, facecolor="#1e1e1e", edgecolor="none", zorder=0))
     for i, c in enumerate(checks, 1):
@@ -381,17 +381,17 @@ def verification_figure(checks: list, cam_size, threshold: float, worst_factor: 
         colour = VERDICT_COLOURS[verdict]
         for a in (full, ax):
             for key in ("predicted_curve", "detected_curve"):
-                curve = c.get(key)
-                if curve:
+                curve = getattr(c, key)
+                if curve is not None and len(curve):
                     pts = np.asarray(curve, float).reshape(-1, 2)
                     if key == "detected_curve":
                         a.plot(pts[:, 0], pts[:, 1], color=colour, lw=1.8 if a is ax else 1.0)
                     else:
                         a.plot(pts[:, 0], pts[:, 1], color="#e8e8e8", ls=(0, (4, 3)), lw=0.9)
-        x, y = c["pixel"]
+        x, y = c.pixel
         full.plot(x, y, "o", ms=3, color=colour)
         ax.plot(x, y, "o", ms=8, mfc="none", mec="white", mew=1.5)
-        dist = c.get("distance_proj_px")
+        dist = c.distance_proj_px
         label = f"{i}: {dist:.2f}" if verdict != "not measured" and dist is not None else f"{i}: n/a"
         ax.annotate(label, (x, y), xytext=(7, 7), textcoords="offset points", color=colour, fontsize=8.5,
                     fontweight="bold", bbox={"boxstyle": "round,pad=0.15", "fc": "#000000", "ec": "none", "alpha": 0.7})

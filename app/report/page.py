@@ -90,8 +90,7 @@ def _summary(d: ReportData) -> str:
     ver = "not verified"
     if d.verification is not None:
         v = d.verification
-        ver = (f'<span class="{"pass" if v.get("passed") else "fail"}">{"PASS" if v.get("passed") else "FAIL"}</span>'
-               f" ({_e(v.get('verdict', ''))})")
+        ver = f'<span class="{"pass" if v.passed else "fail"}">{"PASS" if v.passed else "FAIL"}</span> ({_e(v.verdict)})'
     elif d.verification_problem:
         ver = f'<span class="warn">not verified: {_e(d.verification_problem)}</span>'
     skipped = cal.get("skipped") if isinstance(cal.get("skipped"), list) else []
@@ -338,36 +337,37 @@ def _verification(d: ReportData) -> str:
         why = d.verification_problem or ("this session has no verification.json; run <code>procam verify "
                                           f"{_e(d.session_dir)} --rig ...</code> to measure one")
         return head + f'<p id="verification-status"><b>not verified</b>: {why}</p>'
-    thr, wf = float(v.get("threshold_px", 1.5)), float(v.get("worst_factor", 2.0))
-    checks = [c for c in v.get("checks", []) if isinstance(c, dict)]
-    passed = bool(v.get("passed"))
+    from app.verification import WORST_FACTOR
+
+    thr, wf = v.threshold_px, WORST_FACTOR
+    checks = list(v.checks)
 
     def num(x, fmt=".3f"):
         return "n/a" if x is None else format(float(x), fmt)
+
+    def tagged(key, x, tag="td"):
+        return f'<{tag} data-key="{key}" data-value="{"" if x is None else repr(float(x))}">{num(x)}</{tag}>'
 
     rows = []
     for i, c in enumerate(checks, 1):
         verdict = figures.check_verdict(c, thr, wf)
         cls = {"pass": "pass", "fail": "fail", "above mean limit": "warn"}.get(verdict, "")
-        px = c.get("pixel") or [float("nan")] * 2
-        rows.append(f'<tr><td class="l">{i}</td><td>({px[0]:.1f}, {px[1]:.1f})</td>'
-                    f'<td data-key="check{i}.distance_px" data-value="{c.get("distance_px")!r}">{num(c.get("distance_px"))}</td>'
-                    f'<td data-key="check{i}.distance_proj_px" data-value="{c.get("distance_proj_px")!r}">'
-                    f'{num(c.get("distance_proj_px"))}</td><td class="l {cls}">{_e(verdict)}'
-                    f'{": " + _e(c.get("reason")) if c.get("reason") else ""}</td></tr>')
-    has_curves = any(c.get("detected_curve") for c in checks)
-    fig = ""
-    if has_curves:
+        rows.append(f'<tr><td class="l">{i}</td><td>({c.pixel[0]:.1f}, {c.pixel[1]:.1f})</td>'
+                    f'{tagged(f"check{i}.distance_px", c.distance_px)}'
+                    f'{tagged(f"check{i}.distance_proj_px", c.distance_proj_px)}<td class="l {cls}">{_e(verdict)}'
+                    f'{": " + _e(c.reason) if c.reason else ""}</td></tr>')
+    if any(len(c.detected_curve) for c in checks):
         fig = _img(figures.verification_figure(checks, d.result.camera.size, thr, wf),
                    "verification curves on the camera image")
     else:
         fig = '<p class="note">This verification.json holds no curves to draw.</p>'
     return head + f"""
-<p id="verification-status"><span class="{"pass" if passed else "fail"}">{"PASS" if passed else "FAIL"}</span>:
-{_e(v.get("verdict", ""))}. {v.get("n_measured", "?")} of {v.get("n_checks", "?")} pixels measured; mean
-<span data-key="verification.mean_proj_px" data-value="{v.get('mean_proj_px')!r}">{num(v.get("mean_proj_px"))}</span>,
-worst <span data-key="verification.worst_proj_px" data-value="{v.get('worst_proj_px')!r}">{num(v.get("worst_proj_px"))}</span>
-projector px (mean {num(v.get("mean_px"))}, worst {num(v.get("worst_px"))} camera px); measured {_e(v.get("created", ""))}.</p>
+<p id="verification-status"><span class="{"pass" if v.passed else "fail"}">{"PASS" if v.passed else "FAIL"}</span>:
+{_e(v.verdict)}. {v.n_measured} of {len(checks)} pixels measured; mean
+{tagged("verification.mean_proj_px", v.mean_proj_px, "span")}, worst
+{tagged("verification.worst_proj_px", v.worst_proj_px, "span")} projector px (mean
+{tagged("verification.mean_camera_px", v.mean_px, "span")}, worst
+{tagged("verification.worst_camera_px", v.worst_px, "span")} camera px); measured {_e(v.created)}.</p>
 <p class="note">For each checked camera pixel the projector drew the pixel's predicted epipolar curve; the camera saw
 the stroke (solid, coloured by the check's own verdict: within {thr:g} projector px = pass, within {wf * thr:g} =
 above the mean limit, beyond = fail); dashed: where the calibration expected it. The distance is from the pixel to the
