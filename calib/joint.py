@@ -36,12 +36,13 @@ import numpy as np
 
 from calib import model_select, uncertainty
 from calib.camera import CameraModel
-from calib.errors import CalibrationError
+from calib.errors import CalibrationError, UntrustedCalibration
+from calib.joint_solver import DIST_MODELS, MODEL_NAMES, _RowSums, normal_blocks, solve
 from calib.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
 from calib.paper import calibrate_paper
 from calib.result import CalibrationResult, MirrorPlane
-from calib.joint_solver import DIST_MODELS, MODEL_NAMES, _RowSums, normal_blocks, solve
 from calib.transforms import FLIP_X, make_T
+from calib.trust import TrustReason, check_calibration
 
 PATTERN_MODELS = ("auto", "point", "conic")
 
@@ -853,7 +854,7 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
 
     # ---- distortion model selection -------------------------------------------------------------
     t0 = time.perf_counter()
-    selection = model_select.select_models(prob, options)
+    selection = _guarded("the distortion model selection", model_select.select_models, prob, options)
     x = prob.x0()
     tick("joint.model_selection", t0)
 
@@ -861,12 +862,23 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     t0 = time.perf_counter()
     unc = None
     if options.uncertainty:
-        unc = uncertainty.joint_uncertainty(prob, x)
+        unc = _guarded("the covariance", uncertainty.joint_uncertainty, prob, x)
     tick("joint.uncertainty", t0)
 
     result = _make_result(obs, init, prob, x, rejected, left_out, selection, unc, solves, timing)
     timing["joint.total"] = round(time.perf_counter() - t_start, 4)
     return result
+
+
+def _guarded(what: str, fn, *args):
+    """fn(*args), with numpy's linear-algebra failures (which only degenerate data cause: an SVD that
+    does not converge, a singular system) turned into a CalibrationError that says so."""
+    try:
+        return fn(*args)
+    except np.linalg.LinAlgError as e:
+        raise CalibrationError(f"the joint adjustment failed in {what} ({e}); the session's data are probably "
+                               "degenerate (the same image in every capture, wrong pattern points, boards seen "
+                               "from one pose only): check the captures", code="solve_failed") from None
 
 
 def calibrate_joint(obs: SessionObservations, camera: CameraModel | None = None, progress=None,
@@ -883,7 +895,17 @@ def calibrate_joint(obs: SessionObservations, camera: CameraModel | None = None,
             raise CalibrationError(f"unknown joint option(s): {', '.join(sorted(unknown))}")
         opts = replace(opts, **option_overrides)
     init = calibrate_paper(obs, camera, progress)
-    return refine_joint(obs, init, opts, progress)
+    try:
+        return refine_joint(obs, init, opts, progress)
+    except CalibrationError as e:
+        if e.code not in ("non_finite", "solve_failed"):
+            raise
+        # the refinement met NaN / inf or a singular system: report it with what is wrong with its starting
+        # point, and keep that starting point (the paper method's result) for diagnosis
+        start = check_calibration(init)
+        report = replace(start, reasons=(TrustReason(e.code, str(e)),) + start.reasons)
+        rejected = init.with_(diagnostics=dict(init.diagnostics, joint_error=str(e), trust=report.to_dict()))
+        raise UntrustedCalibration(report, rejected) from None
 
 
 def _class_sigmas(prob: JointProblem, r_px: np.ndarray, options: JointOptions, robust: bool) -> dict:

@@ -99,12 +99,27 @@ def _schur_solve(A, B, D, g_g, g_p, lam_g, lam_p):
     return dg, dp
 
 
+def require_finite(what: str, *arrays) -> None:
+    """Raise a CalibrationError (code "non_finite") when any of `arrays` holds NaN or infinity: a solve
+    that meets them cannot go on, and numpy would fail later with a message nobody can act on."""
+    for a in arrays:
+        a = np.asarray(a)
+        if a.size and not np.all(np.isfinite(a)):
+            bad = int(a.size - np.count_nonzero(np.isfinite(a)))
+            raise CalibrationError(
+                f"the joint adjustment failed: {what} has {bad} non-finite value(s) (NaN or infinite); the "
+                "session's data are probably degenerate (the same image in every capture, wrong pattern points, "
+                "boards seen from one pose only): check the captures, or try --method paper to see the "
+                "sequential estimate", code="non_finite")
+
+
 def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.ndarray, dict]:
     """Levenberg-Marquardt on the block normal equations (poses eliminated by the Schur complement,
     Marquardt's diagonal scaling, the equivalent of x_scale='jac'); robust losses by iteratively
     reweighted least squares."""
     x = prob.x0()
     r = prob.residuals(x)
+    require_finite("the starting point's predicted pixels", r)
     cost, w = _loss_cost_weights(r, loss, f_scale)
     lam = 1e-7
     nfev, njev, status = 1, 0, 0
@@ -114,6 +129,7 @@ def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.
     for _it in range(max_iter):
         Jg, Jl = prob.jacobian_blocks(x)
         njev += 1
+        require_finite("the Jacobian", Jg, Jl)
         A, B, D, g_g, g_p = normal_blocks(prob, Jg, Jl, w, r)
         dA = np.clip(np.diag(A).copy(), 1e-12, None)
         dD = np.clip(np.diagonal(D, axis1=1, axis2=2).copy(), 1e-12, None)
@@ -169,6 +185,7 @@ def solve(prob, loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 60,
     if solver == "scipy":
         from scipy.optimize import least_squares  # only here: importing scipy.optimize takes ~0.8 s
 
+        require_finite("the starting point's predicted pixels", prob.residuals(prob.x0()))
         res = least_squares(prob.residuals, prob.x0(), jac=prob.jacobian, method="trf", loss=loss,
                             f_scale=f_scale, x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev,
                             tr_solver="lsmr", jac_sparsity=None)
@@ -179,5 +196,6 @@ def solve(prob, loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 60,
         x, info = _lm(prob, loss, f_scale, max_nfev, tol)
     else:
         raise CalibrationError(f"unknown solver '{solver}' (lm or scipy)")
+    require_finite("the solution", x)
     prob.set_state(prob.rebase(x))
     return prob.x0(), info

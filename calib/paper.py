@@ -29,6 +29,12 @@ PAPER_STAGES = ("camera", "mirror", "projector")
 
 def check_observations(obs: SessionObservations) -> None:
     """Fail early, with a message a user can act on, when a session cannot be calibrated at all."""
+    bad = non_finite_captures(obs)
+    if bad:
+        raise CalibrationError(
+            f"non-finite (NaN or infinite) pixel coordinates in {len(bad)} capture(s): {', '.join(bad[:5])}"
+            f"{' ...' if len(bad) > 5 else ''}; the session's pattern points or detections are corrupt: retake "
+            "or delete these captures", code="non_finite")
     n = len(obs.projector_views)
     if n < MIN_PROJECTOR_VIEWS:
         why = ""
@@ -43,6 +49,24 @@ def check_observations(obs: SessionObservations) -> None:
             "the projector images were taken through the mirror but the session has no usable mirror-calibration "
             "images, so the mirror plane (and with it the projector's pose) cannot be estimated; capture "
             "real-virtual images (board seen directly and in the mirror) or real-mirror images (board lying on it)")
+
+
+def non_finite_captures(obs: SessionObservations) -> list[str]:
+    """Ids of the captures whose observations (board corners, pattern points on either side) hold NaN or
+    infinity."""
+    import numpy as np
+
+    def finite(*arrays):
+        return all(a is None or np.all(np.isfinite(np.asarray(a, float))) for a in arrays)
+
+    bad = []
+    for pv in obs.projector_views:
+        if not finite(None if pv.board is None else pv.board.corners_px, pv.pattern_cam_px, pv.pattern_proj_px):
+            bad.append(pv.capture_id)
+    for mv in obs.mirror_views:
+        if not finite(*(None if b is None else b.corners_px for b in (mv.real, mv.virtual))):
+            bad.append(mv.capture_id)
+    return bad
 
 
 def paper_stages(obs: SessionObservations, camera: CameraModel | None = None, progress: Progress | None = None,

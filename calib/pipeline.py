@@ -12,6 +12,7 @@ calib.detect.detect_session); `label` names the stage.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -19,7 +20,7 @@ import cv2
 import numpy as np
 
 from calib.camera import CameraModel
-from calib.errors import CalibrationError, FormatError
+from calib.errors import CalibrationError, FormatError, UntrustedCalibration
 from calib.joint import calibrate_joint
 from calib.observations import SessionObservations
 from calib.paper import (  # noqa: F401  (re-exported: the paper method's stages)
@@ -33,15 +34,41 @@ from calib.paper import (  # noqa: F401  (re-exported: the paper method's stages
     paper_stages,
 )
 from calib.result import CalibrationResult
+from calib.trust import check_calibration
 Method = Callable[[SessionObservations, "CameraModel | None", "Progress | None"], CalibrationResult]
 
 #: name -> function(obs, camera, progress) -> CalibrationResult
 METHODS: dict[str, Method] = {"paper": calibrate_paper, "joint": calibrate_joint}
 
 
+#: what calibrate_observations / calibrate_session do with the trust check (calib.trust): "check" raises
+#: UntrustedCalibration for a result that fails it; "accept" keeps the result with the reasons recorded
+#: in diagnostics["trust"] (an expert's override, `procam calibrate --accept-untrusted`); None skips it
+#: (benchmarks that study the methods themselves).
+TRUST_MODES = ("check", "accept", None)
+
+
+def apply_trust_check(result: CalibrationResult, trust: str | None = "check") -> CalibrationResult:
+    """The result with its trust report in diagnostics["trust"]; raises UntrustedCalibration (carrying
+    the report and that result) when it fails and `trust` is "check"."""
+    if trust not in TRUST_MODES:
+        raise CalibrationError(f"unknown trust mode '{trust}' (check, accept or None)")
+    if trust is None:
+        return result
+    report = check_calibration(result)
+    if not report.passed and trust == "accept":
+        report = replace(report, accepted_by_user=True)
+    result = result.with_(diagnostics=dict(result.diagnostics, trust=report.to_dict()))
+    if not report.passed and trust == "check":
+        raise UntrustedCalibration(report, result)
+    return result
+
+
 def calibrate_observations(obs: SessionObservations, method: str = "joint", camera: CameraModel | None = None,
-                           progress: Progress | None = None, method_options: dict | None = None) -> CalibrationResult:
-    """Calibrate from detected observations with a registered method; `camera` skips the camera stage."""
+                           progress: Progress | None = None, method_options: dict | None = None,
+                           trust: str | None = "check") -> CalibrationResult:
+    """Calibrate from detected observations with a registered method; `camera` skips the camera stage.
+    The result passes the trust check (`trust`, see TRUST_MODES) before it is returned."""
     fn = METHODS.get(method)
     if fn is None:
         raise CalibrationError(f"unknown calibration method '{method}' (available: {', '.join(sorted(METHODS))})")
@@ -51,16 +78,18 @@ def calibrate_observations(obs: SessionObservations, method: str = "joint", came
     timing = dict(diag.get("timing_s", {}))
     timing["total"] = round(time.perf_counter() - t0, 4)
     diag["timing_s"] = timing
-    return result.with_(diagnostics=diag)
+    return apply_trust_check(result.with_(diagnostics=diag), trust)
 
 
 def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, workers: int = 2,
                       progress: Progress | None = None, detect_progress: Progress | None = None,
-                      method_options: dict | None = None, detect_cache: str = "use") -> CalibrationResult:
+                      method_options: dict | None = None, detect_cache: str = "use",
+                      trust: str | None = "check") -> CalibrationResult:
     """Detect and calibrate a session folder. `camera_intrinsics`: None, a CameraModel, or a file
     (calibration.json or OpenCV YAML, see load_camera_intrinsics). `detect_progress` (default:
     `progress`) follows detection, `progress` the calibration stages. `detect_cache`: "use" (reuse
-    the detections of earlier runs kept in the session folder), "refresh" or "off" (detect_session)."""
+    the detections of earlier runs kept in the session folder), "refresh" or "off" (detect_session).
+    `trust`: the trust check (TRUST_MODES); an untrusted result raises UntrustedCalibration."""
     from calib.detect import detect_session
     from calib.session import SessionStore
 
@@ -72,7 +101,7 @@ def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, wor
     camera = camera_intrinsics
     if camera is not None and not isinstance(camera, CameraModel):
         camera = load_camera_intrinsics(camera, obs.camera_size)
-    result = calibrate_observations(obs, method, camera, progress, method_options)
+    result = calibrate_observations(obs, method, camera, progress, method_options, trust=None)
     images = {c.id: c.image for c in store.manifest.captures}
     skipped = []
     for s in result.skipped:
@@ -83,7 +112,7 @@ def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, wor
     diag = dict(result.diagnostics)
     diag["timing_s"] = dict(diag.get("timing_s", {}), detection=round(t_detect, 4))
     diag["session"] = str(Path(folder))
-    return result.with_(skipped=tuple(skipped), diagnostics=diag)
+    return apply_trust_check(result.with_(skipped=tuple(skipped), diagnostics=diag), trust)
 
 
 # ---- camera intrinsics from a file ------------------------------------------------------------------

@@ -36,6 +36,10 @@ def add_arguments(p) -> None:
                    help="detect every image again instead of reusing the session's detections.json (results "
                         "of earlier runs, kept per image and detector version)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--accept-untrusted", action="store_true",
+                   help="experts: write the result even when the trust check rejects it (absurd parameters, "
+                        "huge residuals or uncertainty; docs/CALIBRATION.md); the reasons are printed and "
+                        "recorded in the file under diagnostics.trust")
 
 
 class _Bars:
@@ -68,7 +72,7 @@ class _Bars:
 
 
 def run(args) -> int:
-    from calib.errors import SessionError
+    from calib.errors import SessionError, UntrustedCalibration
     from calib.pipeline import calibrate_session
 
     session = Path(args.session)
@@ -84,10 +88,20 @@ def run(args) -> int:
             raise SessionError("--camera-model / --projector-model apply to --method joint only")
         result = calibrate_session(session, args.method, args.camera_intrinsics, args.workers,
                                    progress=bars.callback("calibrate"), detect_progress=bars.callback("detect"),
-                                   method_options=opts or None, detect_cache="refresh" if args.redetect else "use")
+                                   method_options=opts or None, detect_cache="refresh" if args.redetect else "use",
+                                   trust="accept" if args.accept_untrusted else "check")
+    except UntrustedCalibration as e:
+        _report_rejected(e, Path(args.out) if args.out else session / "calibration.json")
+        raise
     finally:
         bars.close()
     out = Path(args.out) if args.out else session / "calibration.json"
+    trust = result.diagnostics.get("trust", {}) if isinstance(result.diagnostics, dict) else {}
+    if trust.get("reasons"):
+        print("WARNING: the trust check rejects this calibration; written anyway (--accept-untrusted):",
+              file=sys.stderr)
+        for r in trust["reasons"]:
+            print(f"  [{r['code']}] {r['message']}", file=sys.stderr)
     out.parent.mkdir(parents=True, exist_ok=True)
     result.save_json(out)
     yaml_path = out.with_suffix(".yaml")
@@ -95,6 +109,23 @@ def run(args) -> int:
     print(format_summary(result))
     print(f"\nwrote {out}\nwrote {yaml_path}")
     return 0
+
+
+def _report_rejected(e, out: Path) -> None:
+    """An untrusted calibration: its reasons on stderr, and the rejected result beside where the result
+    would have gone, as NAME.rejected.json (for diagnosis; calibration.json and .yaml are not written)."""
+    rejected = out.with_name(out.stem + ".rejected.json")
+    print("the trust check rejects this calibration:", file=sys.stderr)
+    for r in e.report.reasons:
+        print(f"  [{r.code}] {r.message}", file=sys.stderr)
+    if e.result is not None:
+        try:
+            rejected.parent.mkdir(parents=True, exist_ok=True)
+            e.result.save_json(rejected)
+            print(f"the rejected result is in {rejected} (for diagnosis only; not a calibration); "
+                  f"{out.name} was not written", file=sys.stderr)
+        except OSError as err:
+            print(f"could not write {rejected}: {err.strerror}", file=sys.stderr)
 
 
 def _fmt_model(name: str, cam) -> list[str]:
