@@ -119,7 +119,7 @@ def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.
     reweighted least squares."""
     x = prob.x0()
     r = prob.residuals(x)
-    require_finite("the starting point's predicted pixels", r)
+    require_finite("the model's predicted pixels at the start of a solve", r)
     cost, w = _loss_cost_weights(r, loss, f_scale)
     lam = 1e-7
     nfev, njev, status = 1, 0, 0
@@ -185,7 +185,7 @@ def solve(prob, loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 60,
     if solver == "scipy":
         from scipy.optimize import least_squares  # only here: importing scipy.optimize takes ~0.8 s
 
-        require_finite("the starting point's predicted pixels", prob.residuals(prob.x0()))
+        require_finite("the model's predicted pixels at the start of a solve", prob.residuals(prob.x0()))
         res = least_squares(prob.residuals, prob.x0(), jac=prob.jacobian, method="trf", loss=loss,
                             f_scale=f_scale, x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev,
                             tr_solver="lsmr", jac_sparsity=None)

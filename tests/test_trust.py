@@ -239,7 +239,8 @@ def test_cli_exits_non_zero_and_writes_no_calibration(empty_session, monkeypatch
     err = capsys.readouterr().err
     assert rc != 0
     assert not (empty_session / "calibration.json").exists() and not (empty_session / "calibration.yaml").exists()
-    assert any(f"[{c}]" in err for c in ABSURD_FOCAL) and "not trustworthy" in err
+    assert any(f"[{c}]" in err for c in ABSURD_FOCAL)
+    assert err.strip().splitlines()[-1].startswith("procam calibrate: error: the calibration is not trustworthy")
     rejected = json.loads((empty_session / "calibration.rejected.json").read_text())
     assert rejected["diagnostics"]["trust"]["passed"] is False
     assert rejected["diagnostics"]["trust"]["reasons"][0]["code"] in CODES
@@ -295,3 +296,64 @@ def test_station_shows_the_reasons_and_keeps_no_result(tmp_path):
     assert json.loads((folder / "calibration.rejected.json").read_text())["diagnostics"]["trust"]["passed"] is False
     assert any("calibration failed" in e.text and "RMS" in e.text for e in m.events)
     assert _keep_rejected(folder, lambda: 7) == 7
+
+
+# ---- end to end: a rendered session, made degenerate the way the issue found it -----------------------
+@pytest.fixture(scope="module")
+def rendered_small(tmp_path_factory):
+    """13 projector + 5 real-virtual images of the 136 degree rig, rendered (detection included)."""
+    from _calib_helpers import write_session
+    from calib.synthetic import make_session
+
+    folder = tmp_path_factory.mktemp("trust") / "session"
+    write_session(folder, make_session(make_rig(136), per_position=1, mirror_count=5, seed=2), k=1)
+    return folder
+
+
+def _run_calibrate(folder, *args):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "app", "calibrate", str(folder), "--no-progress", *args],
+                          capture_output=True, text=True, timeout=600)
+
+
+def _degenerate_copy(src, dst, mode: str):
+    import shutil
+
+    shutil.copytree(src, dst)
+    data = json.loads((dst / "session.json").read_text())
+    proj = [c for c in data["captures"] if c["step"] == "projector"]
+    for c in proj[1:]:
+        if mode == "copied image":
+            shutil.copyfile(dst / proj[0]["image"], dst / c["image"])
+        else:
+            c["pattern_points_px"] = proj[0]["pattern_points_px"]
+    (dst / "session.json").write_text(json.dumps(data))
+    return dst
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["copied image", "identical pattern points"])
+def test_rendered_degenerate_session_fails_in_the_cli(rendered_small, tmp_path, mode):
+    folder = _degenerate_copy(rendered_small, tmp_path / "s", mode)
+    for method in ("paper", "joint"):
+        proc = _run_calibrate(folder, "--method", method)
+        assert proc.returncode == 2, proc.stderr
+        assert "not trustworthy" in proc.stderr and "Traceback" not in proc.stderr
+        assert not (folder / "calibration.json").exists() and not (folder / "calibration.yaml").exists()
+        rejected = json.loads((folder / "calibration.rejected.json").read_text())
+        codes = [r["code"] for r in rejected["diagnostics"]["trust"]["reasons"]]
+        assert codes and set(codes) <= set(CODES) and all(f"[{c}]" in proc.stderr for c in codes)
+
+
+@pytest.mark.slow
+def test_rendered_normal_session_passes_in_the_cli(rendered_small, tmp_path):
+    import shutil
+
+    folder = tmp_path / "s"
+    shutil.copytree(rendered_small, folder)
+    proc = _run_calibrate(folder)
+    assert proc.returncode == 0, proc.stderr
+    res = CalibrationResult.load_json(folder / "calibration.json")
+    assert res.diagnostics["trust"]["passed"] and not (folder / "calibration.rejected.json").exists()

@@ -72,7 +72,7 @@ class _Bars:
 
 
 def run(args) -> int:
-    from calib.errors import SessionError, UntrustedCalibration
+    from calib.errors import CalibrationError, SessionError, UntrustedCalibration
     from calib.pipeline import calibrate_session
 
     session = Path(args.session)
@@ -91,8 +91,10 @@ def run(args) -> int:
                                    method_options=opts or None, detect_cache="refresh" if args.redetect else "use",
                                    trust="accept" if args.accept_untrusted else "check")
     except UntrustedCalibration as e:
-        _report_rejected(e, Path(args.out) if args.out else session / "calibration.json")
-        raise
+        out = Path(args.out) if args.out else session / "calibration.json"
+        _report_rejected(e, out)
+        raise CalibrationError(f"the calibration is not trustworthy ({len(e.report.reasons)} reason(s) above); "
+                               f"{out.name} was not written", code="untrusted") from None
     finally:
         bars.close()
     out = Path(args.out) if args.out else session / "calibration.json"
@@ -122,8 +124,7 @@ def _report_rejected(e, out: Path) -> None:
         try:
             rejected.parent.mkdir(parents=True, exist_ok=True)
             e.result.save_json(rejected)
-            print(f"the rejected result is in {rejected} (for diagnosis only; not a calibration); "
-                  f"{out.name} was not written", file=sys.stderr)
+            print(f"the rejected result is in {rejected} (for diagnosis only; not a calibration)", file=sys.stderr)
         except OSError as err:
             print(f"could not write {rejected}: {err.strerror}", file=sys.stderr)
 
