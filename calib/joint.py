@@ -37,7 +37,7 @@ import numpy as np
 from calib import model_select, uncertainty
 from calib.camera import CameraModel
 from calib.errors import CalibrationError, UntrustedCalibration
-from calib.joint_solver import DIST_MODELS, MODEL_NAMES, _RowSums, normal_blocks, solve
+from calib.joint_solver import DIST_MODELS, MODEL_NAMES, _RowSums, solve
 from calib.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
 from calib.paper import calibrate_paper
 from calib.result import CalibrationResult, MirrorPlane

@@ -10,6 +10,8 @@ from __future__ import annotations
 import time
 from typing import Callable
 
+import numpy as np
+
 from calib.camera import CameraModel
 from calib.camera_calib import CameraCalibration, calibrate_camera
 from calib.errors import CalibrationError
@@ -54,7 +56,6 @@ def check_observations(obs: SessionObservations) -> None:
 def non_finite_captures(obs: SessionObservations) -> list[str]:
     """Ids of the captures whose observations (board corners, pattern points on either side) hold NaN or
     infinity."""
-    import numpy as np
 
     def finite(*arrays):
         return all(a is None or np.all(np.isfinite(np.asarray(a, float))) for a in arrays)

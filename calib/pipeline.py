@@ -23,18 +23,10 @@ from calib.camera import CameraModel
 from calib.errors import CalibrationError, FormatError, UntrustedCalibration
 from calib.joint import calibrate_joint
 from calib.observations import SessionObservations
-from calib.paper import (  # noqa: F401  (re-exported: the paper method's stages)
-    MIN_PROJECTOR_VIEWS,
-    PAPER_STAGES,
-    Progress,
-    assemble_result,
-    calibrate_paper,
-    check_observations,
-    detection_skips,
-    paper_stages,
-)
+from calib.paper import Progress, calibrate_paper
 from calib.result import CalibrationResult
 from calib.trust import check_calibration
+
 Method = Callable[[SessionObservations, "CameraModel | None", "Progress | None"], CalibrationResult]
 
 #: name -> function(obs, camera, progress) -> CalibrationResult

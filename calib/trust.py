@@ -260,14 +260,14 @@ def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None
         if isinstance(T.get("t_total"), (int, float)):
             s_t = float(T["t_total"]) * mm
             metrics["sigma.t_mm"] = s_t
-            if s_t > th.sigma_t_mm:
-                fail("uncertainty_pose", f"the projector's position is uncertain by {s_t:.3g} mm (1 sigma; limit "
+            if not s_t <= th.sigma_t_mm:  # NaN too: a covariance that could not be computed
+                fail("uncertainty_pose", f"the projector's position is uncertain by {_fmt(s_t, 'mm')} (1 sigma; limit "
                      f"{th.sigma_t_mm:g} mm): the poses do not constrain it", s_t, th.sigma_t_mm)
         if isinstance(T.get("rot_total_deg"), (int, float)):
             s_r = float(T["rot_total_deg"])
             metrics["sigma.rot_deg"] = s_r
-            if s_r > th.sigma_rot_deg:
-                fail("uncertainty_pose", f"the projector's orientation is uncertain by {s_r:.3g} deg (1 sigma; "
+            if not s_r <= th.sigma_rot_deg:
+                fail("uncertainty_pose", f"the projector's orientation is uncertain by {_fmt(s_r, 'deg')} (1 sigma; "
                      f"limit {th.sigma_rot_deg:g} deg)", s_r, th.sigma_rot_deg)
         for dev in ("camera", "projector"):
             u = unc.get(dev) or {}
@@ -275,17 +275,17 @@ def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None
                 continue
             vals = [float(u[k]) for k in ("fx", "fy", "cx", "cy") if isinstance(u.get(k), (int, float))]
             if vals:
-                s = max(vals)
+                s = max(vals) if all(math.isfinite(v) for v in vals) else float("inf")
                 metrics[f"sigma.{dev}_intrinsics_px"] = s
-                if s > th.sigma_intrinsics_px:
+                if not s <= th.sigma_intrinsics_px:
                     fail("uncertainty_intrinsics", f"the {dev}'s intrinsics are uncertain by up to {s:.3g} px "
                          f"(1 sigma; limit {th.sigma_intrinsics_px:g} px)", s, th.sigma_intrinsics_px)
         m = unc.get("mirror")
         if isinstance(m, dict) and isinstance(m.get("normal_deg"), (int, float)):
             s_n = float(m["normal_deg"])
             metrics["sigma.mirror_normal_deg"] = s_n
-            if s_n > th.sigma_mirror_normal_deg:
-                fail("uncertainty_mirror", f"the mirror normal is uncertain by {s_n:.3g} deg (1 sigma; limit "
+            if not s_n <= th.sigma_mirror_normal_deg:
+                fail("uncertainty_mirror", f"the mirror normal is uncertain by {_fmt(s_n, 'deg')} (1 sigma; limit "
                      f"{th.sigma_mirror_normal_deg:g} deg)", s_n, th.sigma_mirror_normal_deg)
         covd = unc.get("covariance") or {}
         if covd.get("matrix") is not None:
@@ -309,11 +309,16 @@ def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None
     for dev in ("camera", "projector"):
         std = (diag.get(dev) or {}).get("std_intrinsics") if isinstance(diag.get(dev), dict) else None
         if isinstance(std, list) and len(std) >= 4:
-            s = max(float(v) for v in std[:4])
+            vals = [float(v) for v in std[:4]]
+            s = max(vals) if all(math.isfinite(v) for v in vals) else float("inf")
             metrics[f"sigma_opencv.{dev}_intrinsics_px"] = s
             if not s <= th.sigma_intrinsics_opencv_px:
                 fail("uncertainty_intrinsics", f"the {dev}'s intrinsics are uncertain by up to {s:.3g} px (OpenCV's "
                      f"1 sigma; limit {th.sigma_intrinsics_opencv_px:g} px)", s, th.sigma_intrinsics_opencv_px)
+
+
+def _fmt(v: float, unit: str) -> str:
+    return f"{v:.3g} {unit}" if math.isfinite(v) else "an amount that cannot be computed (singular covariance)"
 
 
 def correlation_condition(cov: np.ndarray) -> float:
@@ -321,6 +326,8 @@ def correlation_condition(cov: np.ndarray) -> float:
     equations of the global parameters have the same condition number); inf when singular."""
     if cov.size == 0:
         return 1.0
+    if not np.all(np.isfinite(cov)):
+        return float("inf")
     s = np.sqrt(np.clip(np.diag(cov), 0, None))
     if not np.all(s > 0):
         return float("inf")

@@ -90,7 +90,7 @@ def test_identical_pattern_points_are_rejected(method):
     if method == "paper" or "non_finite" in codes:  # the paper result (or the joint's start) does not fit
         assert "rms_high" in codes
     else:  # the joint fits it (RMS 0.04 px in the case) but nothing pins the projector down
-        assert {"uncertainty_pose", "ill_conditioned"} & set(codes)
+        assert {"uncertainty_pose", "uncertainty_intrinsics", "ill_conditioned"} & set(codes)
 
 
 @pytest.mark.parametrize("method", ["paper", "joint"])
@@ -169,6 +169,10 @@ def test_uncertainty_and_conditioning_checks(truth):
                   projector={"fx": 1, "fy": 1, "cx": 1, "cy": 1})
     assert check_calibration(truth.with_(uncertainty=unc_cm, units="cm")).codes == ["uncertainty_pose"]
     assert check_calibration(truth.with_(uncertainty=unc_cm)).passed
+    # a covariance that could not be computed (NaN) fails, it does not pass silently
+    unc_nan = dict(unc_cm, T_cam_proj={"t_total": float("nan"), "rot_total_deg": 0.01},
+                   covariance={"matrix": [[1.0, float("nan")], [float("nan"), 1.0]]})
+    assert check_calibration(truth.with_(uncertainty=unc_nan)).codes == ["uncertainty_pose", "ill_conditioned"]
     nearly_singular = np.array([[1.0, 1 - 1e-12], [1 - 1e-12, 1.0]])
     unc_sing = dict(unc_cm, covariance={"matrix": nearly_singular.tolist()})
     assert check_calibration(truth.with_(uncertainty=unc_sing)).codes == ["ill_conditioned"]
