@@ -23,7 +23,9 @@ global parameter plus six for all board poses together). The solver is Levenberg
 board poses eliminated by the Schur complement (solver="scipy": scipy's least_squares, trf, sparse
 Jacobian, x_scale='jac'): a robust pass (soft-L1), outlier rejection, then the plain squared loss on
 the inliers (the maximum-likelihood estimate under Gaussian pixel noise), distortion model selection
-(calib.model_select) and the covariance (calib.uncertainty).
+(calib.model_select) and the covariance (calib.uncertainty). The solver itself (normal equations, LM)
+is calib.joint_solver; non-finite numbers or a failed linear algebra there become a CalibrationError
+(code "non_finite" / "solve_failed"), which calibrate_joint reports as an UntrustedCalibration.
 """
 
 from __future__ import annotations
