@@ -24,7 +24,12 @@ class SessionError(ProcamError):
 
 
 class CalibrationError(ProcamError):
-    """The data cannot be calibrated (too few views, no mirror images for a mirrored rig...)."""
+    """The data cannot be calibrated (too few views, no mirror images for a mirrored rig...). `code`,
+    when set, names the failure for programs (stable across wordings), e.g. "non_finite"."""
+
+    def __init__(self, message: str = "", code: str | None = None):
+        super().__init__(message)
+        self.code = code
 
 
 class DiskFullError(ProcamError, OSError):
@@ -39,3 +44,20 @@ class DiskFullError(ProcamError, OSError):
 
     def __str__(self) -> str:
         return self.strerror
+
+
+class UntrustedCalibration(CalibrationError):
+    """A calibration ran but its result cannot be trusted (calib.trust): `report` (a TrustReport) lists
+    the reasons, each with a stable code; `result` is the rejected CalibrationResult, kept for
+    diagnosis only (never hand it on as a calibration)."""
+
+    def __init__(self, report, result=None):
+        self.report = report
+        self.result = result
+        reasons = "; ".join(r.message for r in report.reasons)
+        super().__init__(f"the calibration is not trustworthy and was not saved as a result: {reasons}",
+                         code="untrusted")
+
+    @property
+    def codes(self) -> list[str]:
+        return [r.code for r in self.report.reasons]

@@ -23,33 +23,29 @@ global parameter plus six for all board poses together). The solver is Levenberg
 board poses eliminated by the Schur complement (solver="scipy": scipy's least_squares, trf, sparse
 Jacobian, x_scale='jac'): a robust pass (soft-L1), outlier rejection, then the plain squared loss on
 the inliers (the maximum-likelihood estimate under Gaussian pixel noise), distortion model selection
-(calib.model_select) and the covariance (calib.uncertainty).
+(calib.model_select) and the covariance (calib.uncertainty). The solver itself (normal equations, LM)
+is calib.joint_solver; non-finite numbers or a failed linear algebra there become a CalibrationError
+(code "non_finite" / "solve_failed"), which calibrate_joint reports as an UntrustedCalibration.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
+from calib import model_select, uncertainty
 from calib.camera import CameraModel
-from calib.errors import CalibrationError
+from calib.errors import CalibrationError, UntrustedCalibration
+from calib.joint_solver import DIST_MODELS, MODEL_NAMES, _RowSums, solve
 from calib.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
+from calib.paper import calibrate_paper
 from calib.result import CalibrationResult, MirrorPlane
 from calib.transforms import FLIP_X, make_T
+from calib.trust import TrustReason, check_calibration
 
-#: Distortion models: name -> indices of the free coefficients in OpenCV's 8-vector
-#: [k1, k2, p1, p2, k3, k4, k5, k6]. Nested, simplest first.
-DIST_MODELS = {
-    "none": (),
-    "k1": (0,),
-    "k1k2": (0, 1),
-    "5coef": (0, 1, 2, 3, 4),
-    "rational": (0, 1, 2, 3, 4, 5, 6, 7),
-}
-MODEL_NAMES = tuple(DIST_MODELS)
 PATTERN_MODELS = ("auto", "point", "conic")
 
 _KIND_BOARD, _KIND_REAL, _KIND_VIRTUAL, _KIND_PATTERN = 0, 1, 2, 3
@@ -773,162 +769,6 @@ def _robust_sigma(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r - np.median(r))))
 
 
-def _loss_cost_weights(r: np.ndarray, loss: str, f: float) -> tuple[float, np.ndarray]:
-    """Robust cost of the residuals (per point: the 2D residual norm) and the IRLS weight per residual."""
-    e2 = r[0::2] ** 2 + r[1::2] ** 2
-    if loss == "linear":
-        return float(e2.sum()), np.ones_like(r)
-    z = e2 / (f * f)
-    if loss == "soft_l1":
-        rho = 2.0 * (np.sqrt(1.0 + z) - 1.0)
-        w = 1.0 / np.sqrt(1.0 + z)
-    elif loss == "huber":
-        rho = np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0)
-        w = np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1e-300)))
-    elif loss == "cauchy":
-        rho = np.log1p(z)
-        w = 1.0 / (1.0 + z)
-    else:
-        raise CalibrationError(f"unknown loss '{loss}' (linear, soft_l1, huber, cauchy)")
-    return float(f * f * rho.sum()), np.repeat(w, 2)
-
-
-class _RowSums:
-    """`P @ M` for the (V, N) 0/1 matrix P that sums the rows of M belonging to each pose: rows come in
-    runs of one pose (view by view, corners then pattern points), so np.add.reduceat over the runs,
-    then one scatter-add of the few run sums, does it without copying M (and without scipy.sparse)."""
-
-    def __init__(self, row_pose: np.ndarray, n_poses: int):
-        row_pose = np.asarray(row_pose, int)
-        self.starts = np.flatnonzero(np.r_[True, row_pose[1:] != row_pose[:-1]]) if len(row_pose) else \
-            np.zeros(0, int)
-        self.run_pose = row_pose[self.starts]
-        self.n_poses = n_poses
-
-    def __matmul__(self, M: np.ndarray) -> np.ndarray:
-        out = np.zeros((self.n_poses,) + M.shape[1:], np.result_type(M, float))
-        if len(self.starts):
-            np.add.at(out, self.run_pose, np.add.reduceat(M, self.starts, axis=0))
-        return out
-
-
-def normal_blocks(prob: JointProblem, Jg: np.ndarray, Jl: np.ndarray, w: np.ndarray, r: np.ndarray):
-    """Blocks of the weighted normal equations J^T W J = [[A, B], [B^T, D]] (D block-diagonal, one
-    6x6 block per pose, padded with identity beyond the pose's DOF) and the gradient J^T W r."""
-    V = len(prob.poses)
-    G = prob.n_global
-    wJg = Jg * w[:, None]
-    # einsum, not BLAS: threaded GEMM stalls on a busy machine, and these products are small
-    A = np.einsum("ni,nj->ij", Jg, wJg)
-    wJl = Jl * w[:, None]
-    P = prob.pose_sum  # (V, N) sparse: sums rows per pose
-    D = np.asarray(P @ (Jl[:, :, None] * wJl[:, None, :]).reshape(-1, 36)).reshape(V, 6, 6)
-    B = np.asarray(P @ (wJl[:, :, None] * Jg[:, None, :]).reshape(-1, 6 * G)).reshape(V, 6, G)
-    wr = w * r
-    g_g = np.einsum("ni,n->i", Jg, wr)
-    g_p = np.asarray(P @ (Jl * wr[:, None]))
-    pad = np.arange(6)[None, :] >= prob.pose_ndof[:, None]  # unused DOF of 3-DOF poses
-    D[:, np.arange(6), np.arange(6)] += pad
-    return A, B, D, g_g, g_p
-
-
-def _schur_solve(A, B, D, g_g, g_p, lam_g, lam_p):
-    """Solve [[A + lam_g, B^T], [B, D + lam_p]] [dg; dp] = -[g_g; g_p] with B (V, 6, G)."""
-    Dd = D + lam_p
-    Dinv = np.linalg.inv(Dd)  # (V, 6, 6), batched
-    E = np.einsum("vij,vjg->vig", Dinv, B)  # D^-1 B
-    S = (A + lam_g) - np.einsum("vkg,vkh->gh", B, E)
-    rhs = -(g_g - np.einsum("vkg,vk->g", E, g_p))
-    s_ = np.sqrt(np.clip(np.diag(S), 1e-300, None))
-    dg = np.linalg.solve(S / s_[:, None] / s_[None, :], rhs / s_) / s_
-    dp = -np.einsum("vij,vj->vi", Dinv, g_p + np.einsum("vkg,g->vk", B, dg))
-    return dg, dp
-
-
-def _lm(prob: JointProblem, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.ndarray, dict]:
-    """Levenberg-Marquardt on the block normal equations (poses eliminated by the Schur complement,
-    Marquardt's diagonal scaling, the equivalent of x_scale='jac'); robust losses by iteratively
-    reweighted least squares."""
-    x = prob.x0()
-    r = prob.residuals(x)
-    cost, w = _loss_cost_weights(r, loss, f_scale)
-    lam = 1e-7
-    nfev, njev, status = 1, 0, 0
-    G = prob.n_global
-    idx_p = prob.pose_start[:, None] + np.arange(6)[None, :]
-    valid = np.arange(6)[None, :] < prob.pose_ndof[:, None]
-    for _it in range(max_iter):
-        Jg, Jl = prob.jacobian_blocks(x)
-        njev += 1
-        A, B, D, g_g, g_p = normal_blocks(prob, Jg, Jl, w, r)
-        dA = np.clip(np.diag(A).copy(), 1e-12, None)
-        dD = np.clip(np.diagonal(D, axis1=1, axis2=2).copy(), 1e-12, None)
-        accepted = False
-        converged = False
-        while lam < 1e10:
-            lam_g = np.diag(lam * dA)
-            lam_p = np.zeros_like(D)
-            lam_p[:, np.arange(6), np.arange(6)] = lam * dD
-            try:
-                dg, dp = _schur_solve(A, B, D, g_g, g_p, lam_g, lam_p)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            step = np.zeros(prob.n_params)
-            step[:G] = dg
-            step[idx_p[valid]] = dp[valid]
-            # predicted decrease of the (reweighted) quadratic model
-            Jstep = np.einsum("ng,g->n", Jg, dg) + np.einsum("nk,nk->n", Jl, dp[prob.row_pose])
-            pred = -2.0 * (w * r) @ Jstep - (w * Jstep) @ Jstep
-            if pred <= 1e-12 * cost or cost < 1e-18 * r.size:
-                converged = True
-                break
-            x_new = x + step
-            r_new = prob.residuals(x_new)
-            nfev += 1
-            cost_new, w_new = _loss_cost_weights(r_new, loss, f_scale)
-            if np.isfinite(cost_new) and cost_new <= cost:
-                accepted = True
-                break
-            lam = max(lam * 10.0, 1e-6)
-        if converged or not accepted:
-            status = 1 if converged else 2
-            break
-        decrease = cost - cost_new
-        x, r, w = x_new, r_new, w_new
-        cost_prev, cost = cost, cost_new
-        lam = max(lam / 10.0, 1e-15)
-        if decrease <= tol * cost_prev:
-            status = 1
-            break
-    return x, {"nfev": nfev, "njev": njev, "status": status, "cost": cost, "loss": loss}
-
-
-def solve(prob: JointProblem, loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 60,
-          tol: float = 1e-9, solver: str = "lm") -> tuple[np.ndarray, dict]:
-    """One least-squares solve from prob.state; returns (x, info) and rebases prob on the solution.
-
-    solver "lm": Levenberg-Marquardt on the normal equations of the sparse Jacobian (default: ~5-10
-    iterations); "scipy": scipy.optimize.least_squares (trf, lsmr, x_scale='jac'), same model and
-    Jacobian, typically 3-5x more iterations."""
-    prob._xu_cache = None
-    if solver == "scipy":
-        from scipy.optimize import least_squares  # only here: importing scipy.optimize takes ~0.8 s
-
-        res = least_squares(prob.residuals, prob.x0(), jac=prob.jacobian, method="trf", loss=loss,
-                            f_scale=f_scale, x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev,
-                            tr_solver="lsmr", jac_sparsity=None)
-        x = res.x
-        info = {"nfev": int(res.nfev), "njev": int(res.njev or 0), "status": int(res.status),
-                "cost": float(2 * res.cost), "loss": loss}
-    elif solver == "lm":
-        x, info = _lm(prob, loss, f_scale, max_nfev, tol)
-    else:
-        raise CalibrationError(f"unknown solver '{solver}' (lm or scipy)")
-    prob.set_state(prob.rebase(x))
-    return prob.x0(), info
-
-
 def _update_centroid_correction(prob: JointProblem, x: np.ndarray, n_boundary: int = 32) -> None:
     """Difference between the area centroid of the imaged circle (32 boundary points through the full
     model, distortion included) and the conic-centre model, evaluated at x and held fixed: makes the
@@ -954,8 +794,6 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
                  progress=None) -> CalibrationResult:
     """Joint maximum-likelihood refinement of every parameter of the session from `init` (usually the
     paper's sequential result). See the module docstring and docs/JOINT.md."""
-    from calib import model_select, uncertainty
-
     t_start = time.perf_counter()
     timing = {}
     if isinstance(init.diagnostics, dict) and isinstance(init.diagnostics.get("timing_s"), dict):
@@ -1018,7 +856,7 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
 
     # ---- distortion model selection -------------------------------------------------------------
     t0 = time.perf_counter()
-    selection = model_select.select_models(prob, options)
+    selection = _guarded("the distortion model selection", model_select.select_models, prob, options)
     x = prob.x0()
     tick("joint.model_selection", t0)
 
@@ -1026,7 +864,7 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     t0 = time.perf_counter()
     unc = None
     if options.uncertainty:
-        unc = uncertainty.joint_uncertainty(prob, x)
+        unc = _guarded("the covariance", uncertainty.joint_uncertainty, prob, x)
     tick("joint.uncertainty", t0)
 
     result = _make_result(obs, init, prob, x, rejected, left_out, selection, unc, solves, timing)
@@ -1034,15 +872,22 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     return result
 
 
+def _guarded(what: str, fn, *args):
+    """fn(*args), with numpy's linear-algebra failures (which only degenerate data cause: an SVD that
+    does not converge, a singular system) turned into a CalibrationError that says so."""
+    try:
+        return fn(*args)
+    except np.linalg.LinAlgError as e:
+        raise CalibrationError(f"the joint adjustment failed in {what} ({e}); the session's data are probably "
+                               "degenerate (the same image in every capture, wrong pattern points, boards seen "
+                               "from one pose only): check the captures", code="solve_failed") from None
+
+
 def calibrate_joint(obs: SessionObservations, camera: CameraModel | None = None, progress=None,
                     options: JointOptions | None = None, **option_overrides) -> CalibrationResult:
     """The "joint" method of calib.pipeline.METHODS: the paper's sequential pipeline as the starting
     point, then refine_joint. A given `camera` is held fixed (as the paper method keeps it), unless
     fix_camera=False is passed. Keyword arguments override fields of JointOptions (camera_model=...)."""
-    from dataclasses import replace
-
-    from calib.pipeline import calibrate_paper
-
     opts = options or JointOptions()
     if camera is not None and "fix_camera" not in option_overrides:
         option_overrides["fix_camera"] = True
@@ -1052,7 +897,17 @@ def calibrate_joint(obs: SessionObservations, camera: CameraModel | None = None,
             raise CalibrationError(f"unknown joint option(s): {', '.join(sorted(unknown))}")
         opts = replace(opts, **option_overrides)
     init = calibrate_paper(obs, camera, progress)
-    return refine_joint(obs, init, opts, progress)
+    try:
+        return refine_joint(obs, init, opts, progress)
+    except CalibrationError as e:
+        if e.code not in ("non_finite", "solve_failed"):
+            raise
+        # the refinement met NaN / inf or a singular system: report it with what is wrong with its starting
+        # point, and keep that starting point (the paper method's result) for diagnosis
+        start = check_calibration(init)
+        report = replace(start, reasons=(TrustReason(e.code, str(e)),) + start.reasons)
+        rejected = init.with_(diagnostics=dict(init.diagnostics, joint_error=str(e), trust=report.to_dict()))
+        raise UntrustedCalibration(report, rejected) from None
 
 
 def _class_sigmas(prob: JointProblem, r_px: np.ndarray, options: JointOptions, robust: bool) -> dict:

@@ -1,4 +1,4 @@
-"""Distortion model selection per device: none / k1 / k1k2 / 5coef / rational (calib.joint.DIST_MODELS).
+"""Distortion model selection per device: none / k1 / k1k2 / 5coef / rational (calib.joint_solver.DIST_MODELS).
 
 The paper always uses 5 coefficients. Starting from that, a device's model is
 
@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from calib.joint import DIST_MODELS, MODEL_NAMES, normal_blocks, solve
+from calib.joint_solver import DIST_MODELS, MODEL_NAMES, normal_blocks, solve
 
 
 def chi2_sf(x: float, k: int) -> float:

@@ -1,9 +1,9 @@
 """The calibration pipeline: observations (or a session folder) in, CalibrationResult out.
 
-Methods are registered by name in METHODS (name -> function(obs, camera, progress) -> CalibrationResult).
-"paper" is the method of Vanherck et al.: camera (Zhang, all board views) -> mirror plane (RANSAC plane
-fit) -> projector (Zhang on board points, then stereo with fixed intrinsics, chained through the mirror).
-Another method registers itself with one line: `METHODS["joint"] = calibrate_joint`.
+Methods are registered by name in METHODS (name -> function(obs, camera, progress) -> CalibrationResult):
+"paper" is the method of Vanherck et al. (calib.paper), "joint" the paper's result refined by one joint
+maximum-likelihood adjustment (calib.joint). Every result passes the trust check (calib.trust) before
+it is returned: an untrusted calibration raises UntrustedCalibration instead.
 
 `progress`, when given, is called as progress(done, total, label) (the same convention as
 calib.detect.detect_session); `label` names the stage.
@@ -12,6 +12,7 @@ calib.detect.detect_session); `label` names the stage.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -19,118 +20,47 @@ import cv2
 import numpy as np
 
 from calib.camera import CameraModel
-from calib.camera_calib import CameraCalibration, calibrate_camera
-from calib.errors import CalibrationError, FormatError
-from calib.mirror_calib import MirrorCalibration, calibrate_mirror
-from calib.observations import VIEW_MIRROR, SessionObservations
-from calib.projector_calib import ProjectorCalibration, calibrate_projector
+from calib.errors import CalibrationError, FormatError, UntrustedCalibration
+from calib.joint import calibrate_joint
+from calib.observations import SessionObservations
+from calib.paper import Progress, calibrate_paper
 from calib.result import CalibrationResult
+from calib.trust import check_calibration
 
-Progress = Callable[[int, int, str], None]
 Method = Callable[[SessionObservations, "CameraModel | None", "Progress | None"], CalibrationResult]
 
-#: Projector views needed before any stage runs (the projector stage needs >= 4; the paper's protocol
-#: takes several poses at each of 13 pattern positions).
-MIN_PROJECTOR_VIEWS = 4
-
-PAPER_STAGES = ("camera", "mirror", "projector")
-
-
-def check_observations(obs: SessionObservations) -> None:
-    """Fail early, with a message a user can act on, when a session cannot be calibrated at all."""
-    n = len(obs.projector_views)
-    if n < MIN_PROJECTOR_VIEWS:
-        why = ""
-        if obs.skipped:
-            reasons = sorted({s.reason for s in obs.skipped})
-            why = f" ({len(obs.skipped)} image(s) skipped: {'; '.join(reasons[:3])})"
-        raise CalibrationError(
-            f"only {n} usable projector image(s){why}; need at least {MIN_PROJECTOR_VIEWS} (the paper's protocol: "
-            f"several board poses for each of the {obs.pattern.positions} pattern positions)")
-    if obs.view == VIEW_MIRROR and not obs.mirror_views:
-        raise CalibrationError(
-            "the projector images were taken through the mirror but the session has no usable mirror-calibration "
-            "images, so the mirror plane (and with it the projector's pose) cannot be estimated; capture "
-            "real-virtual images (board seen directly and in the mirror) or real-mirror images (board lying on it)")
-
-
-def paper_stages(obs: SessionObservations, camera: CameraModel | None = None, progress: Progress | None = None,
-                 *, projector_fix_k3: bool = True, mirror_threshold: float | None = None
-                 ) -> tuple[CameraCalibration, MirrorCalibration | None, ProjectorCalibration, dict]:
-    """Run the paper's three stages; returns their results and the time each took (seconds)."""
-    check_observations(obs)
-    mirrored = obs.view == VIEW_MIRROR
-    stages = [s for s in PAPER_STAGES if mirrored or s != "mirror"]
-    timing = {}
-
-    def tick(i, label):
-        if progress is not None:
-            progress(i, len(stages), label)
-
-    tick(0, "starting")  # then each call names the stage just finished (done of total)
-    t0 = time.perf_counter()
-    cc = calibrate_camera(obs, camera)
-    timing["camera"] = time.perf_counter() - t0
-    tick(1, "camera")
-    mc = None
-    if mirrored:
-        t0 = time.perf_counter()
-        mc = calibrate_mirror(obs, cc.camera, threshold=mirror_threshold)
-        timing["mirror"] = time.perf_counter() - t0
-        tick(2, "mirror")
-    t0 = time.perf_counter()
-    pc = calibrate_projector(obs, cc.camera, mc.plane if mc is not None else None, fix_k3=projector_fix_k3)
-    timing["projector"] = time.perf_counter() - t0
-    tick(len(stages), "projector")
-    return cc, mc, pc, timing
-
-
-def detection_skips(obs: SessionObservations) -> list[dict]:
-    return [{"capture_id": s.capture_id, "image": s.image, "stage": "detection", "reason": s.reason}
-            for s in obs.skipped]
-
-
-def assemble_result(obs: SessionObservations, method: str, cc: CameraCalibration, mc: MirrorCalibration | None,
-                    pc: ProjectorCalibration, timing: dict) -> CalibrationResult:
-    """A CalibrationResult from the paper stages' outputs (other methods may reuse it, then refine)."""
-    rms = {"camera": cc.rms_px, "mirror_plane": None if mc is None else mc.rms, "projector": pc.rms_px,
-           "stereo": pc.stereo_rms_px}
-    per_view = list(cc.per_view) + (list(mc.per_view) if mc is not None else []) + list(pc.per_view)
-    skipped = detection_skips(obs) + list(cc.skipped) + (list(mc.skipped) if mc is not None else []) + list(pc.skipped)
-    diag = {
-        "timing_s": {k: round(float(v), 4) for k, v in timing.items()},
-        "rms_units": {"camera": "px", "mirror_plane": obs.units, "projector": "px", "stereo": "px"},
-        "camera": {"precalibrated": cc.precalibrated, "n_views": cc.n_views, "n_points": cc.n_points,
-                   "flags": cc.flags,
-                   "std_intrinsics": None if cc.std_intrinsics is None else cc.std_intrinsics.tolist()},
-        "projector": dict(pc.diagnostics, std_intrinsics=None if pc.std_intrinsics is None else pc.std_intrinsics.tolist()),
-    }
-    if mc is not None:
-        diag["mirror"] = {"method": mc.method, "n_inliers": mc.n_inliers, "n_outliers": mc.n_outliers,
-                          "threshold": mc.threshold, "board_thickness": mc.board_thickness, **mc.diagnostics}
-    return CalibrationResult(camera=cc.camera, projector=pc.projector, T_cam_proj=pc.T_cam_proj,
-                             mirror=None if mc is None else mc.plane, units=obs.units, method=method, rms=rms,
-                             per_view=tuple(per_view), skipped=tuple(skipped), uncertainty=None, diagnostics=diag)
-
-
-def calibrate_paper(obs: SessionObservations, camera: CameraModel | None = None,
-                    progress: Progress | None = None) -> CalibrationResult:
-    """The paper's method (Vanherck et al. 2025), stage by stage."""
-    cc, mc, pc, timing = paper_stages(obs, camera, progress)
-    return assemble_result(obs, "paper", cc, mc, pc, timing)
-
-
 #: name -> function(obs, camera, progress) -> CalibrationResult
-METHODS: dict[str, Method] = {"paper": calibrate_paper}
+METHODS: dict[str, Method] = {"paper": calibrate_paper, "joint": calibrate_joint}
 
-from calib.joint import calibrate_joint  # noqa: E402  (paper first, then one joint refinement: docs/JOINT.md)
 
-METHODS["joint"] = calibrate_joint
+#: what calibrate_observations / calibrate_session do with the trust check (calib.trust): "check" raises
+#: UntrustedCalibration for a result that fails it; "accept" keeps the result with the reasons recorded
+#: in diagnostics["trust"] (an expert's override, `procam calibrate --accept-untrusted`); None skips it
+#: (benchmarks that study the methods themselves).
+TRUST_MODES = ("check", "accept", None)
+
+
+def apply_trust_check(result: CalibrationResult, trust: str | None = "check") -> CalibrationResult:
+    """The result with its trust report in diagnostics["trust"]; raises UntrustedCalibration (carrying
+    the report and that result) when it fails and `trust` is "check"."""
+    if trust not in TRUST_MODES:
+        raise CalibrationError(f"unknown trust mode '{trust}' (check, accept or None)")
+    if trust is None:
+        return result
+    report = check_calibration(result)
+    if not report.passed and trust == "accept":
+        report = replace(report, accepted_by_user=True)
+    result = result.with_(diagnostics=dict(result.diagnostics, trust=report.to_dict()))
+    if not report.passed and trust == "check":
+        raise UntrustedCalibration(report, result)
+    return result
 
 
 def calibrate_observations(obs: SessionObservations, method: str = "joint", camera: CameraModel | None = None,
-                           progress: Progress | None = None, method_options: dict | None = None) -> CalibrationResult:
-    """Calibrate from detected observations with a registered method; `camera` skips the camera stage."""
+                           progress: Progress | None = None, method_options: dict | None = None,
+                           trust: str | None = "check") -> CalibrationResult:
+    """Calibrate from detected observations with a registered method; `camera` skips the camera stage.
+    The result passes the trust check (`trust`, see TRUST_MODES) before it is returned."""
     fn = METHODS.get(method)
     if fn is None:
         raise CalibrationError(f"unknown calibration method '{method}' (available: {', '.join(sorted(METHODS))})")
@@ -140,16 +70,18 @@ def calibrate_observations(obs: SessionObservations, method: str = "joint", came
     timing = dict(diag.get("timing_s", {}))
     timing["total"] = round(time.perf_counter() - t0, 4)
     diag["timing_s"] = timing
-    return result.with_(diagnostics=diag)
+    return apply_trust_check(result.with_(diagnostics=diag), trust)
 
 
 def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, workers: int = 2,
                       progress: Progress | None = None, detect_progress: Progress | None = None,
-                      method_options: dict | None = None, detect_cache: str = "use") -> CalibrationResult:
+                      method_options: dict | None = None, detect_cache: str = "use",
+                      trust: str | None = "check") -> CalibrationResult:
     """Detect and calibrate a session folder. `camera_intrinsics`: None, a CameraModel, or a file
     (calibration.json or OpenCV YAML, see load_camera_intrinsics). `detect_progress` (default:
     `progress`) follows detection, `progress` the calibration stages. `detect_cache`: "use" (reuse
-    the detections of earlier runs kept in the session folder), "refresh" or "off" (detect_session)."""
+    the detections of earlier runs kept in the session folder), "refresh" or "off" (detect_session).
+    `trust`: the trust check (TRUST_MODES); an untrusted result raises UntrustedCalibration."""
     from calib.detect import detect_session
     from calib.session import SessionStore
 
@@ -161,7 +93,7 @@ def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, wor
     camera = camera_intrinsics
     if camera is not None and not isinstance(camera, CameraModel):
         camera = load_camera_intrinsics(camera, obs.camera_size)
-    result = calibrate_observations(obs, method, camera, progress, method_options)
+    result = calibrate_observations(obs, method, camera, progress, method_options, trust=None)
     images = {c.id: c.image for c in store.manifest.captures}
     skipped = []
     for s in result.skipped:
@@ -172,7 +104,7 @@ def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, wor
     diag = dict(result.diagnostics)
     diag["timing_s"] = dict(diag.get("timing_s", {}), detection=round(t_detect, 4))
     diag["session"] = str(Path(folder))
-    return result.with_(skipped=tuple(skipped), diagnostics=diag)
+    return apply_trust_check(result.with_(skipped=tuple(skipped), diagnostics=diag), trust)
 
 
 # ---- camera intrinsics from a file ------------------------------------------------------------------

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.joint_solver import normal_blocks
+
 
 def _sym_inv(A: np.ndarray) -> np.ndarray:
     """Inverse of a symmetric positive (semi-)definite matrix, Jacobi-scaled for conditioning."""
@@ -27,8 +29,6 @@ def marginal_covariance(prob, x: np.ndarray):
     """(Cov of the global parameters, variance factor, dof) at x, the board poses marginalised:
     Cov = s^2 (A - B D^-1 B^T)^-1 with J^T J = [[A, B^T], [B, D]] (D block-diagonal per pose) and
     s^2 = r.r / (N - P) of the (whitened) residuals."""
-    from calib.joint import normal_blocks
-
     Jg, Jl = prob.jacobian_blocks(x)
     r = prob.residuals(x)
     A, B, D, _, _ = normal_blocks(prob, Jg, Jl, np.ones_like(r), r)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,10 @@ def add_arguments(p) -> None:
                         "of earlier runs, kept per image and detector version)")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress output (default: bars on a terminal, a line per stage otherwise)")
+    p.add_argument("--accept-untrusted", action="store_true",
+                   help="experts: write the result even when the trust check rejects it (absurd parameters, "
+                        "huge residuals or uncertainty; docs/CALIBRATION.md); the reasons are printed and "
+                        "recorded in the file under diagnostics.trust")
 
 
 def check_session_arg(path) -> Path:
@@ -126,6 +131,7 @@ def validate(args):
 
 
 def run(args) -> int:
+    from calib.errors import CalibrationError, UntrustedCalibration
     from calib.pipeline import calibrate_session
 
     from app.commands._outputs import write_error
@@ -139,9 +145,20 @@ def run(args) -> int:
         result = calibrate_session(session, args.method, camera, args.workers,
                                    progress=bars.callback("calibrate", stages=True),
                                    detect_progress=bars.callback("detect", unit="images"),
-                                   method_options=opts or None, detect_cache="refresh" if args.redetect else "use")
+                                   method_options=opts or None, detect_cache="refresh" if args.redetect else "use",
+                                   trust="accept" if args.accept_untrusted else "check")
+    except UntrustedCalibration as e:
+        _report_rejected(e, out)
+        raise CalibrationError(f"the calibration is not trustworthy ({len(e.report.reasons)} reason(s) above); "
+                               f"{out.name} was not written", code="untrusted") from None
     finally:
         bars.close()
+    trust = result.diagnostics.get("trust", {}) if isinstance(result.diagnostics, dict) else {}
+    if trust.get("reasons"):
+        print("WARNING: the trust check rejects this calibration; written anyway (--accept-untrusted):",
+              file=sys.stderr)
+        for r in trust["reasons"]:
+            print(f"  [{r['code']}] {r['message']}", file=sys.stderr)
     for path, save in ((out, result.save_json), (yaml_path, result.save_opencv_yaml)):
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
@@ -171,6 +188,22 @@ def stale_verification_note(session: Path, written: Path) -> str | None:
         return None
     return (f"note: {report} verified the calibration this one replaced, so it is stale: run "
             f"`procam verify {session} --rig ...` again")
+
+
+def _report_rejected(e, out: Path) -> None:
+    """An untrusted calibration: its reasons on stderr, and the rejected result beside where the result
+    would have gone, as NAME.rejected.json (for diagnosis; calibration.json and .yaml are not written)."""
+    rejected = out.with_name(out.stem + ".rejected.json")
+    print("the trust check rejects this calibration:", file=sys.stderr)
+    for r in e.report.reasons:
+        print(f"  [{r.code}] {r.message}", file=sys.stderr)
+    if e.result is not None:
+        try:
+            rejected.parent.mkdir(parents=True, exist_ok=True)
+            e.result.save_json(rejected)
+            print(f"the rejected result is in {rejected} (for diagnosis only; not a calibration)", file=sys.stderr)
+        except OSError as err:
+            print(f"could not write {rejected}: {err.strerror}", file=sys.stderr)
 
 
 def _fmt_model(name: str, cam) -> list[str]:

@@ -55,6 +55,7 @@ _OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake",
 
 CALIBRATION_FILE = "calibration.json"
 CALIBRATION_YAML = "calibration.yaml"
+CALIBRATION_REJECTED = "calibration.rejected.json"  # an untrusted result, for diagnosis only
 
 
 def mirror_step(method: str) -> str:
@@ -634,8 +635,8 @@ class SessionMachine:
             self.report = None
             self._log(f"calibrating {len(self.manifest.captures)} captures"
                       + (" with the given camera intrinsics" if self.camera_intrinsics else ""))
-        result = self._run_busy(lambda: self._calibrate_fn(self.store.folder, self.camera_intrinsics, progress),
-                                "calibration_error", "calibration failed")
+        result = self._run_busy(lambda: _keep_rejected(self.store.folder, lambda: self._calibrate_fn(
+            self.store.folder, self.camera_intrinsics, progress)), "calibration_error", "calibration failed")
         with self._lock:
             result.save_json(self.store.folder / CALIBRATION_FILE)
             try:
@@ -738,6 +739,22 @@ class SessionMachine:
         del self.events[:-200]
         if self.on_event is not None:
             self.on_event(text)
+
+
+def _keep_rejected(folder, work):
+    """work(); a calibration the trust check rejects (calib.trust) is kept as calibration.rejected.json
+    for diagnosis (never as calibration.json) before the error goes on to the panel with its reasons."""
+    from calib.errors import UntrustedCalibration
+
+    try:
+        return work()
+    except UntrustedCalibration as e:
+        if e.result is not None:
+            try:
+                e.result.save_json(Path(folder) / CALIBRATION_REJECTED)
+            except OSError:
+                pass  # the diagnosis file is a convenience; the error itself still reaches the operator
+        raise
 
 
 def default_calibrate(folder, camera_intrinsics, progress=None, workers: int = 2,

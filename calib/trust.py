@@ -1,0 +1,336 @@
+"""Is a calibration result trustworthy? One entry function: check_calibration(result) -> TrustReport.
+
+A calibration that ran to the end is not necessarily a calibration: degenerate sessions (the same
+image copied over every projector capture, wrong pattern points, too few or too similar poses) give
+results with absurd parameters, huge residuals or an uncertainty far beyond what a full session gives.
+calib.pipeline runs this check on every result (both methods) and raises UntrustedCalibration
+(calib.errors) with the reasons when it fails, so that no such result is saved or handed on.
+
+Each failed check is a TrustReason with a stable `code` (programs and tests match on it), a message a
+user can act on, the measured value and the limit. The checks and how the limits were chosen (from the
+project's simulated full sessions, `python benchmarks/trust_thresholds.py`): docs/CALIBRATION.md,
+"Trust check". The limits are fields of TrustThresholds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from calib.camera import CameraModel
+from calib.transforms import invert_T
+
+#: length units of a session -> millimetres (limits on lengths are stated in mm)
+_MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+
+CODES = {
+    "non_finite": "a parameter or residual is NaN or infinite",
+    "solve_failed": "the joint adjustment's linear algebra failed (singular or non-convergent system)",
+    "focal_nonpositive": "a focal length is zero or negative",
+    "focal_out_of_range": "a focal length gives an impossible field of view",
+    "aspect_ratio": "fy / fx far from 1 (pixels are square)",
+    "principal_point": "the principal point lies far outside the image",
+    "distortion_folds": "the radial distortion folds the image (not monotonic inside it)",
+    "rms_high": "residuals far above the detection noise",
+    "mirror_behind_camera": "the mirror plane is not in front of the camera",
+    "projector_too_far": "the projector is absurdly far from the camera",
+    "board_behind_projector": "boards the projector lit are behind it",
+    "uncertainty_pose": "the camera-projector pose is far more uncertain than a full session's",
+    "uncertainty_intrinsics": "intrinsics far more uncertain than a full session's",
+    "uncertainty_mirror": "the mirror normal is far more uncertain than a full session's",
+    "ill_conditioned": "the normal equations are (nearly) singular",
+}
+
+
+@dataclass(frozen=True)
+class TrustThresholds:
+    """Limits of the trust check. The RMS and uncertainty limits are about 10x the worst value of the
+    simulated full sessions at 0.3 px noise (benchmarks/trust_thresholds.py; the values measured are in
+    docs/CALIBRATION.md): what a full session would give with 3 px of noise."""
+
+    fx_per_width_min: float = 0.15  # horizontal field of view below 146 deg
+    fx_per_width_max: float = 15.0  # ... above 3.8 deg
+    aspect_min: float = 0.8
+    aspect_max: float = 1.25
+    principal_point_margin: float = 1.0  # image sizes beyond the edges (lens shift of offset projectors)
+    rms_camera_px: float = 3.0  # residuals measured in camera pixels (every joint class; paper camera)
+    rms_projector_px: float = 20.0  # the paper method's projector and stereo RMS (projector pixels)
+    max_projector_distance_mm: float = 10000.0
+    sigma_t_mm: float = 20.0  # 1-sigma of T_cam_proj's translation (all axes together)
+    sigma_rot_deg: float = 1.5  # 1-sigma of T_cam_proj's rotation
+    sigma_intrinsics_px: float = 50.0  # 1-sigma of any of fx, fy, cx, cy (joint covariance)
+    sigma_intrinsics_opencv_px: float = 500.0  # ... as OpenCV reports it (paper method, looser: see doc)
+    sigma_mirror_normal_deg: float = 1.0
+    condition_max: float = 1e8  # of the correlation matrix of the geometric parameters (not distortion)
+
+
+@dataclass(frozen=True)
+class TrustReason:
+    code: str
+    message: str
+    value: float | None = None
+    limit: float | None = None
+
+    def to_dict(self) -> dict:
+        return {"code": self.code, "message": self.message,
+                "value": None if self.value is None or not math.isfinite(self.value) else float(self.value),
+                "limit": self.limit}
+
+
+@dataclass(frozen=True)
+class TrustReport:
+    """Outcome of check_calibration: `reasons` (empty when trusted) and the measured `metrics`."""
+
+    reasons: tuple[TrustReason, ...] = ()
+    metrics: dict = field(default_factory=dict)
+    thresholds: TrustThresholds = field(default_factory=TrustThresholds)
+    accepted_by_user: bool = False
+
+    @property
+    def passed(self) -> bool:
+        return not self.reasons
+
+    @property
+    def codes(self) -> list[str]:
+        return [r.code for r in self.reasons]
+
+    def to_dict(self) -> dict:
+        return {"passed": self.passed, "accepted_by_user": self.accepted_by_user,
+                "reasons": [r.to_dict() for r in self.reasons],
+                "metrics": {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                            for k, v in self.metrics.items()},
+                "thresholds": asdict(self.thresholds)}
+
+
+def check_calibration(result, thresholds: TrustThresholds | None = None) -> TrustReport:
+    """Check a CalibrationResult (any method) for the failures listed in CODES; never raises on a bad
+    result (that is what the report is for)."""
+    th = thresholds or TrustThresholds()
+    reasons: list[TrustReason] = []
+    metrics: dict = {}
+
+    def fail(code, message, value=None, limit=None):
+        reasons.append(TrustReason(code, message, None if value is None else float(value), limit))
+
+    finite = _finite_parameters(result)
+    if finite:
+        fail("non_finite", f"non-finite (NaN or infinite) values in {', '.join(finite)}")
+        return TrustReport(tuple(reasons), metrics, th)
+    for name, dev in (("camera", result.camera), ("projector", result.projector)):
+        _check_device(name, dev, th, fail, metrics)
+    _check_rms(result, th, fail, metrics)
+    _check_geometry(result, th, fail, metrics)
+    _check_uncertainty(result, th, fail, metrics)
+    return TrustReport(tuple(reasons), metrics, th)
+
+
+# ---- parameters --------------------------------------------------------------------------------------
+def _finite_parameters(result) -> list[str]:
+    bad = []
+    for name, arr in (("camera K", result.camera.K), ("camera distortion", result.camera.dist),
+                      ("projector K", result.projector.K), ("projector distortion", result.projector.dist),
+                      ("T_cam_proj", result.T_cam_proj)):
+        if not np.all(np.isfinite(np.asarray(arr, float))):
+            bad.append(name)
+    if result.mirror is not None and not (np.all(np.isfinite(result.mirror.normal)) and math.isfinite(result.mirror.d)):
+        bad.append("the mirror plane")
+    for k, v in (result.rms or {}).items():
+        if isinstance(v, (int, float)) and not math.isfinite(v):
+            bad.append(f"RMS '{k}'")
+    return bad
+
+
+def _check_device(name: str, dev: CameraModel, th: TrustThresholds, fail, metrics: dict) -> None:
+    w, h = dev.width, dev.height
+    fx, fy, cx, cy = dev.fx, dev.fy, dev.cx, dev.cy
+    metrics[f"{name}.fx_per_width"] = fx / w
+    metrics[f"{name}.aspect"] = fy / fx if fx else float("nan")
+    if fx <= 0 or fy <= 0:
+        fail("focal_nonpositive", f"the {name}'s focal length is not positive (fx {fx:.4g}, fy {fy:.4g} px)",
+             min(fx, fy), 0.0)
+        return
+    lo, hi = th.fx_per_width_min * w, th.fx_per_width_max * w
+    for axis, f in (("fx", fx), ("fy", fy)):
+        if not lo <= f <= hi:
+            fail("focal_out_of_range", f"the {name}'s {axis} of {f:.4g} px is outside {lo:.0f}-{hi:.0f} px "
+                 f"(a field of view no {name} has)", f, hi if f > hi else lo)
+    if not th.aspect_min <= fy / fx <= th.aspect_max:
+        fail("aspect_ratio", f"the {name}'s fy / fx = {fy / fx:.3g} (pixels are square: expected near 1)",
+             fy / fx, th.aspect_max if fy / fx > 1 else th.aspect_min)
+    m = th.principal_point_margin
+    if not (-m * w <= cx <= (1 + m) * w and -m * h <= cy <= (1 + m) * h):
+        fail("principal_point", f"the {name}'s principal point ({cx:.4g}, {cy:.4g}) px is far outside its "
+             f"{w}x{h} image", None, m)
+    fold = radial_fold_fraction(dev)
+    metrics[f"{name}.fold_at_fraction_of_corner_radius"] = fold
+    if fold is not None:
+        fail("distortion_folds", f"the {name}'s radial distortion folds the image: the mapping stops "
+             f"increasing at {100 * fold:.0f}% of the distance to the image corners", fold, 1.0)
+
+
+def radial_fold_fraction(dev: CameraModel, samples: int = 4000) -> float | None:
+    """None when the radial distortion r -> r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4
+    + k6 r^6) increases until r_d reaches the farthest image corner (every pixel is one ray); else the
+    fraction of that corner radius (in r_d) at which it stops increasing (the image folds there)."""
+    d = np.zeros(8)
+    dist = np.asarray(dev.dist, float).reshape(-1)[:8]
+    d[: dist.size] = dist
+    k1, k2, _p1, _p2, k3, k4, k5, k6 = d
+    corners = np.array([[-0.5, -0.5], [dev.width - 0.5, -0.5], [-0.5, dev.height - 0.5],
+                        [dev.width - 0.5, dev.height - 0.5]])
+    m = (corners - [dev.cx, dev.cy]) / [dev.fx, dev.fy]
+    rd_max = float(np.max(np.hypot(m[:, 0], m[:, 1])))
+    # undistorted radius up to a ray 89.4 deg off-axis; r_d must reach rd_max increasing all the way
+    r = np.linspace(0.0, max(100.0, 10 * rd_max), samples * 25)
+    r2 = r * r
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        rd = r * num / den
+    reached = np.nonzero(rd >= rd_max)[0]
+    stop = int(reached[0]) if len(reached) else len(r) - 1
+    seg_rd, seg_den = rd[: stop + 1], den[: stop + 1]
+    bad = np.nonzero((np.diff(seg_rd) <= 0) | ~np.isfinite(seg_rd[1:]) | (seg_den[1:] <= 0))[0]
+    if len(bad) == 0 and len(reached):
+        return None
+    at = seg_rd[bad[0]] if len(bad) else np.nanmax(seg_rd)
+    return float(max(at, 0.0) / rd_max) if np.isfinite(at) else 0.0
+
+
+def _check_rms(result, th: TrustThresholds, fail, metrics: dict) -> None:
+    rms = {k: v for k, v in (result.rms or {}).items() if isinstance(v, (int, float))}
+    # joint: every class in camera pixels; paper: camera (camera px), projector and stereo (projector px),
+    # mirror_plane (board units: not a pixel residual)
+    for key, v in rms.items():
+        if key == "mirror_plane":
+            continue
+        projector_px = result.method != "joint" and key in ("projector", "stereo")
+        limit = th.rms_projector_px if projector_px else th.rms_camera_px
+        metrics[f"rms.{key}"] = float(v)
+        if v > limit:
+            unit = "projector px" if projector_px else "px"
+            fail("rms_high", f"the {key} RMS of {v:.3g} {unit} is far above the detection noise (limit "
+                 f"{limit:g}): the observations do not fit one rig", v, limit)
+
+
+def _check_geometry(result, th: TrustThresholds, fail, metrics: dict) -> None:
+    T = np.asarray(result.T_cam_proj, float)
+    proj_centre = T[:3, 3]
+    mm = _MM_PER_UNIT.get(result.units)
+    dist = float(np.linalg.norm(proj_centre))
+    metrics["projector_distance"] = dist
+    if mm is not None and dist * mm > th.max_projector_distance_mm:
+        fail("projector_too_far", f"the projector is {dist * mm / 1000:.3g} m from the camera (limit "
+             f"{th.max_projector_distance_mm / 1000:g} m)", dist * mm, th.max_projector_distance_mm)
+    if result.mirror is not None:
+        n = np.asarray(result.mirror.normal, float)
+        cam = result.camera
+        us, vs = np.meshgrid(np.linspace(0, cam.width - 1, 9), np.linspace(0, cam.height - 1, 9))
+        rays = cam.rays(np.column_stack([us.ravel(), vs.ravel()]))
+        hit = float(np.mean(rays @ n < 0))  # the plane's camera side faces the camera: ray meets it at s > 0
+        metrics["mirror_fraction_of_view"] = hit
+        if hit == 0.0:
+            fail("mirror_behind_camera", "the mirror plane is not in front of the camera (no pixel's ray meets "
+                 "it): the mirror estimate is wrong", hit, 0.0)
+    diag = result.diagnostics if isinstance(result.diagnostics, dict) else {}
+    poses = diag.get("board_poses")
+    steps = {pv.get("capture_id"): pv.get("step") for pv in result.per_view if isinstance(pv, dict)}
+    if isinstance(poses, dict) and poses:
+        T_proj_cam = invert_T(T)
+        behind = []
+        for cid, Tb in poses.items():
+            if steps.get(cid) != "projector":
+                continue
+            c = np.asarray(Tb, float)[:3, 3]
+            if (T_proj_cam[:3, :3] @ c + T_proj_cam[:3, 3])[2] <= 0:
+                behind.append(cid)
+        metrics["boards_behind_projector"] = len(behind)
+        if behind:
+            fail("board_behind_projector", f"{len(behind)} board(s) the projector lit are behind it "
+                 f"({', '.join(behind[:3])}{'...' if len(behind) > 3 else ''})", len(behind), 0.0)
+
+
+def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None:
+    unc = result.uncertainty
+    mm = _MM_PER_UNIT.get(result.units, 1.0)
+    if isinstance(unc, dict):
+        T = unc.get("T_cam_proj") or {}
+        if isinstance(T.get("t_total"), (int, float)):
+            s_t = float(T["t_total"]) * mm
+            metrics["sigma.t_mm"] = s_t
+            if not s_t <= th.sigma_t_mm:  # NaN too: a covariance that could not be computed
+                fail("uncertainty_pose", f"the projector's position is uncertain by {_fmt(s_t, 'mm')} (1 sigma; limit "
+                     f"{th.sigma_t_mm:g} mm): the poses do not constrain it", s_t, th.sigma_t_mm)
+        if isinstance(T.get("rot_total_deg"), (int, float)):
+            s_r = float(T["rot_total_deg"])
+            metrics["sigma.rot_deg"] = s_r
+            if not s_r <= th.sigma_rot_deg:
+                fail("uncertainty_pose", f"the projector's orientation is uncertain by {_fmt(s_r, 'deg')} (1 sigma; "
+                     f"limit {th.sigma_rot_deg:g} deg)", s_r, th.sigma_rot_deg)
+        for dev in ("camera", "projector"):
+            u = unc.get(dev) or {}
+            if u.get("fixed"):
+                continue
+            vals = [float(u[k]) for k in ("fx", "fy", "cx", "cy") if isinstance(u.get(k), (int, float))]
+            if vals:
+                s = max(vals) if all(math.isfinite(v) for v in vals) else float("inf")
+                metrics[f"sigma.{dev}_intrinsics_px"] = s
+                if not s <= th.sigma_intrinsics_px:
+                    fail("uncertainty_intrinsics", f"the {dev}'s intrinsics are uncertain by up to {s:.3g} px "
+                         f"(1 sigma; limit {th.sigma_intrinsics_px:g} px)", s, th.sigma_intrinsics_px)
+        m = unc.get("mirror")
+        if isinstance(m, dict) and isinstance(m.get("normal_deg"), (int, float)):
+            s_n = float(m["normal_deg"])
+            metrics["sigma.mirror_normal_deg"] = s_n
+            if not s_n <= th.sigma_mirror_normal_deg:
+                fail("uncertainty_mirror", f"the mirror normal is uncertain by {_fmt(s_n, 'deg')} (1 sigma; limit "
+                     f"{th.sigma_mirror_normal_deg:g} deg)", s_n, th.sigma_mirror_normal_deg)
+        covd = unc.get("covariance") or {}
+        if covd.get("matrix") is not None:
+            cov = np.asarray(covd["matrix"], float)
+            names = list(covd.get("names") or [])
+            # the geometry (focal lengths, principal points, T_cam_proj, the mirror): distortion coefficients
+            # of a rich model are nearly degenerate with each other without harm to the projection (the
+            # distortion's own sanity is the fold check), so they are left out of the condition number
+            keep = [i for i, nm in enumerate(names) if ".dist" not in nm] if len(names) == len(cov) else \
+                list(range(len(cov)))
+            metrics["condition_all"] = correlation_condition(cov)
+            c = correlation_condition(cov[np.ix_(keep, keep)])
+            metrics["condition"] = c
+            if not c <= th.condition_max:
+                fail("ill_conditioned", f"the calibration is ill-conditioned (condition number {c:.3g} of the "
+                     f"correlation of its geometric parameters, limit {th.condition_max:.0e}): some of them are "
+                     "not determined by the data", c, th.condition_max)
+        return
+    # methods without a covariance (paper): OpenCV's 1-sigma of the intrinsics, where it reports them
+    diag = result.diagnostics if isinstance(result.diagnostics, dict) else {}
+    for dev in ("camera", "projector"):
+        std = (diag.get(dev) or {}).get("std_intrinsics") if isinstance(diag.get(dev), dict) else None
+        if isinstance(std, list) and len(std) >= 4:
+            vals = [float(v) for v in std[:4]]
+            s = max(vals) if all(math.isfinite(v) for v in vals) else float("inf")
+            metrics[f"sigma_opencv.{dev}_intrinsics_px"] = s
+            if not s <= th.sigma_intrinsics_opencv_px:
+                fail("uncertainty_intrinsics", f"the {dev}'s intrinsics are uncertain by up to {s:.3g} px (OpenCV's "
+                     f"1 sigma; limit {th.sigma_intrinsics_opencv_px:g} px)", s, th.sigma_intrinsics_opencv_px)
+
+
+def _fmt(v: float, unit: str) -> str:
+    return f"{v:.3g} {unit}" if math.isfinite(v) else "an amount that cannot be computed (singular covariance)"
+
+
+def correlation_condition(cov: np.ndarray) -> float:
+    """Condition number of the correlation matrix of `cov` (scale-free: the Jacobi-scaled normal
+    equations of the global parameters have the same condition number); inf when singular."""
+    if cov.size == 0:
+        return 1.0
+    if not np.all(np.isfinite(cov)):
+        return float("inf")
+    s = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if not np.all(s > 0):
+        return float("inf")
+    corr = cov / s[:, None] / s[None, :]
+    ev = np.linalg.eigvalsh((corr + corr.T) / 2)
+    return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
