@@ -168,26 +168,39 @@ def _num(v):
 
 
 class _Grabber:
-    """Shows an image and returns the (mean of `average`) camera frame(s) exposed after it: frames
-    newer than the last one seen when the image was presented, plus `settle_frames`."""
+    """Shows an image and returns the (mean of `average`) camera frame(s) exposed after it became
+    visible: frames whose exposure started at or after the time `wait_presented` returns (presentation
+    + the projector's measured latency). A camera that cannot time its frames (exposure_start_s None)
+    skips `settle_frames` frames after the one seen when the image was presented instead.
+    `seen` keeps (frame_number, projector ticket) of every frame used, for tests."""
 
     def __init__(self, camera, projector, settle_frames: int = 1, average: int = 1, timeout_s: float = 3.0):
         self.camera, self.projector = camera, projector
         self.settle_frames, self.average, self.timeout_s = int(settle_frames), max(1, int(average)), timeout_s
         self.last = None
+        self.seen: list[tuple[int, int]] = []
 
     def grab(self, image: np.ndarray) -> np.ndarray:
         ticket = self.projector.show(image)
-        self.projector.wait_presented(ticket, timeout_s=self.timeout_s)
+        visible_s = self.projector.wait_presented(ticket, timeout_s=self.timeout_s)
         if self.last is None:
             self.last = self.camera.get_frame(self.timeout_s).frame_number
-        acc = None
-        newer = self.last + self.settle_frames
-        for _ in range(self.average):
-            f = self.camera.get_frame(self.timeout_s, newer_than=newer)
-            newer = self.last = f.frame_number
+        acc, n, skip = None, 0, self.settle_frames
+        deadline = time.monotonic() + self.timeout_s
+        while n < self.average:
+            f = self.camera.get_frame(self.timeout_s, newer_than=self.last)
+            self.last = f.frame_number
+            early = f.exposure_start_s < visible_s if f.exposure_start_s is not None else skip > 0
+            if early:
+                skip -= 1
+                if time.monotonic() > deadline:
+                    raise VerificationError(f"no camera frame exposed after the projector's image became visible "
+                                            f"within {self.timeout_s:g} s: check the camera's frame times")
+                continue
             img = f.image.astype(np.float32)
             acc = img if acc is None else acc + img
+            n += 1
+            self.seen.append((int(f.frame_number), int(ticket)))
         return acc / self.average if self.average > 1 else acc
 
 
