@@ -141,6 +141,13 @@ class ProjectorTimeline:
             del self._times[1:1024], self._entries[1:1024]
         return swap
 
+    def image_of(self, ticket: int) -> np.ndarray | None:
+        """The image of `ticket` (None once it left the kept history)."""
+        for tk, img in reversed(self._entries):
+            if tk == int(ticket):
+                return img
+        return None
+
     def visible_at(self, t: float) -> tuple[int, np.ndarray]:
         i = bisect.bisect_right(self._times, t) - 1
         return self._entries[max(i, 0)]
