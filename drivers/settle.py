@@ -171,3 +171,40 @@ def measure_settle(projector, camera, trials: int = 5, observe_s: float = 1.5, r
 def measure_settle_time(projector, camera, **kwargs) -> float:
     """The recommended settle time in seconds (measure_settle(...).settle_s)."""
     return measure_settle(projector, camera, **kwargs).settle_s
+
+
+def apply_timing(camera, projector, camera_settings: dict | None = None, search_image: np.ndarray | None = None,
+                 measure: bool = True) -> dict:
+    """Make a rig's frames trustworthy for a command that shows images and reads them back (the
+    station's rig check does the same, with a report per step): the IR emitter off, the exposure
+    re-applied from `camera_settings` (a session manifest's rig.camera_settings) or searched while
+    `search_image` (default full white) lights the board, and the projector latency re-applied from
+    camera_settings["projector"]["latency_ms"] or measured (when `measure`). Returns the settings
+    applied, in the manifest's form."""
+    from drivers.base import ExposureControl
+    from drivers.exposure import search_exposure
+
+    rec = dict(camera_settings or {})
+    out = {}
+    if isinstance(camera, ExposureControl):
+        camera.set_emitter(False)
+        if rec.get("auto_exposure") is False and isinstance(rec.get("exposure_us"), (int, float)):
+            applied = camera.set_manual_exposure(float(rec["exposure_us"]), float(rec.get("gain", 1.0)))
+        else:
+            img = white(tuple(projector.size)) if search_image is None else search_image
+            projector.wait_presented(projector.show(img))
+            time.sleep(0.5)  # longer than any projector's latency
+            c = search_exposure(camera, float(getattr(projector, "refresh_hz", 60.0) or 60.0))
+            applied = {"exposure_us": c.exposure_us, "gain": c.gain}
+        out.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
+                    "gain": float(applied["gain"]), "emitter_enabled": False})
+    timing = dict(rec.get("projector") or {})
+    if hasattr(projector, "settle_s"):
+        if isinstance(timing.get("latency_ms"), (int, float)) and timing["latency_ms"] >= 0:
+            projector.settle_s = float(timing["latency_ms"]) / 1000.0
+        elif measure:
+            projector.settle_s = measure_settle(projector, camera).settle_s
+        timing.update({"latency_ms": round(float(projector.settle_s) * 1000.0, 3),
+                       "refresh_hz": float(getattr(projector, "refresh_hz", 0.0) or 0.0)})
+        out["projector"] = timing
+    return out
