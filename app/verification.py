@@ -204,6 +204,12 @@ class _Grabber:
         return acc / self.average if self.average > 1 else acc
 
 
+def _grey(img: np.ndarray) -> np.ndarray:
+    """(H, W) float32: the mean of the channels, as calib.curve_detection reads a BGR frame."""
+    a = np.asarray(img)
+    return a.astype(np.float32).mean(axis=2) if a.ndim == 3 else a.astype(np.float32)
+
+
 def _draw(size, curve: np.ndarray, stroke_px: float) -> np.ndarray:
     from drivers.projector_images import draw_polylines
 
@@ -598,6 +604,7 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     groups = group_pixels(pts, lines, curves_per_image)
     results: dict[int, PixelCheck] = {}
     g = _Grabber(camera, projector, settle_frames, average)
+    grey = ReferenceFrames(_grey(refs.off), _grey(refs.white), refs.lit)  # converted once, not per check
     done = 0
     for group in groups:
         if progress is not None:
@@ -611,11 +618,11 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
             from drivers.projector_images import draw_polylines
 
             image = draw_polylines((Wp, Hp), [curves[i] for i in drawable], thickness_px=stroke, antialias=True)
-            on = g.grab(image)
+            on = _grey(g.grab(image))
             rois = _stroke_rois((H, W), [lines[i] for i in drawable], MIN_SEPARATION_PX / 2) \
                 if len(drawable) > 1 else [None]
             for i, roi in zip(drawable, rois):
-                results[i] = measure_pixel(result, pts[i], curves[i], on, refs, stroke, board_pose, roi=roi)
+                results[i] = measure_pixel(result, pts[i], curves[i], on, grey, stroke, board_pose, roi=roi)
         done += len(group)
         if stroke_px is None:
             scales = [c.scale for c in results.values() if c.scale]
