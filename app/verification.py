@@ -225,10 +225,10 @@ class ReferenceFrames:
     lit: np.ndarray  # bool mask of what the projector lights brightly, as the camera sees it
 
 
-def capture_references(camera, projector, settle_frames: int = 1, average: int = 1) -> ReferenceFrames:
+def capture_references(camera, projector, settle_frames: int = 1, average: int = 1, grabber=None) -> ReferenceFrames:
     """Capture the black and white reference frames (the board must be in place and still)."""
     W, H = projector.size
-    g = _Grabber(camera, projector, settle_frames, average)
+    g = grabber or _Grabber(camera, projector, settle_frames, average)
     white = g.grab(np.full((H, W), 255, np.uint8))
     off = g.grab(np.zeros((H, W), np.uint8))
     return ReferenceFrames(off, white, lit_region(off, white))
@@ -577,7 +577,8 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
                                 f"{result.projector.width}x{result.projector.height}")
     if operator is not None:
         operator.request_pose("verification", None, 0)
-    refs = capture_references(camera, projector, settle_frames, average)
+    ref_grabber = _Grabber(camera, projector, settle_frames, average)
+    refs = capture_references(camera, projector, settle_frames, average, grabber=ref_grabber)
     H, W = refs.off.shape[:2]
     if (W, H) != tuple(result.camera.size):
         raise VerificationError(f"the camera delivers {W}x{H} frames but the calibration is for "
@@ -635,7 +636,8 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     info = {"method": result.method, "units": result.units, **(calibration_info or {})}
     settings = {"grid": list(grid) if pixels is None else None, "settle_frames": settle_frames, "average": average,
                 "stroke_px": stroke_px, "min_measured": min_measured, "board_pose_known": board_pose is not None,
-                "curves_per_image": curves_per_image, "projector_images": 2 + len(groups)}
+                "curves_per_image": curves_per_image, "projector_images": 2 + len(groups),
+                "frames": [list(x) for x in ref_grabber.seen + g.seen]}  # [camera frame, projector ticket]
     report = judge(checks, threshold_px, min_measured, info, settings)
     if session_dir is not None:
         report.save_json(Path(session_dir) / "verification.json")
