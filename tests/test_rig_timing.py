@@ -257,3 +257,28 @@ def test_sim_latency_option_is_checked():
     out = subprocess.run([sys.executable, "-m", "app", "session", "--rig", "sim", "--auto", "--sim-latency-ms", "-5",
                           "--out", "/nonexistent/never"], capture_output=True, text=True, timeout=60)
     assert out.returncode != 0 and "--sim-latency-ms must be between 0 and 2000 ms" in out.stderr + out.stdout
+
+
+def test_resume_reapplies_the_recorded_exposure_and_latency(tmp_path):
+    req = RigRequest("sim", "nonoverlap-136", 0)
+    rig = open_rig(req, latency_ms=70.0)
+    store = create_session(tmp_path / "s", rig, req, SMALL)
+    st = Station(rig, make_machine(store, rig, SMALL))
+    assert all(c.ok for c in st.check_rig())
+    rec = store.manifest.rig.camera_settings
+    assert rig.projector.settle_s == pytest.approx(rec["projector"]["latency_ms"] / 1000.0, abs=1e-6)
+    # a new process: fresh devices (auto exposure, emitter on, latency unknown), the session from disk
+    from calib.session import SessionStore
+
+    rig2 = open_rig(req, latency_ms=70.0)
+    assert rig2.projector.settle_s == 0.0 and rig2.camera.settings_timeline.current["auto_exposure"]
+    store2 = SessionStore.open(tmp_path / "s")
+    st2 = Station(rig2, make_machine(store2, rig2, SMALL, resume=True))
+    checks = {c.name: c for c in st2.check_rig()}
+    assert "re-applied" in checks["camera exposure"].detail and "re-applied" in checks["projector latency"].detail
+    assert rig2.projector.settle_s == pytest.approx(rec["projector"]["latency_ms"] / 1000.0, abs=1e-9)
+    cur = rig2.camera.settings_timeline.current
+    assert cur["auto_exposure"] is False and cur["emitter_enabled"] is False
+    assert (cur["exposure_us"], cur["gain"]) == (rec["exposure_us"], rec["gain"])
+    assert rig2.projector.ticket <= 2  # nothing measured again: at most black shown
+    assert SessionStore.open(tmp_path / "s").manifest.rig.camera_settings == rec
