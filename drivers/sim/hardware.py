@@ -139,6 +139,8 @@ class ProjectorTimeline:
         self.swaps[ticket] = swap
         if len(self._times) > 4096:  # keep the recent history only
             del self._times[1:1024], self._entries[1:1024]
+            for k in [k for k in self.swaps if k <= ticket - 4096]:
+                del self.swaps[k]
         return swap
 
     def image_of(self, ticket: int) -> np.ndarray | None:
