@@ -29,22 +29,13 @@ from calib.observations import (
     STEP_REAL_VIRTUAL,
     VIEW_MIRROR,
     BoardObservation,
+    DetectionFailure,
     MirrorView,
     ProjectorView,
     SessionObservations,
     Skipped,
 )
 from calib.pattern import PatternSpec
-
-
-@dataclass(frozen=True)
-class DetectionFailure:
-    """Why a detection failed, in plain words ("board not found", "pattern partial: 30 of 36 points")."""
-
-    reason: str
-
-    def __bool__(self) -> bool:  # a failure is falsy, so `if result:` reads naturally
-        return False
 
 
 # ---- helpers ---------------------------------------------------------------------------------------
@@ -799,6 +790,7 @@ class _Job:
     camera_size: tuple[int, int]
     cached: dict | None = None  # this capture's detections.json entry, if any (calib.detect_cache)
     hash_image: bool = True  # the image's SHA-1 is needed (the cache is not off)
+    refused: str | None = None  # why the image is not read at all (its path leads out of the session folder)
 
 
 def _read_file(path: str) -> np.ndarray:
@@ -811,6 +803,8 @@ def _run_job(job: _Job):
     or DetectionFailure. The file is read once: hashed (when the session's cache is on), then decoded
     and detected unless `job.cached` holds the result for exactly these bytes."""
     digest = None
+    if job.refused is not None:
+        return job.capture_id, DetectionFailure(job.refused), None
     try:
         if not os.path.exists(job.image_path):
             return job.capture_id, DetectionFailure(f"image missing: {job.image_path}"), None
@@ -865,8 +859,12 @@ def _job_for(store, c, old: dict, cache_on: bool):
     key = detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size) if cache_on else None
     entry = old.get(c.id)
     cached = entry if entry is not None and entry.get("job") == key else None
-    return _Job(c.id, str(store.image_path(c)), c.step, flip, board, pattern, tuple(m.rig.camera_size), cached,
-                hash_image=cache_on), key
+    try:
+        path, refused = str(store.image_path(c)), None
+    except SessionError as e:  # never read, hashed or named: the reason does not tell whether it exists
+        path, refused = "", str(e)
+    return _Job(c.id, path, c.step, flip, board, pattern, tuple(m.rig.camera_size), cached,
+                hash_image=cache_on, refused=refused), key
 
 
 def detect_capture(store, capture_id: str):

@@ -9,6 +9,10 @@ An entry is used only when all of these still hold; otherwise that capture is de
 - the image is the same: the SHA-1 of the PNG file's bytes;
 - the job is the same: step, mirrored or not, board and pattern specs, camera size (`job_key`).
 
+Images are hashed from the bytes calib.detect read through SessionStore.image_path, which refuses a
+path leading out of the session folder; the cache file itself is read only when it is a plain file in
+the folder (a link is ignored with a warning, never followed).
+
 The file is a cache, not a record: a missing, unreadable or malformed one is ignored (with a warning
 naming the problem) and rewritten; it is written atomically (calib.fileio) and only holds detection
 results, so deleting it loses nothing. Layout: docs/FORMATS.md.
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import warnings
 from functools import lru_cache
 from pathlib import Path
@@ -26,7 +31,7 @@ import cv2
 import numpy as np
 
 from calib.fileio import atomic_write_text
-from calib.observations import BoardObservation, MirrorView
+from calib.observations import BoardObservation, DetectionFailure, MirrorView
 
 CACHE_FILE = "detections.json"
 FORMAT = "procam-detections"
@@ -75,8 +80,6 @@ def _board_from(d) -> BoardObservation | None:
 
 def encode_result(result) -> dict:
     """A detect_session job result (DetectionFailure, (board, pattern points) or MirrorView) -> JSON."""
-    from calib.detect import DetectionFailure
-
     if isinstance(result, DetectionFailure):
         return {"failure": result.reason}
     if isinstance(result, MirrorView):
@@ -88,8 +91,6 @@ def encode_result(result) -> dict:
 
 def decode_result(d: dict):
     """Inverse of encode_result. Raises KeyError/TypeError/ValueError on a malformed entry."""
-    from calib.detect import DetectionFailure
-
     if "failure" in d:
         return DetectionFailure(str(d["failure"]))
     if "mirror" in d:
@@ -103,10 +104,12 @@ def load(folder) -> dict:
     """{capture id: entry} usable with the current detector; {} (and a warning) when the file is
     missing fields or is not JSON; {} silently when it is absent or from another detector."""
     path = Path(folder) / CACHE_FILE
-    if not path.exists():
+    if not os.path.lexists(path):
         return {}
     try:
-        data = json.loads(path.read_text())
+        if path.is_symlink() or not path.is_file():  # never read a file elsewhere through a link
+            raise ValueError("it is not a plain file of the session folder")
+        data = json.loads(path.read_text(encoding="utf-8"))
         if data.get("format") != FORMAT:
             raise ValueError(f"field 'format' is not '{FORMAT}'")
         if data.get("version") != VERSION:
@@ -117,7 +120,7 @@ def load(folder) -> dict:
         if data.get("detector") != detector_fingerprint():
             return {}  # detected by other code: every capture is detected again
         return {str(k): v for k, v in caps.items() if isinstance(v, dict)}
-    except (OSError, ValueError, KeyError, AttributeError) as e:
+    except (OSError, ValueError, KeyError, AttributeError, RecursionError) as e:
         msg = str(e) if not isinstance(e, KeyError) else f"field {e} is missing"
         warnings.warn(f"ignoring the detection cache {path}: {msg}; detecting every image again",
                       RuntimeWarning, stacklevel=3)

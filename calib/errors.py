@@ -25,3 +25,17 @@ class SessionError(ProcamError):
 
 class CalibrationError(ProcamError):
     """The data cannot be calibrated (too few views, no mirror images for a mirrored rig...)."""
+
+
+class DiskFullError(ProcamError, OSError):
+    """The disk (or the user's quota) filled up while writing `filename`. Writes are atomic, so the file
+    being replaced is intact and nothing written before was lost; an OSError, so code that tolerates a
+    failed write (the detection cache) still does."""
+
+    def __init__(self, path, errno_: int):
+        super().__init__(errno_, f"disk full writing {path}: free some space and try again (or resume); "
+                                 "nothing already saved was lost")
+        self.filename = str(path)
+
+    def __str__(self) -> str:
+        return self.strerror

@@ -29,6 +29,17 @@ def _ro(a, shape_tail, dtype=float):
     return a
 
 
+@dataclass(frozen=True)
+class DetectionFailure:
+    """Why a detection failed, in plain words ("board not found", "pattern partial: 30 of 36 points").
+    Returned (never raised) by calib.detect and kept in the detection cache (calib.detect_cache)."""
+
+    reason: str
+
+    def __bool__(self) -> bool:  # a failure is falsy, so `if result:` reads naturally
+        return False
+
+
 @dataclass(frozen=True, eq=False)
 class BoardObservation:
     """ChArUco corners found in one image: `ids` index CharucoSpec.corner_points()."""

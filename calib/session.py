@@ -11,12 +11,22 @@ session.json (format "procam-session", version 1):
   pattern: PatternSpec dict
   mirror_method: "real-virtual" | "real-mirror" | null; board_thickness: number (board units)
   captures: [{id, step, image, pattern_position?, pattern_points_px?, meta?}, ...]
-  state: free-form object the station uses to resume (current step, position, ...)
+  state: object the station uses to resume (current step, position, ...); the types of the fields it
+         reads are checked at load (STATE_FIELDS), other keys are kept as they are
+
+Everything in a session folder is untrusted (it may come from someone else): a capture's `image` must
+be `images/NAME.png`, and the store never reads, hashes, writes or deletes a file whose path leads out
+of the folder (a link in images/ pointing elsewhere is refused for reading; deleting a capture removes
+the link, never what it points to). Non-finite numbers (NaN, Infinity, 1e400) are refused anywhere in
+the manifest. A store opened for writing holds the folder's lock (calib.session_lock).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
+import os
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -26,15 +36,33 @@ import numpy as np
 
 from calib.boards import CharucoSpec
 from calib.errors import FormatError, SessionError
-from calib.fileio import atomic_write_bytes, atomic_write_text
+from calib.fileio import atomic_write_bytes
 from calib.observations import STEP_PROJECTOR, STEPS, VIEW_DIRECT, VIEW_MIRROR
 from calib.pattern import PatternSpec
+from calib.session_lock import SessionLock
+from calib.session_lock import acquire as _acquire_lock
 
 FORMAT = "procam-session"
 VERSION = 1
 MANIFEST = "session.json"
 IMAGES_DIR = "images"
 MIRROR_METHODS = ("real-virtual", "real-mirror")
+MAX_IMAGE_SIDE = 100_000  # pixels: a width or height above this is a corrupt field, not a camera
+
+#: the only form a capture's `image` may take: a PNG file directly in the images folder
+IMAGE_RE = re.compile(r"images/[A-Za-z0-9_][A-Za-z0-9_.-]{0,200}\.png")
+
+_NUMBER = (int, float)
+#: the `state` fields the station reads on resume, with their types (None: may be null); other keys are kept
+STATE_FIELDS = {
+    "step": (str,), "pattern_position": (int, None), "pose_index": (int, None), "target": (dict, None),
+    "retake": (dict, None), "mirror_method": (str, None), "camera_intrinsics": (str, None), "plan": (dict, None),
+    "calibrated": (bool,), "result_stale": (bool,), "verified": (bool, None), "updated_unix_s": (*_NUMBER, None),
+    "rig_request": (dict, None), "method": (str, None), "simulated": (bool,), "scenario": (str, None),
+    "seed": (int, None),
+}
+_TARGET_FIELDS = {"step": (str,), "pattern_position": (int, None), "pose_index": (int,)}
+_RIG_REQUEST_FIELDS = {"kind": (str,), "scenario": (str,), "seed": (int,), "quality": (str,)}
 
 
 @dataclass(frozen=True)
@@ -121,6 +149,9 @@ class SessionManifest:
             raise FormatError(path, "<root>", "must be a JSON object")
         if d.get("format") != FORMAT:
             raise FormatError(path, "format", f"must be '{FORMAT}'")
+        bad = _non_finite(d)
+        if bad is not None:
+            raise FormatError(path, bad[0], f"is not a finite number ({bad[1]})")
         if need(d, "version", "", int) > VERSION:
             raise FormatError(path, "version", f"is newer ({d['version']}) than this program reads ({VERSION})")
         rig = need(d, "rig", "", dict)
@@ -129,13 +160,20 @@ class SessionManifest:
         sizes = []
         for obj, where in ((cam, "rig.camera."), (proj, "rig.projector.")):
             w, h = need(obj, "width", where, int), need(obj, "height", where, int)
-            if w <= 0 or h <= 0:
-                raise FormatError(path, f"{where}width", "width and height must be positive")
+            if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
+                raise FormatError(path, f"{where}width",
+                                  f"width and height must be positive (at most {MAX_IMAGE_SIDE} pixels)")
             sizes.append((w, h))
         view = need(rig, "view", "rig.", str)
         if view not in (VIEW_MIRROR, VIEW_DIRECT):
             raise FormatError(path, "rig.view", f"must be '{VIEW_MIRROR}' or '{VIEW_DIRECT}', got '{view}'")
-        rig_info = RigInfo(sizes[0], sizes[1], view, rig.get("camera_settings", {}) or {}, rig.get("driver", "unknown"))
+        settings = rig.get("camera_settings", {}) or {}
+        if not isinstance(settings, dict):
+            raise FormatError(path, "rig.camera_settings", "must be an object")
+        driver = rig.get("driver", "unknown")
+        if not isinstance(driver, str):
+            raise FormatError(path, "rig.driver", f"has the wrong type ({type(driver).__name__})")
+        rig_info = RigInfo(sizes[0], sizes[1], view, settings, driver)
         pboard = CharucoSpec.from_dict(need(d, "projector_board", ""), "projector_board", path)
         mb = d.get("mirror_board")
         mboard = None if mb is None else CharucoSpec.from_dict(mb, "mirror_board", path)
@@ -158,9 +196,15 @@ class SessionManifest:
             if step not in STEPS:
                 raise FormatError(path, f"{where}step", f"must be one of {STEPS}, got '{step}'")
             image = need(c, "image", where, str)
+            if not IMAGE_RE.fullmatch(image):
+                raise FormatError(path, f"{where}image", f"must name a file in the session's images folder "
+                                                         f"(images/NAME.png), got {image[:80]!r}")
             pos = c.get("pattern_position")
             if pos is not None and (not isinstance(pos, int) or isinstance(pos, bool)):
                 raise FormatError(path, f"{where}pattern_position", "must be an integer")
+            if pos is not None and not 0 <= pos < pattern.positions:
+                raise FormatError(path, f"{where}pattern_position",
+                                  f"is {pos}, the pattern has positions 0..{pattern.positions - 1}")
             pts = c.get("pattern_points_px")
             if step == STEP_PROJECTOR and pts is None:
                 raise FormatError(path, f"{where}pattern_points_px", "missing (projector captures need the shown points)")
@@ -172,12 +216,73 @@ class SessionManifest:
                 if len(pts) != pattern.n_points:
                     raise FormatError(path, f"{where}pattern_points_px",
                                       f"has {len(pts)} points, the pattern has {pattern.n_points}")
+                pw, ph = sizes[1]
+                if np.any(np.abs(pts - (pw / 2, ph / 2)) > (1.5 * pw, 1.5 * ph)):
+                    raise FormatError(path, f"{where}pattern_points_px",
+                                      f"has points far outside the {pw}x{ph} projector image")
             meta = c.get("meta", {})
             if not isinstance(meta, dict):
                 raise FormatError(path, f"{where}meta", "must be an object")
+            if "pose_index" in meta and not _typed(meta["pose_index"], (int,)):
+                raise FormatError(path, f"{where}meta.pose_index", "must be an integer")
             captures.append(Capture(cid, step, image, pos, pts, meta))
-        state = d.get("state", {}) or {}
+        state = d.get("state")
+        state = {} if state is None else state
+        _check_state(state, path)
         return cls(rig_info, pboard, pattern, mboard, method, float(thickness), tuple(captures), state)
+
+
+def _typed(value, types: tuple) -> bool:
+    """`value` is one of `types` (None in `types` allows null; a bool is not an int or float)."""
+    if value is None:
+        return None in types
+    if isinstance(value, bool):
+        return bool in types
+    return isinstance(value, tuple(t for t in types if t is not None))
+
+
+_TYPE_WORDS = {str: "a string", int: "an integer", float: "a number", bool: "true or false", dict: "an object",
+               None: "null"}
+
+
+def _check_fields(obj: dict, fields: dict, where: str, path) -> None:
+    for key, types in fields.items():
+        if key in obj and not _typed(obj[key], types):
+            names = " or ".join(_TYPE_WORDS[t] for t in types if not (t is int and float in types))
+            raise FormatError(path, f"{where}{key}", f"must be {names}, got {json.dumps(obj[key])[:40]}")
+
+
+def _check_state(state, path) -> None:
+    """FormatError naming `state.<field>` when a field the station reads on resume has the wrong type."""
+    if not isinstance(state, dict):
+        raise FormatError(path, "state", "must be an object")
+    _check_fields(state, STATE_FIELDS, "state.", path)
+    for key in ("target", "retake"):
+        if isinstance(state.get(key), dict):
+            _check_fields(state[key], _TARGET_FIELDS, f"state.{key}.", path)
+            if state[key].get("step") not in STEPS:
+                raise FormatError(path, f"state.{key}.step", f"must be one of {STEPS}")
+    if state.get("mirror_method") is not None and state["mirror_method"] not in MIRROR_METHODS:
+        raise FormatError(path, "state.mirror_method", f"must be one of {MIRROR_METHODS} or null")
+    if isinstance(state.get("rig_request"), dict):
+        _check_fields(state["rig_request"], _RIG_REQUEST_FIELDS, "state.rig_request.", path)
+    for key, value in (state.get("plan") or {}).items():
+        if not _typed(value, (int,)) or value < 0 or (key == "poses_per_position" and value < 1):
+            raise FormatError(path, f"state.plan.{key}", "must be a whole number >= 0 (poses_per_position >= 1)")
+
+
+def _non_finite(data) -> tuple[str, str] | None:
+    """(field, value) of the first NaN or infinite number in parsed JSON (1e400 parses as infinity)."""
+    todo = [("", data)]
+    while todo:
+        where, v = todo.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            return where, str(v)
+        if isinstance(v, dict):
+            todo.extend((f"{where}.{k}" if where else str(k), x) for k, x in reversed(v.items()))
+        elif isinstance(v, list):
+            todo.extend((f"{where}[{i}]", x) for i, x in reversed(list(enumerate(v))))
+    return None
 
 
 def _storage_form(image: np.ndarray) -> np.ndarray:
@@ -192,47 +297,125 @@ def _storage_form(image: np.ndarray) -> np.ndarray:
 
 
 class SessionStore:
-    """A session folder. Every mutation writes its image(s) first, then the manifest, atomically."""
+    """A session folder. Every mutation writes its image(s) first, then the manifest, atomically; the
+    in-memory manifest changes only once the write succeeded.
 
-    def __init__(self, folder: Path, manifest: SessionManifest):
+    A store that writes holds the folder's lock (calib.session_lock): `create` and `open(lock=True)` take
+    it at once, a store opened to read takes it at its first write (and refuses to write if session.json
+    changed on disk since it was read). `close()` (or the end of a `with` block) gives it back."""
+
+    def __init__(self, folder: Path, manifest: SessionManifest, lock: SessionLock | None = None,
+                 manifest_sha1: str | None = None):
         self.folder = Path(folder)
         self._manifest = manifest
+        self._lock = lock
+        self._disk_sha1 = manifest_sha1  # of the session.json this store read or last wrote
 
     @property
     def manifest(self) -> SessionManifest:
         return self._manifest
 
+    @property
+    def locked(self) -> bool:
+        return self._lock is not None and self._lock.held
+
+    def close(self) -> None:
+        """Give back the folder's lock (the store can still be read)."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+    def __enter__(self) -> "SessionStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     @classmethod
     def create(cls, folder, manifest: SessionManifest, exist_ok: bool = False) -> "SessionStore":
+        """A new session in `folder` (created if needed), locked for this process."""
         folder = Path(folder)
         if (folder / MANIFEST).exists() and not exist_ok:
             raise SessionError(f"{folder} already holds a session; resume it or choose another folder")
-        (folder / IMAGES_DIR).mkdir(parents=True, exist_ok=True)
-        store = cls(folder, manifest)
-        store._write_manifest()
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise SessionError(f"cannot create the session folder {folder} ({e.strerror})") from None
+        held = _acquire_lock(folder)
+        try:
+            if (folder / MANIFEST).exists() and not exist_ok:  # again, now that this process holds the folder
+                raise SessionError(f"{folder} already holds a session; resume it or choose another folder")
+            store = cls(folder, manifest, held)
+            store._images_dir()
+            store._write_manifest(manifest)
+        except BaseException:
+            held.release()
+            raise
         return store
 
     @classmethod
-    def open(cls, folder) -> "SessionStore":
+    def open(cls, folder, lock: bool = False) -> "SessionStore":
+        """Open a session folder: to read, or with `lock=True` to write (SessionError when another process
+        has it open for writing)."""
         folder = Path(folder)
         path = folder / MANIFEST
         if not folder.is_dir():
             raise SessionError(f"session folder {folder} does not exist")
         if not path.exists():
             raise SessionError(f"{folder} is not a session: it has no {MANIFEST}")
+        held = _acquire_lock(folder) if lock else None
         try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
-        return cls(folder, SessionManifest.from_dict(data, path))
+            raw = _read_manifest_bytes(path)
+            return cls(folder, SessionManifest.from_dict(_parse_manifest(raw, path), path), held,
+                       hashlib.sha1(raw).hexdigest())
+        except BaseException:
+            if held is not None:
+                held.release()
+            raise
 
-    def _write_manifest(self) -> None:
-        atomic_write_text(self.folder / MANIFEST, json.dumps(self._manifest.to_dict(), indent=1) + "\n")
+    # ---- writing --------------------------------------------------------------------------------
+    def _ensure_lock(self) -> None:
+        """Hold the folder's lock before writing; a store opened to read takes it now, and writes only if
+        session.json is still the one it read (another program may have written it since)."""
+        if self.locked:
+            return
+        held = _acquire_lock(self.folder)
+        try:
+            raw = _read_manifest_bytes(self.folder / MANIFEST) if (self.folder / MANIFEST).exists() else b""
+        except BaseException:
+            held.release()
+            raise
+        if self._disk_sha1 is not None and hashlib.sha1(raw).hexdigest() != self._disk_sha1:
+            held.release()
+            raise SessionError(f"{self.folder / MANIFEST} changed since this program read it (another program "
+                               f"wrote it): open the session again")
+        self._lock = held
+
+    def _write_manifest(self, manifest: SessionManifest) -> None:
+        """Write `manifest` (atomically), then make it this store's manifest."""
+        self._ensure_lock()
+        data = (json.dumps(manifest.to_dict(), indent=1) + "\n").encode("utf-8")
+        atomic_write_bytes(self.folder / MANIFEST, data)
+        self._disk_sha1 = hashlib.sha1(data).hexdigest()
+        self._manifest = manifest
 
     def update(self, **changes) -> None:
         """Replace manifest fields (rig, state, mirror_method, ...) and write the manifest."""
-        self._manifest = replace(self._manifest, **changes)
-        self._write_manifest()
+        self._write_manifest(replace(self._manifest, **changes))
+
+    def _images_dir(self) -> Path:
+        """The images folder (created if missing); SessionError if it is a link leading out of the folder."""
+        d = self.folder / IMAGES_DIR
+        if not d.is_symlink() and not d.exists():
+            try:
+                d.mkdir()
+            except OSError as e:
+                raise SessionError(f"cannot create {d} ({e.strerror})") from None
+        if not self._inside(d):
+            raise SessionError(f"{d} leads out of the session folder (a link): captures are written only inside it")
+        if not d.is_dir():
+            raise SessionError(f"{d} is not a folder")
+        return d
 
     def next_id(self, step: str) -> str:
         prefix = {"projector": "p", "mirror-real-virtual": "mrv", "mirror-real-mirror": "mrm"}[step]
@@ -246,6 +429,8 @@ class SessionStore:
     def add_capture(self, step: str, image: np.ndarray, pattern_position: int | None = None,
                     pattern_points_px: np.ndarray | None = None, meta: dict | None = None) -> Capture:
         """Write the image, then the manifest naming it. Returns the capture once both are on disk."""
+        self._ensure_lock()
+        self._images_dir()
         cid = self.next_id(step)
         rel = f"{IMAGES_DIR}/{cid}.png"
         ok, buf = cv2.imencode(".png", _storage_form(image))
@@ -254,25 +439,45 @@ class SessionStore:
         atomic_write_bytes(self.folder / rel, buf.tobytes())
         cap = Capture(cid, step, rel, pattern_position,
                       None if pattern_points_px is None else np.asarray(pattern_points_px, float), meta or {})
-        self._manifest = replace(self._manifest, captures=self._manifest.captures + (cap,))
-        self._write_manifest()
+        self._write_manifest(replace(self._manifest, captures=self._manifest.captures + (cap,)))
         return cap
 
     def delete_capture(self, capture_id: str) -> None:
-        """Drop a capture from the manifest (first), then remove its image file."""
+        """Drop a capture from the manifest (first), then remove its image file. Only a file directly in
+        the session's own images folder is removed; a link there is removed itself, never what it points to."""
         caps = self._manifest.captures
         match = [c for c in caps if c.id == capture_id]
         if not match:
             raise SessionError(f"no capture '{capture_id}' in this session")
-        self._manifest = replace(self._manifest, captures=tuple(c for c in caps if c.id != capture_id))
-        self._write_manifest()
+        self._write_manifest(replace(self._manifest, captures=tuple(c for c in caps if c.id != capture_id)))
+        rel = match[0].image
+        d = self.folder / IMAGES_DIR
+        if not IMAGE_RE.fullmatch(rel) or not self._inside(d):
+            return  # not a file of this folder's own images folder: left alone
         try:
-            (self.folder / match[0].image).unlink()
-        except FileNotFoundError:
+            os.unlink(self.folder / rel)  # unlink never follows a link
+        except (FileNotFoundError, IsADirectoryError, PermissionError):
             pass
 
+    # ---- reading --------------------------------------------------------------------------------
+    def _inside(self, path: Path) -> bool:
+        """`path`, with every link followed, is inside the session folder."""
+        try:
+            return Path(path).resolve().is_relative_to(self.folder.resolve())
+        except (OSError, RuntimeError):  # a link loop
+            return False
+
     def image_path(self, capture: Capture) -> Path:
-        return self.folder / capture.image
+        """The capture's image file; SessionError when its path, links followed, leads out of the session
+        folder (said the same whether or not anything exists there)."""
+        if not IMAGE_RE.fullmatch(capture.image):
+            raise SessionError(f"capture '{capture.id}': image path {capture.image[:80]!r} is not in the session's "
+                               f"images folder; refused")
+        path = self.folder / capture.image
+        if not self._inside(path):
+            raise SessionError(f"capture '{capture.id}': image {capture.image} is a link leading out of the session "
+                               f"folder; refused")
+        return path
 
     def load_image(self, capture: Capture, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
         """Read a capture's image; SessionError naming the file when it is missing or unreadable."""
@@ -283,3 +488,25 @@ class SessionStore:
         if img is None:
             raise SessionError(f"image {path} of capture '{capture.id}' cannot be decoded")
         return img
+
+
+def _read_manifest_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise SessionError(f"{path} cannot be read ({e.strerror})") from None
+
+
+def _parse_manifest(raw: bytes, path: Path):
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        bad = f"byte 0x{raw[e.start]:02x} at offset {e.start}"
+        raise FormatError(path, "<file>", f"is not UTF-8 text ({bad}); save it as UTF-8") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
+    except (ValueError, RecursionError) as e:  # an integer of thousands of digits, nesting beyond the stack
+        msg = "nests too deeply" if isinstance(e, RecursionError) else f"is not valid JSON ({e})"
+        raise FormatError(path, "<file>", msg) from None

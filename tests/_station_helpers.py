@@ -113,7 +113,7 @@ class StationProcess:
                     self.url = m.group(1)
                     if not any("access code" in ln for ln in self.lines) and "--host" not in args:
                         done.set()
-                m = re.search(r"access code to operate the rig: (\d+)", line)
+                m = re.search(r"access code: ([a-z2-7-]+)", line)
                 if m:
                     self.code = m.group(1)
                     done.set()

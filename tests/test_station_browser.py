@@ -120,35 +120,41 @@ def test_network_panel_needs_the_access_code(tmp_path):
     # no --rig: without a RealSense connected the station takes the simulated rig, and says so
     st = StationProcess("--host", "0.0.0.0", "--session", str(tmp_path / "s"))
     try:
-        assert st.code and re.fullmatch(r"\d{6}", st.code)
+        assert st.code and re.fullmatch(r"[a-z2-7]{4}(-[a-z2-7]{4}){3}", st.code)  # 80 random bits
+        assert st.url.endswith("/code/" + st.code)  # the printed address carries the code
         url = f"http://127.0.0.1:{st.port}"
         with sync_playwright() as p:
             browser = launch_chromium(p)
+            # a browser without the code sees a prompt for it and nothing of the session
             guest = browser.new_context().new_page()
             guest.goto(url)
-            # the status is there for everyone...
-            see(guest, r"Checklist")
-            see(guest, r"no RealSense camera is connected, so the station uses the simulated rig")
-            see(guest, r"operating the rig needs the access code")
-            # ...the controls are not
-            see(guest, r"This browser sees the status only")
-            assert guest.get_by_role("button", name="Check rig", exact=True).count() == 0
-            text_input(guest, "Access code").fill("000000" if st.code != "000000" else "111111")
-            click(guest, "Unlock")
+            see(guest, r"Enter the access code printed in the station's terminal")
+            assert str(tmp_path) not in guest.content()
+            assert guest.get_by_text("Checklist").count() == 0
+            guest.get_by_label("Access code").fill("aaaa-bbbb-cccc-dddd")
+            click(guest, "Open the panel")
             see(guest, r"Wrong access code")
-            assert guest.get_by_role("button", name="Capture", exact=True).count() == 0
-            # the operator with the code
+            assert guest.get_by_role("button", name="Check rig", exact=True).count() == 0
+            # the operator types the code (in capitals, without dashes): the panel with its controls
             op = browser.new_context().new_page()
             op.goto(url)
-            text_input(op, "Access code").fill(st.code)
-            click(op, "Unlock")
+            op.get_by_label("Access code").fill(st.code.upper().replace("-", ""))
+            click(op, "Open the panel")
+            see(op, r"no RealSense camera is connected, so the station uses the simulated rig")
+            see(op, r"only browsers that gave the access code see this panel")
             expect(op.get_by_role("button", name="Check rig", exact=True)).to_be_visible(timeout=15_000)
             click(op, "Check rig")
             see(op, r"Check the rig: camera ok")
-            # the guest sees what the operator did, and still has no controls
-            see(guest, r"Check the rig: camera ok")
-            assert guest.get_by_role("button", name="Start", exact=True).count() == 0
+            # a second browser opening the printed address gets in at once, and sees what the operator did
+            tablet = browser.new_context().new_page()
+            tablet.goto(st.url)
+            see(tablet, r"Check the rig: camera ok")
+            # the guest still has nothing, and its failure is in the log
+            assert guest.get_by_text("Checklist").count() == 0
+            tablet.get_by_role("tab", name="Log").click()
+            see(tablet, r"wrong access code from 127\.0\.0\.1")
             browser.close()
     finally:
         st.stop()
     assert any("access code" in ln for ln in st.lines)
+    assert any("wrong access code from 127.0.0.1" in ln for ln in st.lines)  # the process log too

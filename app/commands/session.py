@@ -72,9 +72,9 @@ def open_session(args, log=print):
 
     if args.resume:
         folder = Path(args.resume)
+        store = SessionStore.open(folder, lock=True)  # one process per session folder: refused while in use
         req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
         rig = open_rig(req, **rig_options(args, req.kind))
-        store = SessionStore.open(folder)
         check_same_rig(store, rig)
         plan = None
         if args.poses_per_position or args.mirror_captures:
@@ -123,8 +123,9 @@ def summary(machine, folder, elapsed_s: float) -> str:
                  f"at {c['positions_done']}/{c['positions']} pattern positions")
     res = machine.result
     if res is not None:
-        rms = ", ".join(f"{k} {v:.3f}" for k, v in res.rms.items() if isinstance(v, (int, float)))
-        lines.append(f"  calibration ({res.method}): RMS {rms}")
+        from app.commands.calibrate import format_rms  # every RMS value with its unit
+
+        lines.append(f"  calibration ({res.method}): {format_rms(res)}")
         t = res.T_cam_proj[:3, 3]
         lines.append(f"  projector position in the camera frame: [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}] {res.units}")
         if res.mirror is not None:
@@ -148,7 +149,7 @@ def summary(machine, folder, elapsed_s: float) -> str:
         lines.append(f"  verification {verdict} (threshold {getattr(r, 'threshold_px', float('nan')):.2f} projector px):")
         if hasattr(r, "summary"):
             lines.extend("    " + ln for ln in r.summary().splitlines())
-    files = [p.name for p in sorted(Path(folder).iterdir()) if p.is_file()]
+    files = [p.name for p in sorted(Path(folder).iterdir()) if p.is_file() and not p.name.startswith(".")]
     lines.append(f"  files: {', '.join(files)}")
     return "\n".join(lines)
 

@@ -3,7 +3,8 @@
 The panel leads the operator through the session (rig check, mirror capture, projector capture,
 calibration, verification) and shows the live camera image, coverage, pose diversity, the 3D rig and
 the results. It binds to 127.0.0.1 unless told otherwise; served on a network (--host 0.0.0.0) it
-prints an access code, and a browser without the code sees the status only.
+prints an access code (and an address carrying it), and a browser without the code sees only a page
+asking for it. Security rules: app/station/access.py and docs/STATION.md.
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ DESCRIPTION = (
 def add_arguments(p) -> None:
     p.add_argument("--port", type=int, default=8080, help="panel port (default 8080)")
     p.add_argument("--host", default="127.0.0.1",
-                   help="address to serve the panel on (default 127.0.0.1; 0.0.0.0 serves the network and "
-                        "requires the printed access code to operate the rig)")
+                   help="address to serve the panel on (default 127.0.0.1; 0.0.0.0 serves the network, and "
+                        "every browser then needs the printed access code to see the panel)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--session", metavar="DIR", help="new session folder (default: ./session-YYYYmmdd-HHMMSS)")
     g.add_argument("--resume", metavar="DIR", help="continue the session in DIR where it stopped")
@@ -96,7 +97,13 @@ def run(args) -> int:
         panel.start()
         print(f"procam station: panel at {panel.url}  (session {Path(store.folder)})", flush=True)
         if code is not None:
-            print(f"procam station: served on {args.host}; access code to operate the rig: {code}", flush=True)
+            print(f"procam station: served on {args.host}; access code: {code}", flush=True)
+            for url in panel.network_urls():
+                print(f"procam station: on the network open {url}", flush=True)
+        else:
+            ws = panel.url.replace("http://", "ws://", 1)
+            print(f"procam station: clients without a browser connect to {ws}/code/{panel.gate.secret} "
+                  "(browsers need no code here)", flush=True)
         try:
             while not stop.wait(0.5):
                 pass

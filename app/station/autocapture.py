@@ -8,6 +8,7 @@ Pixel coordinates are in the original camera image (calib.detect maps mirrored v
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 
@@ -199,23 +200,34 @@ def corner_motion(a: BoardObservation, b: BoardObservation, min_common: int = 6)
 
 class AutoCapture:
     """Feed it one LiveDetection per frame; it says when to capture. `taken` holds the features of the
-    poses already captured that a new pose is compared with (set by the caller for the current target)."""
+    poses already captured that a new pose is compared with (set by the caller for the current target).
+
+    Thread-safe: the station's loop calls `update` while the operator's buttons (Move board, Capture,
+    Retake) call `reset` from the panel's threads; one lock makes each call see the history whole (a
+    reset in the middle of `motion()` once raised IndexError and killed the capture loop)."""
 
     def __init__(self, settings: AutoCaptureSettings | None = None):
         self.settings = settings or AutoCaptureSettings()
+        self._lock = threading.RLock()
         self._history: list[BoardObservation] = []
         self.taken: list[tuple[str, PoseFeatures]] = []
         self.last: Decision | None = None
 
     def reset(self, taken: list[tuple[str, PoseFeatures]] | None = None) -> None:
         """Start over (new target, projector moved, board asked to move)."""
-        self._history.clear()
-        if taken is not None:
-            self.taken = list(taken)
-        self.last = None
+        with self._lock:
+            self._history = []
+            if taken is not None:
+                self.taken = list(taken)
+            self.last = None
+
+    def history(self) -> tuple[BoardObservation, ...]:
+        """The board observations the stillness is judged on (oldest first), a snapshot."""
+        with self._lock:
+            return tuple(self._history)
 
     def motion(self) -> list[float | None]:
-        h = self._history
+        h = self.history()
         return [corner_motion(h[i - 1], h[i], self.settings.min_common_corners) for i in range(1, len(h))]
 
     def novelty(self, feats: PoseFeatures | None) -> tuple[bool, str | None, str]:
@@ -235,13 +247,16 @@ class AutoCapture:
         return False, worst_id, f"this pose is too close to {worst_id}: move or tilt the board"
 
     def update(self, det: LiveDetection) -> Decision:
+        with self._lock:
+            return self._update(det)
+
+    def _update(self, det: LiveDetection) -> Decision:
         s = self.settings
         if det.board is None:
-            self._history.clear()
+            self._history = []
             self.last = Decision(False, False, False, det.failure or "board not found")
             return self.last
-        self._history.append(det.board)
-        del self._history[:-s.still_frames]
+        self._history = (self._history + [det.board])[-s.still_frames:]
         motions = self.motion()
         known = [m for m in motions if m is not None]
         still = len(self._history) >= s.still_frames and len(known) == len(motions) and all(m < s.still_px for m in known)

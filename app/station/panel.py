@@ -5,9 +5,13 @@ with detections drawn over it, the projector's coverage by the pattern positions
 pose diversity bars, results (RMS errors, uncertainties, verification verdict), the captures and a log;
 and the 3D view of the rig (server.scene).
 
-Per browser (client.gui): the operator's buttons. Served on loopback they are there at once; served on
-a network, a browser first has to give the access code printed at start, and until then it sees the
-status only (its button callbacks also check, so a forged click does nothing).
+Per browser (client.gui): the operator's buttons. Who may connect at all is decided before the
+websocket opens (app/station/access.py, hooked into viser by app/station/_origin.py): only pages the
+panel served itself (their Origin), and served on a network only browsers that gave the access code; a
+browser without it gets a page asking for the code and nothing of the session.
+
+A heartbeat element makes the page say so when the station process is gone (`DISCONNECT_TEXT`), and a
+banner shows when the capture loop failed (restarted) or stopped.
 
 Detection runs in the station's own threads; the panel only draws: the live image is redrawn from the
 newest frame and the newest detection about 12 times a second.
@@ -15,8 +19,8 @@ newest frame and the newest detection about 12 times a second.
 
 from __future__ import annotations
 
-import hmac
-import secrets
+import html
+import logging
 import threading
 import time
 from dataclasses import dataclass, field
@@ -25,6 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.station._origin import start_viser_server
+from app.station.access import LOOPBACK_HOSTS, WILDCARD_HOSTS, AccessGate, new_access_code  # noqa: F401
 from app.station.autocapture import PoseFeatures, diversity_bars
 from app.station.machine import (
     CALIBRATION,
@@ -42,7 +48,6 @@ from app.station.rigview import rig_scene
 from calib.errors import ProcamError
 from calib.observations import STEP_PROJECTOR
 
-LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 LIVE_WIDTH = 640
 COVERAGE_WIDTH = 384
 
@@ -57,9 +62,22 @@ def needs_access_code(host: str) -> bool:
     return host not in LOOPBACK_HOSTS
 
 
-def new_access_code() -> str:
-    """Six digits, easy to type on a tablet."""
-    return f"{secrets.randbelow(10**6):06d}"
+_log = logging.getLogger("procam.station")
+HEARTBEAT_S = 1.0
+SILENT_S = 5.0  # no heartbeat for this long: the page says the station is gone
+DISCONNECT_TEXT = ("The station is not answering: its process stopped or the network connection is lost. "
+                   "Restart it with procam station --resume on the session folder; every acknowledged capture "
+                   "is in the session. This page reconnects by itself when the station is back.")
+
+
+def heartbeat_html(beat: int) -> str:
+    """A banner hidden by a CSS animation that shows it after SILENT_S seconds; every heartbeat replaces
+    the element (new markup, so the animation starts over). When the station process is gone the
+    heartbeats stop and the banner appears: no script needed in the page."""
+    return (f"<style>@keyframes procam-silent{{from{{visibility:hidden}}to{{visibility:visible}}}}</style>"
+            f"<div data-beat='{beat}' role='alert' style='visibility:hidden;animation:procam-silent 0s linear "
+            f"{SILENT_S:g}s forwards;background:#a51111;color:#fff;font-weight:bold;padding:0.6em 0.8em;"
+            f"border-radius:4px;opacity:1'>{html.escape(DISCONNECT_TEXT)}</div>")
 
 
 @dataclass
@@ -67,22 +85,21 @@ class ClientControls:
     client: object
     unlocked: bool
     handles: dict = field(default_factory=dict)
-    lock_handles: list = field(default_factory=list)
     cache: dict = field(default_factory=dict)
-    attempts: int = 0
 
 
 class StationPanel:
     def __init__(self, station, host: str = "127.0.0.1", port: int = 8080, access_code: str | None = None,
-                 rig_note: str = "", verbose: bool = False):
-        import viser
-
+                 rig_note: str = "", verbose: bool = False, gate: AccessGate | None = None):
         self.station = station
         self.machine = station.machine
         self.host = host
         self.access_code = access_code
         self.rig_note = rig_note
-        self.server = viser.ViserServer(host=host, port=port, label="procam station", verbose=verbose)
+        self.gate = gate or AccessGate(host, access_code)
+        self.gate.log = self._access_log
+        # the gate answers every request before viser does (Origin, access code, throttle)
+        self.server = start_viser_server(self.gate, host=host, port=port, label="procam station", verbose=verbose)
         self.port = self.server.get_port()
         self._clients: dict[int, ClientControls] = {}
         self._lock = threading.RLock()
@@ -93,6 +110,8 @@ class StationPanel:
         self.image_updates = 0  # live images sent (the test and the caption read the rate)
         self._image_times: list[float] = []
         self._last_image_key = None
+        self._beat = 0
+        self._loop_errors_seen = 0
         self.server.gui.configure_theme(control_width="large", control_layout="fixed", show_share_button=False)
         self.server.scene.set_up_direction("-y")
         ic = self.server.initial_camera  # behind and above the camera, looking at the rig (metres)
@@ -103,14 +122,35 @@ class StationPanel:
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(self._on_disconnect)
 
+    def _access_log(self, text: str) -> None:
+        """Refused origins and wrong codes: the panel's log tab and the process log."""
+        self.machine.log(text)
+        _log.warning("procam station: %s", text)
+
     @property
     def url(self) -> str:
-        host = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
-        return f"http://{host}:{self.port}"
+        """The panel's address from this machine (with the access code when one is needed)."""
+        host = "127.0.0.1" if self.host in WILDCARD_HOSTS else self.host
+        if ":" in host:
+            host = f"[{host}]"
+        base = f"http://{host}:{self.port}"
+        return base + "/code/" + self.access_code if self.access_code is not None else base
+
+    def network_urls(self) -> list[str]:
+        """Addresses a tablet on the network may open (bound to all interfaces: this machine's IPv4s)."""
+        if self.access_code is None:
+            return []
+        if self.host not in WILDCARD_HOSTS:
+            return [self.url]
+        hosts = sorted(h for h in self.gate.allowed_hosts
+                       if h.count(".") == 3 and h.replace(".", "").isdigit() and not h.startswith("127."))
+        return [f"http://{h}:{self.port}/code/{self.access_code}" for h in hosts]
 
     # ---- shared status ---------------------------------------------------------------------------
     def _build_global(self) -> None:
         g = self.server.gui
+        self.h_alive = g.add_html(heartbeat_html(0), order=-1)
+        self.h_alert = g.add_markdown("", order=-0.5, visible=False)
         self.h_title = g.add_markdown(self._title(), order=0)
         self.h_next = g.add_markdown("", order=1)
         self.h_check = g.add_markdown("", order=2)
@@ -140,7 +180,7 @@ class StationPanel:
         folder = self.machine.store.folder
         lock = ""
         if self.access_code is not None:
-            lock = " Served on the network: operating the rig needs the access code printed at start."
+            lock = " Served on the network: only browsers that gave the access code see this panel."
         return f"### procam station\n{self.rig_note}\n\nSession: `{folder}`.{lock}"
 
     def _set(self, handle, attr: str, value, key=None) -> None:
@@ -269,7 +309,29 @@ class StationPanel:
         evs = self.machine.events[-n:]
         if not evs:
             return "Nothing yet."
-        return "\n".join(f"- {time.strftime('%H:%M:%S', time.localtime(e.time_s))} {e.text}" for e in reversed(evs))
+        lines = []
+        for e in reversed(evs):
+            head, _, rest = e.text.partition("\n")
+            lines.append(f"- {time.strftime('%H:%M:%S', time.localtime(e.time_s))} {head}")
+            if rest.strip():  # a traceback: kept as it is, in a code block under its line
+                lines.append("")
+                lines.append("  ```")
+                lines += ["  " + ln for ln in rest.rstrip().splitlines()]
+                lines.append("  ```")
+        return "\n".join(lines)
+
+    def alert_text(self) -> str:
+        """The banner over the panel when the capture loop failed: restarted, or stopped for good."""
+        st = self.station
+        stopped = getattr(st, "loop_stopped", None)
+        if stopped:
+            return f"**The capture loop stopped.** {stopped}"
+        errors = getattr(st, "loop_errors", [])
+        if errors and time.monotonic() - errors[-1].time_s < 20.0:
+            e = errors[-1]
+            return (f"**The capture loop failed and was restarted** ({e.summary}). The traceback is in the Log "
+                    "tab; if it keeps failing, restart the station with --resume.")
+        return ""
 
     # ---- images -----------------------------------------------------------------------------------
     def _coverage_image(self) -> np.ndarray:
@@ -471,44 +533,16 @@ class StationPanel:
 
     # ---- per-browser controls ------------------------------------------------------------------------
     def _on_connect(self, client) -> None:
-        ctl = ClientControls(client, unlocked=self.access_code is None)
+        # every websocket reaching here passed the gate: the panel's own Origin (or the secret), and the
+        # access code when one is needed; a browser without the code never gets this far
+        ctl = ClientControls(client, unlocked=True)
         with self._lock:
             self._clients[client.client_id] = ctl
-        if ctl.unlocked:
-            self._build_controls(ctl)
-        else:
-            self._build_lock(ctl)
+        self._build_controls(ctl)
 
     def _on_disconnect(self, client) -> None:
         with self._lock:
             self._clients.pop(client.client_id, None)
-
-    def _build_lock(self, ctl: ClientControls) -> None:
-        g = ctl.client.gui
-        with g.add_folder("Operate the rig", order=3) as folder:
-            md = g.add_markdown("This browser sees the status only. Enter the access code printed by the station "
-                                "at start to operate the rig.")
-            code = g.add_text("Access code", "")
-            btn = g.add_button("Unlock", color="blue")
-            msg = g.add_markdown("")
-        ctl.lock_handles = [folder]
-
-        def unlock(event):
-            if event.client_id != ctl.client.client_id:
-                return
-            ctl.attempts += 1
-            given = (code.value or "").strip()
-            if ctl.attempts > 20:
-                msg.content = "Too many wrong codes; reload the page to try again."
-                return
-            if self.access_code is not None and hmac.compare_digest(given, self.access_code):
-                ctl.unlocked = True
-                folder.remove()
-                self._build_controls(ctl)
-            else:
-                msg.content = "**Wrong access code.** The station prints it in its terminal at start."
-
-        btn.on_click(unlock)
 
     def _build_controls(self, ctl: ClientControls) -> None:
         g = ctl.client.gui
@@ -764,6 +798,10 @@ class StationPanel:
             self._set(self.h_results, "content", self.results_text())
             self._set(self.h_caps, "content", self.captures_text())
             self._set(self.h_log, "content", self.log_text())
+            alert = self.alert_text()
+            self._set(self.h_alert, "content", alert or " ")
+            self._set(self.h_alert, "visible", bool(alert))
+            self._notify_loop_errors()
             prog = st.progress if m.busy == "calibrating" else None
             self._set(self.h_progress, "visible", prog is not None)
             if prog is not None and prog[1] > 0:
@@ -789,6 +827,29 @@ class StationPanel:
                     except Exception:  # a browser that went away mid-update
                         pass
             self.update_scene()
+
+    def _notify_loop_errors(self) -> None:
+        """A toast in every browser for each unexpected error of the capture loop."""
+        errors = list(getattr(self.station, "loop_errors", []))
+        new, self._loop_errors_seen = errors[self._loop_errors_seen:], len(errors)
+        for e in new[-3:]:
+            for ctl in list(self._clients.values()):
+                try:
+                    ctl.client.add_notification("Capture loop failed", f"{e.summary}. It restarts; the "
+                                                "traceback is in the Log tab.", auto_close_seconds=10.0, color="red")
+                except Exception:  # a browser that went away; the banner says the same
+                    pass
+
+    def heartbeat(self) -> None:
+        self._beat += 1
+        self.h_alive.content = heartbeat_html(self._beat)
+
+    def _heartbeat_loop(self) -> None:
+        while not self._stop.wait(HEARTBEAT_S):
+            try:
+                self.heartbeat()
+            except Exception:  # the server is stopping
+                pass
 
     def _status_loop(self) -> None:
         while not self._stop.is_set():
@@ -829,7 +890,8 @@ class StationPanel:
 
     def start(self) -> None:
         self.refresh()
-        for target, name in ((self._status_loop, "panel-status"), (self._image_loop, "panel-image")):
+        for target, name in ((self._status_loop, "panel-status"), (self._image_loop, "panel-image"),
+                             (self._heartbeat_loop, "panel-heartbeat")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)

@@ -9,8 +9,10 @@ operator's actions (which go through the SessionMachine, so refusals carry their
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
+import traceback
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,6 +47,18 @@ from calib.errors import ProcamError, SessionError, SpecError
 from calib.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
 from drivers.errors import DeviceDisconnected, DeviceError
+
+
+_log = logging.getLogger("procam.station")
+
+
+@dataclass(frozen=True)
+class LoopError:
+    """An unexpected error of the capture loop (it was restarted)."""
+
+    time_s: float  # time.monotonic()
+    summary: str
+    traceback: str
 
 
 def _rate(times, window_s: float = 2.0) -> float:
@@ -119,6 +133,8 @@ class Station:
         self._worker_error: str | None = None
         self._stop = threading.Event()
         self._loop_thread: threading.Thread | None = None
+        self.loop_errors: list[LoopError] = []  # unexpected errors of the capture loop (supervised)
+        self.loop_stopped: str | None = None  # why the capture loop stopped for good (None: running)
         self._grab_thread: threading.Thread | None = None
         self._frame_cond = threading.Condition()
         self.preview = None  # newest camera frame (preview thread)
@@ -550,6 +566,8 @@ class Station:
         """The operator's capture button: the newest frame, if what the step needs is detected in it."""
         live = self.live
         m = self.machine
+        if self.loop_stopped:
+            raise ActionRefused("capture", "the capture loop stopped after repeated errors; restart the station")
         reason = m.why_not("capture")
         if reason:
             raise ActionRefused("capture", reason)
@@ -676,21 +694,50 @@ class Station:
                                              daemon=True)
         self._grab_thread.start()
 
-        def loop():
-            while not self._stop.is_set():
-                try:
-                    self.tick()
-                except DeviceError as e:
-                    self.device_problem = str(e)
-                    self.log(str(e))
-                    time.sleep(0.5)
-                except ProcamError as e:  # e.g. auto mode could not go on: shown until the next good tick
-                    self.problem = str(e)
-                    self.log(str(e))
-                    time.sleep(0.5)
-
-        self._loop_thread = threading.Thread(target=loop, name="station-loop", daemon=True)
+        self._loop_thread = threading.Thread(target=self._supervised_loop, name="station-loop", daemon=True)
         self._loop_thread.start()
+
+    # the capture loop's supervision: an unexpected error is logged with its traceback (the panel's log
+    # tab and the process log), shown, and the loop restarts after a back-off that doubles with each
+    # failure; `loop_give_up` failures within the window stop it for good with a clear message
+    loop_backoff_s: tuple[float, float] = (0.5, 8.0)  # first wait after an unexpected error, longest
+    loop_give_up: tuple[int, float] = (5, 60.0)  # this many unexpected errors in this many seconds: stop
+
+    def _supervised_loop(self) -> None:
+        failures: list[float] = []
+        wait_s = self.loop_backoff_s[0]
+        while not self._stop.is_set():
+            try:
+                self.tick()
+                wait_s = self.loop_backoff_s[0]
+            except DeviceError as e:
+                self.device_problem = str(e)
+                self.log(str(e))
+                time.sleep(0.5)
+            except ProcamError as e:  # e.g. auto mode could not go on: shown until the next good tick
+                self.problem = str(e)
+                self.log(str(e))
+                time.sleep(0.5)
+            except Exception as e:  # a bug: say so, with the traceback, and go on
+                now = time.monotonic()
+                failures = [t for t in failures if now - t <= self.loop_give_up[1]] + [now]
+                err = LoopError(now, f"{type(e).__name__}: {e}", traceback.format_exc())
+                self.loop_errors.append(err)
+                del self.loop_errors[:-50]
+                _log.error("procam station: the capture loop failed (%s)", err.summary, exc_info=True)
+                self.machine.log(f"capture loop failed: {err.summary}\n{err.traceback}")
+                if len(failures) >= self.loop_give_up[0]:
+                    self.loop_stopped = (
+                        f"It failed {len(failures)} times in {self.loop_give_up[1]:.0f} s (last: {err.summary}); "
+                        "no more captures are taken. Stop the station and restart it with --resume on the session "
+                        "folder (every acknowledged capture is in it), and report the traceback in the Log tab.")
+                    self.problem = "the capture loop stopped after repeated errors; restart the station with --resume"
+                    self.machine.log("capture loop stopped: " + self.loop_stopped)
+                    _log.error("procam station: the capture loop stopped: %s", self.loop_stopped)
+                    return
+                self.problem = f"the capture loop failed ({err.summary}); restarting it in {wait_s:g} s"
+                self._stop.wait(wait_s)
+                wait_s = min(self.loop_backoff_s[1], wait_s * 2.0)
 
     def stop_loop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()

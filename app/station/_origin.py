@@ -1,0 +1,105 @@
+"""Start viser's server with the station's access gate (app/station/access.py) in its HTTP handshake.
+
+Why this module exists: viser 1.1 runs its own `websockets` server and offers no hook for the opening
+handshake, so a web page on any other site could open a websocket to the panel and drive the rig. The
+`websockets` library lets a server answer a request before the handshake (`process_request`); viser
+passes its own (it serves the client's files that way). While a ViserServer is being constructed, and
+only then, `websockets.asyncio.server.serve` is replaced by a wrapper that puts the gate in front of
+viser's `process_request`: viser calls `serve` from its server thread while its constructor waits for
+the server to be up, so the wrapper is in place for exactly that call and for no other server. If a
+future viser starts its server some other way the wrapper is never called, and the station refuses to
+start rather than run unprotected.
+
+Responses the gate adds: 403 for a foreign Origin or a wrong code, 429 during a back-off, the page
+asking for the access code, and `X-Frame-Options: DENY` on everything served (no framing of the panel
+by another site).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import http
+import threading
+
+from app.station.access import AccessGate
+
+_construct_lock = threading.Lock()
+
+
+class OriginCheckUnavailable(RuntimeError):
+    """viser did not start its server through websockets' serve(): the gate could not be installed."""
+
+
+def _headers(content_type: str | None, length: int, extra: dict | None = None):
+    from websockets.datastructures import Headers
+
+    h = Headers()
+    if content_type is not None:
+        h["Content-Type"] = content_type
+    h["Content-Length"] = str(length)
+    h["Cache-Control"] = "no-store"
+    h["X-Frame-Options"] = "DENY"
+    h["Referrer-Policy"] = "no-referrer"
+    for k, v in (extra or {}).items():
+        h[k] = v
+    return h
+
+
+def gated_process_request(gate: AccessGate, inner):
+    """A websockets `process_request` putting `gate` in front of `inner` (viser's file server)."""
+    from websockets.http11 import Response
+
+    def process_request(connection, request):
+        client = str((connection.remote_address or ("?",))[0])
+        port = int(connection.local_address[1])
+        v = gate.check(request.path, request.headers, client, port)
+        if v.location is not None:
+            return Response(http.HTTPStatus.SEE_OTHER, "See Other", _headers(None, 0, {"Location": v.location}), b"")
+        if not v.allowed:
+            extra = {"Retry-After": str(int(v.retry_after_s + 0.999))} if v.status == 429 else None
+            status = http.HTTPStatus(v.status)
+            if v.page:
+                body = gate.code_page(v.body).encode()
+                ctype = "text/html; charset=utf-8"
+            else:
+                body = (v.body + "\n").encode()
+                ctype = "text/plain; charset=utf-8"
+            return Response(status, status.phrase, _headers(ctype, len(body), extra), body)
+        if v.path is not None and v.path != request.path:
+            request = dataclasses.replace(request, path=v.path)
+        if inner is None:
+            return None
+        response = inner(connection, request)
+        if response is not None:
+            response.headers["X-Frame-Options"] = "DENY"
+            response.headers["Referrer-Policy"] = "no-referrer"
+            response.headers["Cache-Control"] = "no-store"
+        return response
+
+    return process_request
+
+
+def start_viser_server(gate: AccessGate, **viser_kwargs):
+    """`viser.ViserServer(**viser_kwargs)` with `gate` answering every request first."""
+    import viser
+    import websockets.asyncio.server as ws_server
+
+    installed = []
+    original = ws_server.serve
+
+    def serve(handler, *args, process_request=None, **kwargs):
+        installed.append(True)
+        return original(handler, *args, process_request=gated_process_request(gate, process_request), **kwargs)
+
+    with _construct_lock:
+        ws_server.serve = serve
+        try:
+            server = viser.ViserServer(**viser_kwargs)
+        finally:
+            ws_server.serve = original
+    if not installed:
+        server.stop()
+        raise OriginCheckUnavailable(
+            f"viser {getattr(viser, '__version__', '?')} does not start its server through websockets' serve(); "
+            "the panel's Origin check cannot be installed (app/station/_origin.py)")
+    return server
