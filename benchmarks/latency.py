@@ -70,10 +70,11 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    rows = []
-    for lat in args.latency:
-        runs = [run_once(lat, args.seed) for _ in range(args.runs)]
-        rows.append((lat, {k: statistics.median(r[k] for r in runs) for k in runs[0]}))
+    runs = {lat: [] for lat in args.latency}
+    for _ in range(args.runs):  # interleaved, so that a burst of load on the machine hits every latency
+        for lat in args.latency:
+            runs[lat].append(run_once(lat, args.seed))
+    rows = [(lat, {k: statistics.median(r[k] for r in rs) for k in rs[0]}) for lat, rs in runs.items()]
     base = rows[0][1]["captures"]
     print(f"simulated session, medians of {args.runs} run(s); times in seconds")
     print(f"{'latency ms':>10} {'wall':>7} {'rig check':>10} {'captures':>9} {'x lat 0':>8} "
