@@ -58,6 +58,10 @@ def test_frames_follow_the_camera_clock_and_never_come_from_the_future():
         f = g
     far = rig.camera.get_frame(newer_than=f.frame_number + 5)  # waits for that frame's time
     assert far.frame_number == f.frame_number + 6 and far.exposure_start_s + 1 / 30.0 <= time.monotonic() + 1e-6
+    rig.camera.stop()
+    rig.camera.start()  # a restarted clock goes on numbering: a frame number is never handed out twice
+    again = rig.camera.get_frame()
+    assert again.frame_number > far.frame_number and again.exposure_start_s > far.exposure_start_s
 
 
 def test_the_projector_shows_an_image_only_after_its_latency_and_frames_blend_the_change(monkeypatch):

@@ -75,6 +75,7 @@ class SimCamera:
         self._lock = threading.Lock()
         self._t0 = 0.0
         self._cached: Frame | None = None
+        self._floor = 0  # the first frame number this run of the clock may deliver
         self._ae_exposure_us = rig.hardware.initial_exposure_us
         self.settings_timeline = CameraSettingsTimeline(rig.hardware)
 
@@ -89,10 +90,10 @@ class SimCamera:
 
     def start(self) -> None:
         self._rig.renderer.warm_up()
-        if not self._running:
-            self._t0 = time.monotonic()
+        if not self._running:  # the clock starts; after a stop, frame numbers go on after the last one
+            self._floor = self._frame_number + 1 if self._cached is not None else 0
+            self._t0 = time.monotonic() - self._floor * self._rig.hardware.period_s
             self._cached = None
-            self._frame_number = 0
         self._running = True
 
     def stop(self) -> None:
@@ -118,7 +119,7 @@ class SimCamera:
         hw = self._rig.hardware
         with self._lock:
             now = time.monotonic()
-            n = max(self._newest_delivered(now), 0)
+            n = max(self._newest_delivered(now), self._floor)
             if newer_than is not None:  # the oldest frame newer than that still in the driver's queue
                 n = max(int(newer_than) + 1, n - (FRAME_QUEUE - 1))
             delivered = self._t0 + (n + 1) * hw.period_s
