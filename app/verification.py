@@ -39,7 +39,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from calib.curve_detection import CurveDetection, detect_projected_curve, distance_to_curve, lit_region
+from calib.curve_detection import CurveDetection, detect_projected_curve, distance_to_curve, lit_region, stripe_signal
 from calib.epipolar import epipolar_curve, predicted_camera_curve
 from calib.errors import FormatError, ProcamError
 from calib.fileio import atomic_write_text
@@ -168,27 +168,46 @@ def _num(v):
 
 
 class _Grabber:
-    """Shows an image and returns the (mean of `average`) camera frame(s) exposed after it: frames
-    newer than the last one seen when the image was presented, plus `settle_frames`."""
+    """Shows an image and returns the (mean of `average`) camera frame(s) exposed after it became
+    visible: frames whose exposure started at or after the time `wait_presented` returns (presentation
+    + the projector's measured latency). A camera that cannot time its frames (exposure_start_s None)
+    skips `settle_frames` frames after the one seen when the image was presented instead.
+    `seen` keeps (frame_number, projector ticket) of every frame used, for tests."""
 
     def __init__(self, camera, projector, settle_frames: int = 1, average: int = 1, timeout_s: float = 3.0):
         self.camera, self.projector = camera, projector
         self.settle_frames, self.average, self.timeout_s = int(settle_frames), max(1, int(average)), timeout_s
         self.last = None
+        self.seen: list[tuple[int, int]] = []
 
     def grab(self, image: np.ndarray) -> np.ndarray:
         ticket = self.projector.show(image)
-        self.projector.wait_presented(ticket, timeout_s=self.timeout_s)
+        visible_s = self.projector.wait_presented(ticket, timeout_s=self.timeout_s)
         if self.last is None:
             self.last = self.camera.get_frame(self.timeout_s).frame_number
-        acc = None
-        newer = self.last + self.settle_frames
-        for _ in range(self.average):
-            f = self.camera.get_frame(self.timeout_s, newer_than=newer)
-            newer = self.last = f.frame_number
+        acc, n, skip = None, 0, self.settle_frames
+        deadline = time.monotonic() + self.timeout_s
+        while n < self.average:
+            f = self.camera.get_frame(self.timeout_s, newer_than=self.last)
+            self.last = f.frame_number
+            early = f.exposure_start_s < visible_s if f.exposure_start_s is not None else skip > 0
+            if early:
+                skip -= 1
+                if time.monotonic() > deadline:
+                    raise VerificationError(f"no camera frame exposed after the projector's image became visible "
+                                            f"within {self.timeout_s:g} s: check the camera's frame times")
+                continue
             img = f.image.astype(np.float32)
             acc = img if acc is None else acc + img
+            n += 1
+            self.seen.append((int(f.frame_number), int(ticket)))
         return acc / self.average if self.average > 1 else acc
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    """(H, W) float32: the mean of the channels, as calib.curve_detection reads a BGR frame."""
+    a = np.asarray(img)
+    return a.astype(np.float32).mean(axis=2) if a.ndim == 3 else a.astype(np.float32)
 
 
 def _draw(size, curve: np.ndarray, stroke_px: float) -> np.ndarray:
@@ -206,10 +225,10 @@ class ReferenceFrames:
     lit: np.ndarray  # bool mask of what the projector lights brightly, as the camera sees it
 
 
-def capture_references(camera, projector, settle_frames: int = 1, average: int = 1) -> ReferenceFrames:
+def capture_references(camera, projector, settle_frames: int = 1, average: int = 1, grabber=None) -> ReferenceFrames:
     """Capture the black and white reference frames (the board must be in place and still)."""
     W, H = projector.size
-    g = _Grabber(camera, projector, settle_frames, average)
+    g = grabber or _Grabber(camera, projector, settle_frames, average)
     white = g.grab(np.full((H, W), 255, np.uint8))
     off = g.grab(np.zeros((H, W), np.uint8))
     return ReferenceFrames(off, white, lit_region(off, white))
@@ -245,13 +264,18 @@ def verify_pixel(camera, projector, result: CalibrationResult, pixel, *, referen
 
 
 def measure_pixel(result: CalibrationResult, pixel, curve: np.ndarray, frame_on: np.ndarray, refs: ReferenceFrames,
-                  stroke_px: float, board_pose=None) -> PixelCheck:
-    """The measurement of verify_pixel on captured frames (pure: no devices)."""
+                  stroke_px: float, board_pose=None, roi: np.ndarray | None = None, signal=None) -> PixelCheck:
+    """The measurement of verify_pixel on captured frames (pure: no devices). `roi`: where in the
+    camera image this pixel's stroke is looked for (when other strokes share the frame); `signal`:
+    calib.curve_detection.stripe_signal of the frames, computed once for all strokes of the frame."""
     pixel = (float(pixel[0]), float(pixel[1]))
     predicted = None
     if board_pose is not None:
         predicted = predicted_camera_curve(result, pixel, board_pose)
-    det: CurveDetection = detect_projected_curve(frame_on, refs.off, refs.white)
+    if roi is not None and signal is not None and roi.any():
+        det = _detect_in_box(signal, roi, refs.white)
+    else:
+        det: CurveDetection = detect_projected_curve(frame_on, refs.off, refs.white, roi=roi, signal=signal)
     if not det.ok:
         return PixelCheck(pixel, curve, np.zeros((0, 2)), predicted, None, None, None, None, stroke_px, None,
                           det.reason)
@@ -262,6 +286,80 @@ def measure_pixel(result: CalibrationResult, pixel, curve: np.ndarray, frame_on:
     d_proj = cd.distance_px / scale if scale else None
     return PixelCheck(pixel, curve, det.centre_px, predicted, cd.distance_px, cd.signed_px, d_proj, scale,
                       stroke_px, cd.fit_rms_px, None)
+
+
+# ---- several curves per projected image --------------------------------------------------------------
+#: Strokes drawn in one projector image: at most this many ...
+MAX_CURVES_PER_IMAGE = 4
+#: ... and each picked pixel at least this far (camera px) from every other stroke's line in the image.
+MIN_SEPARATION_PX = 60.0
+
+
+def stroke_line(result: CalibrationResult, pixel, curve: np.ndarray) -> np.ndarray:
+    """Where the camera sees the stroke of `pixel`'s epipolar curve, whatever the board's pose: the
+    camera-side epipolar curve of the epipolar plane through the pixel (the camera curve of a
+    projector pixel on its curve). (K, 2) camera pixels, empty when it cannot be traced."""
+    from calib.epipolar import camera_curve_for_projector_pixel
+
+    if len(curve) < 2:
+        return np.zeros((0, 2))
+    mid = np.asarray(curve, float)[len(curve) // 2]
+    line = np.asarray(camera_curve_for_projector_pixel(result, mid).px, float).reshape(-1, 2)
+    return line if len(line) >= 2 else np.zeros((0, 2))
+
+
+def group_pixels(pixels: np.ndarray, lines: list[np.ndarray], per_image: int = MAX_CURVES_PER_IMAGE,
+                 min_separation_px: float = MIN_SEPARATION_PX) -> list[list[int]]:
+    """Indices of `pixels` grouped so the strokes of a group can be drawn in one projector image and
+    told apart in the camera: each pixel at least `min_separation_px` from the other strokes' lines.
+    A pixel without a line gets a group of its own."""
+    from calib.epipolar import distance_to_polyline
+
+    def far(i, j) -> bool:
+        if len(lines[i]) < 2 or len(lines[j]) < 2:
+            return False
+        return (float(distance_to_polyline(pixels[i], lines[j]).distance[0]) >= min_separation_px and
+                float(distance_to_polyline(pixels[j], lines[i]).distance[0]) >= min_separation_px)
+
+    groups: list[list[int]] = []
+    for i in range(len(pixels)):
+        for g in groups:
+            if len(g) < per_image and all(far(i, j) for j in g):
+                g.append(i)
+                break
+        else:
+            groups.append([i])
+    return groups
+
+
+def _detect_in_box(signal, roi: np.ndarray, white: np.ndarray) -> CurveDetection:
+    """detect_projected_curve on the bounding box of `roi` only (the same result, far less work)."""
+    s, valid = signal
+    ys, xs = np.nonzero(roi)
+    pad = 3
+    y0, y1 = max(int(ys.min()) - pad, 0), min(int(ys.max()) + pad + 1, roi.shape[0])
+    x0, x1 = max(int(xs.min()) - pad, 0), min(int(xs.max()) + pad + 1, roi.shape[1])
+    box = (slice(y0, y1), slice(x0, x1))
+    det = detect_projected_curve(None, None, white[box], roi=roi[box], signal=(s[box], valid[box]))
+    return replace(det, centre_px=det.centre_px + np.array([x0, y0], float)) if det.ok else det
+
+
+def _stroke_rois(shape, lines: list[np.ndarray], half_width_px: float) -> list[np.ndarray]:
+    """Per line, the camera pixels nearer to it than to the other lines and within `half_width_px`."""
+    H, W = shape
+    dists = []
+    for ln in lines:
+        m = np.full((H, W), 255, np.uint8)
+        cv2.polylines(m, [np.round(ln).astype(np.int32).reshape(-1, 1, 2)], False, 0, 1)
+        dists.append(cv2.distanceTransform(m, cv2.DIST_L2, 3))
+    out = []
+    for i, d in enumerate(dists):
+        roi = d <= half_width_px
+        for j, o in enumerate(dists):
+            if j != i:
+                roi &= d < o
+        out.append(roi)
+    return out
 
 
 # ---- the automatic check -----------------------------------------------------------------------------
@@ -481,7 +579,8 @@ def estimate_board_pose(image: np.ndarray, board, result: CalibrationResult) -> 
 def verify(camera, projector, operator, result: CalibrationResult, pixels=None, grid=DEFAULT_GRID,
            threshold_px: float = DEFAULT_THRESHOLD_PX, board_region=None, progress: Progress | None = None, *,
            board=None, board_pose=None, stroke_px: float | None = None, settle_frames: int = 1, average: int = 1,
-           min_measured: int = 3, calibration_info: dict | None = None, session_dir=None) -> VerificationReport:
+           min_measured: int = 3, calibration_info: dict | None = None, session_dir=None,
+           curves_per_image: int = MAX_CURVES_PER_IMAGE) -> VerificationReport:
     """The automatic epipolar check. `operator` (may be None) is asked for the 'verification' pose
     first. `pixels`: (N, 2) camera pixels to verify, default a `grid` (cols, rows) spread over the
     region the projector lights (within `board_region` when given). One pixel after another; the
@@ -489,13 +588,15 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     `stroke_px` is given). `board_pose` (T_cam_board) or `board` (the CharucoSpec, found in the white
     frame; default the session's projector board when `session_dir` is given) add the predicted curve
     to each check (overlay only). `session_dir`: write the report there as verification.json. Returns
-    the report (the projector is left black)."""
+    the report (the projector is left black). `curves_per_image`: strokes drawn together in one
+    projector image (pixels grouped by group_pixels; 1: one image per pixel)."""
     if tuple(projector.size) != tuple(result.projector.size):
         raise VerificationError(f"the projector is {projector.size[0]}x{projector.size[1]} but the calibration is for "
                                 f"{result.projector.width}x{result.projector.height}")
     if operator is not None:
         operator.request_pose("verification", None, 0)
-    refs = capture_references(camera, projector, settle_frames, average)
+    ref_grabber = _Grabber(camera, projector, settle_frames, average)
+    refs = capture_references(camera, projector, settle_frames, average, grabber=ref_grabber)
     H, W = refs.off.shape[:2]
     if (W, H) != tuple(result.camera.size):
         raise VerificationError(f"the camera delivers {W}x{H} frames but the calibration is for "
@@ -514,18 +615,41 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
         pts = np.asarray(pixels, float).reshape(-1, 2)
     if len(pts) == 0:
         raise VerificationError("no pixel to verify: the lit region is too small for the grid")
-    checks = []
     stroke = float(stroke_px or INITIAL_STROKE_PX)
     Wp, Hp = projector.size
-    for i, p in enumerate(pts):
+    # several pixels per projected image: their strokes lie on well separated camera-side lines
+    curves = [epipolar_curve(result, (float(p[0]), float(p[1]))) for p in pts]
+    lines = [stroke_line(result, p, c) for p, c in zip(pts, curves)]
+    groups = group_pixels(pts, lines, curves_per_image)
+    results: dict[int, PixelCheck] = {}
+    g = _Grabber(camera, projector, settle_frames, average)
+    grey = ReferenceFrames(_grey(refs.off), _grey(refs.white), refs.lit)  # converted once, not per check
+    done = 0
+    for group in groups:
         if progress is not None:
-            progress(i, len(pts), f"pixel ({p[0]:.0f}, {p[1]:.0f})")
-        chk = verify_pixel(camera, projector, result, p, references=refs, stroke_px=stroke, board_pose=board_pose,
-                           settle_frames=settle_frames, average=average, leave_dark=False)
-        checks.append(chk)
-        if stroke_px is None and chk.scale:
-            scales = [c.scale for c in checks if c.scale]
-            stroke = float(np.clip(TARGET_STROKE_CAM_PX / np.median(scales), 3.0, 60.0))
+            progress(done, len(pts), f"pixel ({pts[group[0]][0]:.0f}, {pts[group[0]][1]:.0f})"
+                     + (f" and {len(group) - 1} more" if len(group) > 1 else ""))
+        drawable = [i for i in group if len(curves[i]) >= 2]
+        for i in group:
+            if i not in drawable:
+                results[i] = verify_pixel(camera, projector, result, pts[i], references=refs, stroke_px=stroke)
+        if drawable:
+            from drivers.projector_images import draw_polylines
+
+            image = draw_polylines((Wp, Hp), [curves[i] for i in drawable], thickness_px=stroke, antialias=True)
+            on = _grey(g.grab(image))
+            signal = stripe_signal(on, grey.off, grey.white)
+            rois = _stroke_rois((H, W), [lines[i] for i in drawable], MIN_SEPARATION_PX / 2) \
+                if len(drawable) > 1 else [None]
+            for i, roi in zip(drawable, rois):
+                results[i] = measure_pixel(result, pts[i], curves[i], on, grey, stroke, board_pose, roi=roi,
+                                           signal=signal)
+        done += len(group)
+        if stroke_px is None:
+            scales = [c.scale for c in results.values() if c.scale]
+            if scales:
+                stroke = float(np.clip(TARGET_STROKE_CAM_PX / np.median(scales), 3.0, 60.0))
+    checks = [results[i] for i in range(len(pts))]
     projector.wait_presented(projector.show(np.zeros((Hp, Wp), np.uint8)))
     if progress is not None:
         progress(len(pts), len(pts), "done")
@@ -533,7 +657,9 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     if info.get("path") and "sha256" not in info:  # which calibration file this report verified
         info["sha256"] = file_sha256(info["path"])
     settings = {"grid": list(grid) if pixels is None else None, "settle_frames": settle_frames, "average": average,
-                "stroke_px": stroke_px, "min_measured": min_measured, "board_pose_known": board_pose is not None}
+                "stroke_px": stroke_px, "min_measured": min_measured, "board_pose_known": board_pose is not None,
+                "curves_per_image": curves_per_image, "projector_images": 2 + len(groups),
+                "frames": [list(x) for x in ref_grabber.seen + g.seen]}  # [camera frame, projector ticket]
     report = judge(checks, threshold_px, min_measured, info, settings)
     if session_dir is not None:
         report.save_json(Path(session_dir) / "verification.json")

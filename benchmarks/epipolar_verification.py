@@ -55,8 +55,12 @@ def table_a(scenarios, grid):
     print(f"{'scenario':<16} {'calibration':<26} {'cam mean':>8} {'cam worst':>9} {'proj mean':>9} {'proj worst':>10} "
           f"{'measured':>8}  verdict")
     for name in scenarios:
+        from drivers.settle import apply_timing
+
         rig = open_sim_rig(name, seed=0, quality="live")
         rig.camera.start()
+        rig.operator.request_pose("verification", None, 0)
+        apply_timing(rig.camera, rig.projector)  # exposure and latency, as the station's rig check
         gt = rig.ground_truth()
         for label, kw in PERTURBATIONS:
             res = perturbed(gt, **kw) if kw else gt
@@ -166,8 +170,12 @@ def session_row(folder, grid):
 
     man = SessionStore.open(folder).manifest
     st = man.rig.camera_settings
+    from drivers.settle import apply_timing
+
     rig = open_sim_rig(st.get("scenario", "nonoverlap-136"), seed=int(st.get("seed", 0)), quality="live")
     rig.camera.start()
+    rig.operator.request_pose("verification", None, 0)
+    apply_timing(rig.camera, rig.projector, st)
     res = CalibrationResult.load_json(Path(folder) / "calibration.json")
     rep = verify(rig.camera, rig.projector, rig.operator, res, grid=grid)
     print(f"procam calibrate result of {folder}: {rep.summary()}")

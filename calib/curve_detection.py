@@ -121,11 +121,12 @@ def lit_region(frame_off, frame_white, channel: int | None = None, min_fraction:
 def detect_projected_curve(frame_on, frame_off, frame_white=None, *, channel: int | None = None,
                            roi=None, min_contrast: float = 0.12, level_fraction: float = 0.15,
                            max_width_px: float = 30.0, min_points: int = 12,
-                           smooth_sigma_px: float = 1.0) -> CurveDetection:
+                           smooth_sigma_px: float = 1.0, signal=None) -> CurveDetection:
     """Sub-pixel centre line of the curve drawn in `frame_on` and absent from `frame_off` (BGR or grey
     arrays of the same size; `frame_white` optional, see stripe_signal). `roi`: optional bool mask of
-    where to look."""
-    s, valid = stripe_signal(frame_on, frame_off, frame_white, channel)
+    where to look. `signal`: (s, valid) as stripe_signal returns for these frames, when the caller
+    computed it once for several curves in one frame (frame_on and frame_off are then not read)."""
+    s, valid = signal if signal is not None else stripe_signal(frame_on, frame_off, frame_white, channel)
     if roi is not None:
         roi = np.asarray(roi, bool)
         if roi.shape != s.shape:

@@ -1,17 +1,24 @@
-"""Measure the projector's settle time: how long after a presented image (drivers.base.ProjectorDriver
-.wait_presented, settle time 0) a camera frame arrives that fully shows it.
+"""Measure the projector's latency: how long after an image is presented (the swap time that
+drivers.base.ProjectorDriver.wait_presented returns when its settle time is 0) the camera sees it.
 
-The delay adds up the projector's own processing (scaler, DLP/LCD response), the wait for the camera's
-next exposure to start and the camera's transfer. The station then treats an image as visible only
-`settle_s` after its presentation and asks for a camera frame newer than the last one seen at that
-moment, so it never captures a frame exposed before the pattern changed.
+The delay is the projector's own processing (scaler, DLP/LCD response). The station then treats an
+image as visible `settle_s` after its presentation and accepts only camera frames whose exposure
+started at or after that moment (Frame.exposure_start_s), so it never uses a frame exposed before the
+pattern changed (see docs/STATION.md, "timing").
 
-One trial: show a dark image, let it settle, take a reference frame; show a bright image, note the
-presentation time; watch every new camera frame for `observe_s`. The pixels that changed by more than
-`change_levels` between the reference and the last frame are where the camera sees the projection
-(directly or through the mirror); the first frame whose mean change over those pixels reaches
-`fraction` of the final change marks the delay. Frames are timed by their host arrival time
-(Frame.meta["host_time_s"] when the driver records it, else when get_frame returned).
+One trial: show a dark image and wait until the camera's frames are steady (a reference frame); show
+a bright image, note the presentation time; watch every new camera frame until the change has
+happened and the frames are steady again (or `observe_s` passed). The pixels that changed by more
+than `change_levels` between the reference and the last frame are where the camera sees the
+projection (directly or through the mirror). For each frame, f is the fraction of the final change it
+shows. A frame that shows part of the change (0 < f < 1) was exposed while the image appeared: with
+its exposure start s and duration d, the image appeared at s + (1 - f) d. Otherwise the first frame
+that shows it fully bounds the moment from above (its exposure start, or for a driver that cannot
+time its frames its arrival) and the last one showing none of it from below (its exposure end). The
+camera's exposures start at a different phase of the projector's refresh in every trial, so the
+smallest upper bound over the trials is the tightest (never below a lower bound). The recommended
+settle time is that plus a margin of max(10 ms, spread of the trials timed within an exposure) for
+the projector's jitter (up to +-5 ms: more jitter needs a larger margin).
 """
 
 from __future__ import annotations
@@ -27,9 +34,8 @@ from drivers.projector_images import black, white
 
 @dataclass(frozen=True)
 class SettleMeasurement:
-    """settle_s: the recommended settle time (largest delay seen plus half a camera frame interval,
-    for the phase between projector refresh and camera exposure the trials may have missed);
-    samples_s: the delay of each trial; frame_interval_s: median camera frame interval seen;
+    """settle_s: the recommended settle time (see the module doc); samples_s: each trial's upper bound
+    of the delay; frame_interval_s: median camera frame interval seen;
     changed_fraction: the part of the camera image that saw the change."""
 
     settle_s: float
@@ -56,11 +62,38 @@ def _arrival(frame) -> float:
     return float(t) if t is not None else time.monotonic()
 
 
-def measure_settle(projector, camera, trials: int = 3, observe_s: float = 1.0, rest_s: float = 0.5,
-                   fraction: float = 0.9, change_levels: float = 20.0, min_changed_fraction: float = 1e-4,
+def _exposure_s(frame) -> float | None:
+    e = frame.meta.get("exposure_us") if isinstance(frame.meta, dict) else None
+    return float(e) * 1e-6 if isinstance(e, (int, float)) and e > 0 else None
+
+
+def _changed_fraction(a: np.ndarray, b: np.ndarray, levels: float) -> float:
+    return float((np.abs(a - b) > levels).mean())
+
+
+def _steady(camera, last: int, timeout_s: float, downsample: int, levels: float, away_from=None,
+            max_frames: int = 60):
+    """Frames until two in a row differ by more than `levels` nowhere (but for specks) and, with
+    `away_from` = (grey image, mask), the frame no longer shows that image on the mask; returns
+    (frame, grey)."""
+    prev = None
+    for _ in range(max_frames):
+        f = camera.get_frame(timeout_s, newer_than=last)
+        last = f.frame_number
+        g = _grey_small(f.image, downsample)
+        gone = away_from is None or float((np.abs(g - away_from[0]) > levels)[away_from[1]].mean()) > 0.5
+        if prev is not None and gone and _changed_fraction(g, prev, levels) < 1e-4:
+            return f, g
+        prev = g
+    return f, g
+
+
+def measure_settle(projector, camera, trials: int = 5, observe_s: float = 1.5, rest_s: float = 0.0,
+                   fraction: float = 0.97, change_levels: float = 20.0, min_changed_fraction: float = 1e-4,
                    dark: np.ndarray | None = None, bright: np.ndarray | None = None,
-                   frame_timeout_s: float = 2.0, downsample: int = 4) -> SettleMeasurement:
-    """Measure the settle time over `trials` dark-to-bright switches (see the module doc). The
+                   frame_timeout_s: float = 2.0, downsample: int = 4, first_rest_s: float = 0.5) -> SettleMeasurement:
+    """Measure the settle time over `trials` dark-to-bright switches (see the module doc); the first
+    dark image is given `first_rest_s` (longer than any projector's latency) to show. The
     projector's own `settle_s` (if it has one) is set to 0 while measuring and restored after.
     Raises DeviceError when the camera does not see the projection change."""
     size = tuple(projector.size)
@@ -69,24 +102,32 @@ def measure_settle(projector, camera, trials: int = 3, observe_s: float = 1.0, r
     old_settle = getattr(projector, "settle_s", None)
     if old_settle is not None:
         projector.settle_s = 0.0
-    samples, intervals, changed = [], [], []
+    samples, intervals, changed, exact, lows = [], [], [], [], []
     try:
-        for _ in range(trials):
+        last = camera.get_frame(frame_timeout_s).frame_number
+        away = None
+        for k in range(trials):
             projector.wait_presented(projector.show(dark), frame_timeout_s)
-            time.sleep(rest_s)
-            ref = camera.get_frame(frame_timeout_s)
-            ref = camera.get_frame(frame_timeout_s, newer_than=ref.frame_number)  # exposed after the rest
-            ref_img = _grey_small(ref.image, downsample)
+            if k == 0:  # what was shown before is unknown: wait for any projector to have caught up
+                time.sleep(max(rest_s, first_rest_s))
+            elif rest_s > 0:
+                time.sleep(rest_s)
+            ref, ref_img = _steady(camera, last, frame_timeout_s, downsample, change_levels / 2, away)
+            last = ref.frame_number
             t_swap = projector.wait_presented(projector.show(bright), frame_timeout_s)
-            seen, last = [], ref.frame_number
+            seen = []
             while True:
                 f = camera.get_frame(frame_timeout_s, newer_than=last)
                 last = f.frame_number
-                t = _arrival(f)
-                seen.append((t, _grey_small(f.image, downsample)))
-                if t - t_swap >= observe_s:
+                g = _grey_small(f.image, downsample)
+                seen.append((f, _arrival(f), g))
+                moved = _changed_fraction(g, ref_img, change_levels) >= min_changed_fraction
+                if len(seen) >= 3 and moved and _changed_fraction(g, seen[-2][2], change_levels / 2) < 1e-4 \
+                        and _changed_fraction(seen[-2][2], seen[-3][2], change_levels / 2) < 1e-4:
+                    break  # changed, and steady for three frames
+                if seen[-1][1] - t_swap >= observe_s:
                     break
-            final = seen[-1][1]
+            final = seen[-1][2]
             diff = np.abs(final - ref_img)
             mask = diff > change_levels
             frac = float(mask.mean())
@@ -96,22 +137,74 @@ def measure_settle(projector, camera, trials: int = 3, observe_s: float = 1.0, r
                     f"{change_levels:g} levels within {observe_s:g} s): point the camera at the projected "
                     "image (or its mirror view), or raise observe_s for a slow projector")
             total = float(diff[mask].mean())
-            hit = None
-            for t, g in seen:
-                if float(np.abs(g - ref_img)[mask].mean()) >= fraction * total:
-                    hit = t
+            away = (final, mask)  # the next trial's dark frame must have left this bright one
+            lo, hi, exact_k = 0.0, None, None
+            for f, t_arr, g in seen:
+                part = float(np.abs(g - ref_img)[mask].mean()) / total
+                start, dur = f.exposure_start_s, _exposure_s(f)
+                if part >= fraction:  # fully changed: the image appeared before this exposure
+                    hi = start if start is not None else t_arr
                     break
-            samples.append(max(0.0, hit - t_swap))
+                if part > 1 - fraction and start is not None and dur is not None:
+                    exact_k = hi = start + (1.0 - part) * dur  # appeared during this exposure
+                    break
+                if start is not None and dur is not None:  # unchanged: it appeared after this exposure
+                    lo = start + dur
+            if exact_k is not None:
+                exact.append(exact_k - t_swap)
+            samples.append(max(0.0, hi - t_swap))
+            lows.append(max(0.0, lo - t_swap))
             changed.append(frac)
-            times = [t for t, _ in seen]
+            times = [f.exposure_start_s if f.exposure_start_s is not None else t for f, t, _ in seen]
             intervals.extend(np.diff(times).tolist())
     finally:
         if old_settle is not None:
             projector.settle_s = old_settle
     interval = float(np.median(intervals)) if intervals else 0.0
-    return SettleMeasurement(max(samples) + 0.5 * interval, tuple(samples), interval, float(np.mean(changed)))
+    # each trial bounds the latency from above (the first changed frame; exact when a frame caught the
+    # change); the smallest bound is the tightest, as long as it is not below another trial's lower bound
+    latency = max(min(samples), max(lows))
+    margin = max(0.010, max(exact) - min(exact)) if len(exact) > 1 else 0.010
+    return SettleMeasurement(latency + margin, tuple(samples), interval, float(np.mean(changed)))
 
 
 def measure_settle_time(projector, camera, **kwargs) -> float:
     """The recommended settle time in seconds (measure_settle(...).settle_s)."""
     return measure_settle(projector, camera, **kwargs).settle_s
+
+
+def apply_timing(camera, projector, camera_settings: dict | None = None, search_image: np.ndarray | None = None,
+                 measure: bool = True) -> dict:
+    """Make a rig's frames trustworthy for a command that shows images and reads them back (the
+    station's rig check does the same, with a report per step): the IR emitter off, the exposure
+    re-applied from `camera_settings` (a session manifest's rig.camera_settings) or searched while
+    `search_image` (default full white) lights the board, and the projector latency re-applied from
+    camera_settings["projector"]["latency_ms"] or measured (when `measure`). Returns the settings
+    applied, in the manifest's form."""
+    from drivers.base import ExposureControl
+    from drivers.exposure import search_exposure
+
+    rec = dict(camera_settings or {})
+    out = {}
+    if isinstance(camera, ExposureControl):
+        camera.set_emitter(False)
+        if rec.get("auto_exposure") is False and isinstance(rec.get("exposure_us"), (int, float)):
+            applied = camera.set_manual_exposure(float(rec["exposure_us"]), float(rec.get("gain", 1.0)))
+        else:
+            img = white(tuple(projector.size)) if search_image is None else search_image
+            projector.wait_presented(projector.show(img))
+            time.sleep(0.5)  # longer than any projector's latency
+            c = search_exposure(camera, float(getattr(projector, "refresh_hz", 60.0) or 60.0))
+            applied = {"exposure_us": c.exposure_us, "gain": c.gain}
+        out.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
+                    "gain": float(applied["gain"]), "emitter_enabled": False})
+    timing = dict(rec.get("projector") or {})
+    if hasattr(projector, "settle_s"):
+        if isinstance(timing.get("latency_ms"), (int, float)) and timing["latency_ms"] >= 0:
+            projector.settle_s = float(timing["latency_ms"]) / 1000.0
+        elif measure:
+            projector.settle_s = measure_settle(projector, camera).settle_s
+        timing.update({"latency_ms": round(float(projector.settle_s) * 1000.0, 3),
+                       "refresh_hz": float(getattr(projector, "refresh_hz", 0.0) or 0.0)})
+        out["projector"] = timing
+    return out

@@ -20,6 +20,7 @@ from app.verification import (
 )
 from calib.epipolar import distance_to_polyline
 from calib.errors import FormatError
+from drivers.settle import apply_timing
 from drivers.sim.rig import open_sim_rig
 
 
@@ -110,6 +111,7 @@ def sim():
     rig = open_sim_rig("nonoverlap-136", seed=0, quality="live")
     rig.camera.start()
     rig.operator.request_pose("verification", None, 0)
+    apply_timing(rig.camera, rig.projector)  # exposure searched, latency measured, as the station does
     return rig
 
 

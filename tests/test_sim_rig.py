@@ -1,4 +1,6 @@
-"""The simulated devices implement the driver protocols the station codes against."""
+"""The simulated devices implement the driver protocols the station codes against. These tests look at
+the rendering and the operator, so they use the rig's ideal mode (no latency, a new frame per request);
+its hardware-like timing is tested in tests/test_rig_timing.py."""
 
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from drivers.sim import SimRig, get_scenario, open_sim_rig
 @pytest.fixture(scope="module")
 def rig():
     r = open_sim_rig("nonoverlap-136", seed=0, quality="live", read_noise_dn=0.0, electrons_per_dn=0.0,
-                     blur_sigma_px=0.0)
+                     blur_sigma_px=0.0, ideal=True)
     r.camera.start()
     return r
 
@@ -112,7 +114,7 @@ def test_move_out_empties_the_view(rig):
 
 
 def test_settling_frames_show_motion_then_stillness():
-    r = open_sim_rig("nonoverlap-136", settling_frames=3, read_noise_dn=0.0, electrons_per_dn=0.0)
+    r = open_sim_rig("nonoverlap-136", settling_frames=3, read_noise_dn=0.0, electrons_per_dn=0.0, ideal=True)
     r.camera.start()
     r.operator.request_pose("projector", 4, 0)
     r.operator.request_pose("projector", 4, 1)
@@ -126,8 +128,8 @@ def test_settling_frames_show_motion_then_stillness():
 
 
 def test_noise_is_reproducible_per_frame_number():
-    a = open_sim_rig("direct", seed=3)
-    b = open_sim_rig("direct", seed=3)
+    a = open_sim_rig("direct", seed=3, ideal=True)
+    b = open_sim_rig("direct", seed=3, ideal=True)
     for r in (a, b):
         r.camera.start()
         r.operator.request_pose("projector", 0, 0)

@@ -15,13 +15,12 @@ SMALL = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, 
 
 
 class RecordingCamera:
-    """The sim camera, remembering what each frame showed (the sim marks frames of a moving board)."""
+    """The sim camera, remembering each frame's meta (the sim marks frames of a moving board)."""
 
     def __init__(self, cam, projector):
         self._cam = cam
         self._projector = projector
         self.meta = {}
-        self.shown = {}  # frame number -> hash of the projector image lighting the scene
 
     def __getattr__(self, name):
         return getattr(self._cam, name)
@@ -29,8 +28,13 @@ class RecordingCamera:
     def get_frame(self, *a, **k):
         f = self._cam.get_frame(*a, **k)
         self.meta[f.frame_number] = f.meta
-        self.shown[f.frame_number] = hash(self._projector.image.tobytes())
         return f
+
+
+def images_seen(rig, frame_number) -> set:
+    """Hashes of the projector images that lit the scene during the frame's exposure (the sim's truth)."""
+    return {hash(rig.projector.timeline.image_of(t).tobytes()) for t, frac in rig.frame_truth[frame_number]
+            if frac > 0}
 
 
 def session(tmp_path, scenario="nonoverlap-136", plan=SMALL, **rig_opts):
@@ -70,7 +74,7 @@ def test_auto_capture_waits_for_the_settled_board_and_follows_the_targets(tmp_pa
     # the projector showed each capture's pattern position when it was taken
     for c in m.captures_of(STEP_PROJECTOR):
         assert rig.camera.meta[c.meta["frame_number"]]["moving"] is False
-        assert rig.camera.shown[c.meta["frame_number"]] == hash(st.pattern_image(c.pattern_position).tobytes())
+        assert images_seen(rig, c.meta["frame_number"]) == {hash(st.pattern_image(c.pattern_position).tobytes())}
     st.tick()
     assert np.array_equal(rig.projector.image, st.pattern_image(m.target.pattern_position))
     # the manifest on disk names every acknowledged capture, each with its image
@@ -96,13 +100,13 @@ def test_operator_buttons_and_refusals(tmp_path):
     text = st.request_pose()
     assert "mirror" in text.lower()
     tick_until(st, lambda: st.live is not None and st.live.detection is not None and st.live.detection.ok
-               and st.live.frame_number > st._min_frame)
+               and st.live.accepted)
     cap = st.capture_now()
     assert cap.meta["how"] == "button" and m.counts()["mirror"] == 1
     # move the board out: capture refused with the detection's reason
     rig.operator.move_out()
     st.tick()
-    st.tick()
+    tick_until(st, lambda: st.live.accepted and st.live.detection is not None)
     with pytest.raises(ActionRefused) as e:
         st.capture_now()
     assert "board not found" in e.value.reason
@@ -111,7 +115,7 @@ def test_operator_buttons_and_refusals(tmp_path):
     assert tgt.pose_index == 0 and m.counts()["mirror"] == 0
     st.request_pose()
     tick_until(st, lambda: st.live.detection is not None and st.live.detection.ok
-               and st.live.frame_number > st._min_frame)
+               and st.live.accepted)
     again = st.capture_now()
     assert again.meta["pose_index"] == 0 and again.meta["retake"] is True
     a, b = cap.meta["pose"], again.meta["pose"]

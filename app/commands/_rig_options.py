@@ -8,6 +8,7 @@ def add_rig_options(p) -> None:
     p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
     p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
+    add_sim_latency_option(p)
     p.add_argument("--poses-per-position", type=int, default=None,
                    help="board poses per pattern position (default 4)")
     p.add_argument("--mirror-captures", type=int, default=None,
@@ -30,3 +31,22 @@ def add_rig_options(p) -> None:
     p.add_argument("--method", default=None,
                    help="calibration method (default: the calibration core's default; 'paper' is the method of "
                         "Vanherck et al.)")
+
+
+def add_sim_latency_option(p) -> None:
+    """--sim-latency-ms (any command that opens the simulated rig)."""
+    p.add_argument("--sim-latency-ms", type=float, default=None, metavar="MS",
+                   help="simulated rig: the projector's latency in ms, 0 allowed (default: 60-120 ms, drawn from "
+                        "the seed, with a few ms of jitter, as real projectors)")
+
+
+def sim_latency_ms(args) -> float | None:
+    """The --sim-latency-ms value, checked (a clear error for a negative or non-finite one)."""
+    import math
+
+    from calib.errors import SpecError
+
+    v = getattr(args, "sim_latency_ms", None)
+    if v is not None and not (math.isfinite(v) and 0 <= v <= 2000):
+        raise SpecError(f"--sim-latency-ms must be between 0 and 2000 ms, got {v:g}")
+    return v

@@ -49,9 +49,12 @@ def plan_from_args(args, base=None):
 
 
 def rig_options(args, kind: str) -> dict:
-    """Device options for drivers.factory.open_rig (real rigs only)."""
+    """Device options for drivers.factory.open_rig (the simulated rig: its projector latency)."""
     if kind == "sim":
-        return {}
+        from app.commands._rig_options import sim_latency_ms
+
+        v = sim_latency_ms(args)
+        return {} if v is None else {"latency_ms": v}
     opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
     return {k: v for k, v in opts.items() if v is not None}
 

@@ -130,7 +130,7 @@ def _init_worker(scenario, quality):
     global _worker_rig
     from drivers.sim.rig import SimRig
 
-    _worker_rig = SimRig(scenario, quality)
+    _worker_rig = SimRig(scenario, quality, ideal=True)  # each capture rendered from a settled state
     _worker_rig.renderer.warm_up()
 
 
@@ -158,7 +158,7 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
 
     out = Path(out)
     jobs = capture_plan(scenario)
-    probe = SimRig(scenario, quality)
+    probe = SimRig(scenario, quality, ideal=True)
     rig = scenario.rig
     manifest = SessionManifest(
         rig=RigInfo(rig.camera.size, rig.projector.size, rig.view, probe.camera.settings(), "sim"),

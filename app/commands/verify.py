@@ -63,6 +63,9 @@ def add_arguments(p) -> None:
     sim.add_argument("--seed", type=int, default=None, help="scenario seed (default: the session's)")
     sim.add_argument("--quality", choices=("live", "session"), default="live",
                      help="render quality of the simulated camera (default live: 1 sample per pixel)")
+    from app.commands._rig_options import add_sim_latency_option
+
+    add_sim_latency_option(sim)
     hw = p.add_argument_group("--rig realsense")
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
     hw.add_argument("--screen", type=int, default=None, metavar="N", help="projector screen (default: the last)")
@@ -86,7 +89,11 @@ def _sim_options(manifest, args) -> dict:
                            "give --scenario NAME (see `procam simulate --list`) or use --rig realsense")
     render = {k: v for k, v in settings.items()
               if k in RenderSettings.__dataclass_fields__ and k != "supersample" and not isinstance(v, (dict, list))}
-    return {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render}
+    from app.commands._rig_options import sim_latency_ms
+
+    latency = sim_latency_ms(args)
+    return {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render,
+            **({} if latency is None else {"latency_ms": latency})}
 
 
 def run(args) -> int:
@@ -124,6 +131,10 @@ def run(args) -> int:
         try:
             instruction = rig.operator.request_pose("verification", None, 0)
             print(instruction, file=sys.stderr, flush=True)
+            if args.rig == "sim":  # exposure and projector latency as the session recorded them (or measured)
+                from drivers.settle import apply_timing
+
+                apply_timing(rig.camera, rig.projector, man.rig.camera_settings)
             if args.rig == "realsense" and args.delay > 0:
                 time.sleep(args.delay)
             # the operator has been asked already: pass None so verify does not ask again

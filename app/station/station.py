@@ -72,7 +72,7 @@ class StationOptions:
     auto_capture: bool = True  # capture when the board is detected, still and in a new pose
     follow_operator: bool | None = None  # ask the operator for each new pose (None: real rigs, or auto)
     mirror_method: str | None = None  # auto: the method to choose (None: the scenario's, else real-virtual)
-    settle_frames: int | None = None  # frames to skip after the projector or the board changed (None: by rig)
+    settle_frames: int = 2  # frames to skip after a change, for a camera that cannot time its frames
     frame_timeout_s: float = 3.0
     max_frames_per_target: int = 12  # auto: frames without a capture before asking for another pose
     max_variants: int = 3  # auto: other poses asked for one target before giving up
@@ -91,6 +91,8 @@ class LiveView:
     decision: Decision | None
     target: Target | None
     fps: float
+    accepted: bool = True  # exposed after the last projector or board change (may be captured)
+    exposure_start_s: float | None = None  # Frame.exposure_start_s
 
 
 class Station:
@@ -104,8 +106,6 @@ class Station:
         self.log = log or (lambda text: None)
         if self.options.follow_operator is None:
             self.options.follow_operator = self.options.auto or not self.is_sim
-        if self.options.settle_frames is None:
-            self.options.settle_frames = 0 if self.is_sim else 2
         cam = self.rig.camera
         factory = None
         try:
@@ -118,10 +118,12 @@ class Station:
         self.operator_says: str = ""
         self.device_problem: str | None = None
         self._shown = None
+        self.shown_ticket = 0  # the projector ticket of the image the station shows now
         self._requested: Target | None = None
         self._autocap_target = object()
         self._last_frame = -1
         self._min_frame = -1
+        self._min_start_s = -1e18  # frames exposed before this host time show an old projector image or pose
         self._frames_on_target = 0
         self._similar_frames = 0
         self._failing_frames = 0
@@ -164,13 +166,18 @@ class Station:
             self._pattern_cache[position] = self.machine.manifest.pattern.render(w, h, position)[0]
         return self._pattern_cache[position]
 
-    def _show(self, image: np.ndarray) -> None:
+    def _show(self, image: np.ndarray) -> float:
+        """Show `image`; returns the host time from which it is visible (presentation + the projector's
+        measured latency, ProjectorDriver.wait_presented)."""
         ticket = self.rig.projector.show(image)
-        self.rig.projector.wait_presented(ticket, timeout_s=self.options.frame_timeout_s)
+        self.shown_ticket = ticket
+        return self.rig.projector.wait_presented(ticket, timeout_s=self.options.frame_timeout_s)
 
-    def _changed(self) -> None:
-        """The projector image or the board changed: older frames no longer count."""
+    def _changed(self, visible_s: float | None = None) -> None:
+        """The projector image (visible from `visible_s`) or the board (now) changed: frames exposed
+        before no longer count."""
         self._min_frame = self._last_frame + self.options.settle_frames
+        self._min_start_s = max(self._min_start_s, time.monotonic() if visible_s is None else float(visible_s))
         self.autocap.reset()
         self._frames_on_target = 0
         self._similar_frames = 0
@@ -199,21 +206,8 @@ class Station:
                                    f"window is {pw}x{ph}, the session expects {man.rig.projector_size}"))
         except (DeviceError, ProcamError) as e:
             checks.append(RigCheck("projector", False, str(e)))
-        lock = getattr(self.rig.camera, "lock_exposure", None)
-        if callable(lock) and all(c.ok for c in checks):
-            # auto exposure fights the projector: lock it while the pattern lights the board as it will
-            try:
-                self._show(self.pattern_image(man.pattern.positions // 2))
-                time.sleep(0.5)
-                settings = lock()
-                self._show(self._black())
-                from dataclasses import replace as _replace
-
-                self.machine.store.update(rig=_replace(man.rig, camera_settings=dict(settings)))
-                exp = settings.get("exposure_us")
-                checks.append(RigCheck("camera exposure", True, "locked" + (f" at {exp:g} us" if exp else "")))
-            except (DeviceError, ProcamError) as e:
-                checks.append(RigCheck("camera exposure", False, f"could not be locked: {e}"))
+        if all(c.ok for c in checks):
+            checks.extend(self._check_timing())
         checks.append(RigCheck("projector board", True, str(man.projector_board)))
         if man.rig.view == VIEW_MIRROR:
             checks.append(RigCheck("mirror board", man.mirror_board is not None,
@@ -227,6 +221,90 @@ class Station:
         self.machine.set_rig_checks(checks)
         return checks
 
+    def _check_timing(self) -> list[RigCheck]:
+        """Rig check, camera and projector timing: the emitter off; the exposure searched in manual mode
+        while the pattern lights the board (drivers/exposure.py); the projector's latency measured
+        (drivers/settle.py). Both are recorded in the manifest (rig.camera_settings) and, when recorded
+        already (a resumed session), re-applied instead of measured again."""
+        from dataclasses import replace as _replace
+
+        man = self.machine.manifest
+        cam, proj = self.rig.camera, self.rig.projector
+        recorded = dict(man.rig.camera_settings or {})
+        timing = dict(recorded.get("projector") or {})
+        checks = []
+        settings = dict(recorded)
+        if self.is_sim:  # the simulated person holds the board in the projector's light
+            self.rig.operator.request_pose("verification", None, 0)
+        try:
+            return self._timing_checks(cam, proj, man, recorded, timing, settings, checks)
+        finally:
+            if self.is_sim:
+                self.rig.operator.move_out()
+            self._show(self._black())
+            self._shown = ("black",)
+            self._changed()
+            if settings != recorded:
+                self.machine.store.update(rig=_replace(man.rig, camera_settings=settings))
+
+    def _timing_checks(self, cam, proj, man, recorded, timing, settings, checks) -> list[RigCheck]:
+        from drivers.base import ExposureControl
+
+        if isinstance(cam, ExposureControl):
+            try:
+                cam.set_emitter(False)
+                if recorded.get("auto_exposure") is False and isinstance(recorded.get("exposure_us"), (int, float)):
+                    applied = cam.set_manual_exposure(float(recorded["exposure_us"]), float(recorded.get("gain", 1.0)))
+                    detail = f"recorded {applied['exposure_us']:g} us, gain {applied['gain']:g} re-applied"
+                else:
+                    from drivers.exposure import search_exposure
+
+                    self._show(self.pattern_image(man.pattern.positions // 2))
+                    time.sleep(0.5)  # any projector's latency: the pattern lights the board now
+                    choice = search_exposure(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
+                    applied = {"exposure_us": choice.exposure_us, "gain": choice.gain}
+                    detail = (f"{choice.exposure_us:g} us ({choice.periods:.2f} refresh periods), gain {choice.gain:g}, "
+                              f"lit board at level {choice.level:.0f} ({choice.frames} frames)")
+                    if not choice.whole_periods:
+                        detail += "; not a whole number of refresh periods: the image may band"
+                settings.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
+                                 "gain": float(applied["gain"]), "emitter_enabled": False})
+                checks.append(RigCheck("camera exposure", True, detail + "; IR emitter off"))
+            except (DeviceError, ProcamError) as e:
+                checks.append(RigCheck("camera exposure", False, f"could not be set: {e}"))
+                return checks
+        else:
+            lock = getattr(cam, "lock_exposure", None)
+            if callable(lock):  # a driver without manual exposure control: lock what it has
+                try:
+                    self._show(self.pattern_image(man.pattern.positions // 2))
+                    time.sleep(0.5)
+                    settings.update(dict(lock()))
+                    checks.append(RigCheck("camera exposure", True, "locked"))
+                except (DeviceError, ProcamError) as e:
+                    checks.append(RigCheck("camera exposure", False, f"could not be locked: {e}"))
+                    return checks
+        if hasattr(proj, "settle_s"):
+            try:
+                if isinstance(timing.get("latency_ms"), (int, float)) and timing["latency_ms"] >= 0:
+                    latency_s = float(timing["latency_ms"]) / 1000.0
+                    detail = f"recorded latency {timing['latency_ms']:.0f} ms re-applied"
+                else:
+                    from drivers.settle import measure_settle
+
+                    m = measure_settle(proj, cam)
+                    latency_s = m.settle_s
+                    detail = (f"latency {latency_s * 1000:.0f} ms (trials "
+                              + ", ".join(f"{x * 1000:.0f}" for x in m.samples_s) + " ms)")
+                proj.settle_s = latency_s
+                refresh = float(getattr(proj, "refresh_hz", 0.0) or 0.0)
+                timing.update({"latency_ms": round(latency_s * 1000.0, 3), "refresh_hz": refresh})
+                settings["projector"] = timing
+                checks.append(RigCheck("projector latency", True, detail + (f", {refresh:g} Hz" if refresh else "")))
+            except (DeviceError, ProcamError) as e:
+                checks.append(RigCheck("projector latency", False, f"could not be measured: {e}"))
+        return checks
+
     # ---- one frame ------------------------------------------------------------------------------
     def _sync_projector(self, state: str, target: Target | None) -> None:
         want = None
@@ -236,9 +314,9 @@ class Station:
             want = ("black",)
         if want is None or want == self._shown:
             return
-        self._show(self.pattern_image(want[1]) if want[0] == "pattern" else self._black())
+        visible = self._show(self.pattern_image(want[1]) if want[0] == "pattern" else self._black())
         self._shown = want
-        self._changed()
+        self._changed(visible)
 
     def request_pose(self, target: Target | None = None) -> str:
         """Ask the operator for the target's board pose (on the simulated rig: the board moves)."""
@@ -269,6 +347,14 @@ class Station:
                 pass
         else:
             time.sleep(0.2)
+
+    def accepts(self, frame: Frame) -> bool:
+        """The timing rule: a frame counts only if its exposure started at or after the moment the
+        projector's image (and the board's pose) became what the station asked for; a camera that cannot
+        time its frames skips `settle_frames` frames instead."""
+        if frame.exposure_start_s is not None:
+            return frame.exposure_start_s >= self._min_start_s
+        return frame.frame_number > self._min_frame
 
     def _grab(self):
         """The next frame for detection: from the preview thread when it runs, else from the camera."""
@@ -377,14 +463,15 @@ class Station:
             return None
         now = time.monotonic()
         det, decision = None, None
-        if target is not None:
+        accepted = self.accepts(frame)
+        if target is not None and accepted:  # a frame exposed before the last change is not even detected
             det = detect_for_step(frame.image, target.step, m.manifest, self.camera_model, frame.frame_number)
             self._tick_times.append(time.monotonic())
             del self._tick_times[:-60]
-            if frame.frame_number > self._min_frame:
-                decision = self.autocap.update(det)
-                self._frames_on_target += 1
-        self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, self.detection_fps)
+            decision = self.autocap.update(det)
+            self._frames_on_target += 1
+        self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, self.detection_fps,
+                             accepted, frame.exposure_start_s)
         if decision is not None and target is not None:
             take = decision.capture and self.options.auto_capture
             if not take and self.options.auto:
@@ -417,7 +504,10 @@ class Station:
         return self.live
 
     def _capture(self, frame, det: LiveDetection, decision: Decision | None, how: str):
-        meta = {"how": how, "frame_number": int(frame.frame_number), "timestamp_ms": float(frame.timestamp_ms)}
+        meta = {"how": how, "frame_number": int(frame.frame_number), "timestamp_ms": float(frame.timestamp_ms),
+                "projector_ticket": int(self.shown_ticket)}
+        if frame.exposure_start_s is not None:
+            meta["exposure_start_s"] = float(frame.exposure_start_s)
         if det.features is not None:
             meta["pose"] = det.features.to_dict()
         if det.board is not None:
@@ -483,12 +573,12 @@ class Station:
             raise ActionRefused("capture", reason)
         if live is None or live.detection is None or live.target != m.target:
             raise ActionRefused("capture", "no camera frame for the current step yet; wait a moment")
-        if live.frame_number <= self._min_frame:
+        frame = Frame(live.image, live.frame_number, live.timestamp_s * 1000.0,
+                      exposure_start_s=live.exposure_start_s)  # the frame detected on
+        if not self.accepts(frame):
             raise ActionRefused("capture", "the projector or the board just changed; wait for a new frame")
         if not live.detection.ok:
             raise ActionRefused("capture", f"the current frame is not usable: {live.detection.failure}")
-
-        frame = Frame(live.image, live.frame_number, live.timestamp_s * 1000.0)  # the frame detected on
         return self._capture(frame, live.detection, live.decision, "button")
 
     # ---- the station leads a whole session --------------------------------------------------------
@@ -675,7 +765,9 @@ class Station:
         if s == CHECK_RIG:
             bad = [c for c in m.rig_checks if not c.ok]
             if not m.rig_checks:
-                return "Check the rig: the camera must stream and the projector window must be up. Press Check rig."
+                return ("Check the rig: the camera must stream and the projector window must be up. Hold the board "
+                        "in the projector's light where the camera sees it (the check sets the exposure and "
+                        "measures the projector's latency) and press Check rig.")
             if bad:
                 return "Fix the rig: " + "; ".join(f"{c.name}: {c.detail}" for c in bad) + ". Then press Check rig."
             return "The rig is ready. Press Start to begin the captures."

@@ -14,6 +14,7 @@ rendered when asked for; their noise is seeded by (seed, frame_number), so a run
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -24,7 +25,19 @@ from calib.errors import SpecError
 from calib.result import CalibrationResult
 from calib.transforms import make_T, rotation_about, rotation_angle_deg
 from drivers.base import Frame
-from drivers.errors import DeviceError
+from drivers.errors import DeviceError, DeviceTimeout
+from drivers.sim.hardware import (
+    AE_TARGET_LEVEL,
+    EXPOSURE_LIMITS_US,
+    GAIN_LIMITS,
+    REFERENCE_EXPOSURE_US,
+    CameraSettingsTimeline,
+    HardwareModel,
+    ProjectorTimeline,
+    band_profile,
+    banding_amplitude,
+    emitter_dots,
+)
 from drivers.sim.render import QUALITIES, PlacedBoard, Renderer, RenderSettings, SceneState, layout_for
 from drivers.sim.scenarios import (
     DEFAULT_SCENARIO,
@@ -37,8 +50,21 @@ from drivers.sim.scenarios import (
 )
 
 
+#: Frames the simulated camera's driver queues: a caller that asks for the frame after one it has seen
+#: gets that frame while it is among the newest FRAME_QUEUE, else the oldest one still queued.
+FRAME_QUEUE = 2
+
+
 class SimCamera:
-    """CameraDriver: renders the rig's current state whenever a frame is asked for."""
+    """CameraDriver and ExposureControl: renders what the rig showed during each frame's exposure.
+
+    Hardware-like (the default): frames follow the camera's own 30 fps clock from start(); frame n is
+    exposed from t0 + n / fps for the exposure in force, delivered one frame period after that, and
+    rendered lazily when asked for (never before it is delivered). A frame whose exposure spans a
+    projector change blends the images by the time each was visible; what it saw is kept in
+    `rig.frame_truth[n]` = ((ticket, fraction), ...). Ideal (`ideal=True`): a new frame on every
+    request, showing the projector's current image, no exposure model.
+    """
 
     def __init__(self, rig: "SimRig", expose_intrinsics: bool = False):
         self._rig = rig
@@ -47,6 +73,11 @@ class SimCamera:
         self._frame_number = 0
         self._last_ts = 0.0
         self._lock = threading.Lock()
+        self._t0 = 0.0
+        self._cached: Frame | None = None
+        self._floor = 0  # the first frame number this run of the clock may deliver
+        self._ae_exposure_us = rig.hardware.initial_exposure_us
+        self.settings_timeline = CameraSettingsTimeline(rig.hardware)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -59,6 +90,10 @@ class SimCamera:
 
     def start(self) -> None:
         self._rig.renderer.warm_up()
+        if not self._running:  # the clock starts; after a stop, frame numbers go on after the last one
+            self._floor = self._frame_number + 1 if self._cached is not None else 0
+            self._t0 = time.monotonic() - self._floor * self._rig.hardware.period_s
+            self._cached = None
         self._running = True
 
     def stop(self) -> None:
@@ -68,44 +103,136 @@ class SimCamera:
     def running(self) -> bool:
         return self._running
 
+    # ---- the frame clock ---------------------------------------------------------------------------
+    def exposure_start_s(self, n: int) -> float:
+        """Host time at which frame n's exposure starts (hardware-like mode)."""
+        return self._t0 + n * self._rig.hardware.period_s
+
+    def _newest_delivered(self, now: float) -> int:
+        return int(math.floor((now - self._t0) / self._rig.hardware.period_s + 1e-9)) - 1
+
     def get_frame(self, timeout_s: float = 2.0, newer_than: int | None = None) -> Frame:
         if not self._running:
             raise DeviceError("the simulated camera is not started; call camera.start() first")
+        if self._rig.hardware.ideal:
+            return self._ideal_frame(newer_than)
+        hw = self._rig.hardware
+        with self._lock:
+            now = time.monotonic()
+            n = max(self._newest_delivered(now), self._floor)
+            if newer_than is not None:  # the oldest frame newer than that still in the driver's queue
+                n = max(int(newer_than) + 1, n - (FRAME_QUEUE - 1))
+            delivered = self._t0 + (n + 1) * hw.period_s
+            if delivered - now > timeout_s:
+                time.sleep(max(0.0, timeout_s))
+                raise DeviceTimeout(f"no simulated camera frame newer than {newer_than} within {timeout_s:g} s")
+            if delivered > now:
+                time.sleep(delivered - now)  # no frame from the future
+            if self._cached is not None and self._cached.frame_number == n:
+                return self._cached
+            frame = self._clocked_frame(n)
+            self._cached = frame
+            self._frame_number = n
+            return frame
+
+    def _ideal_frame(self, newer_than):
         with self._lock:
             n = max(self._frame_number, -1 if newer_than is None else int(newer_than)) + 1
             self._frame_number = n
+            t = time.monotonic()
+            with self._rig._lock:
+                tk = self._rig.projector.ticket
             image, meta = self._rig._render_frame(n)
-            ts = max(time.monotonic() * 1000.0, self._last_ts + 1e-3)
+            self._rig._record_truth(n, ((tk, 1.0),))
+            ts = max(t * 1000.0, self._last_ts + 1e-3)
             self._last_ts = ts
-        return Frame(image, n, ts, meta)
+        return Frame(image, n, ts, meta, exposure_start_s=t)
+
+    def _clocked_frame(self, n: int) -> Frame:
+        hw = self._rig.hardware
+        t_start = self.exposure_start_s(n)
+        st = self.settings_timeline.at(t_start)
+        exposure_us = self._ae_exposure_us if st["auto_exposure"] else float(st["exposure_us"])
+        exposure_us = float(np.clip(exposure_us, EXPOSURE_LIMITS_US[0], hw.period_s * 1e6))
+        gain = float(st["gain"])
+        t_end = t_start + exposure_us * 1e-6
+        with self._rig._lock:
+            segments = self._rig.projector.timeline.segments(t_start, t_end)
+        image, meta = self._rig._render_frame(n, segments, exposure_us, gain, st["emitter_enabled"])
+        self._rig._record_truth(n, tuple((tk, f) for tk, _, f in segments))
+        if st["auto_exposure"]:  # auto exposure reacts to what it saw, a little late and overshooting
+            mean = float(meta["mean_level"])
+            ratio = AE_TARGET_LEVEL / max(mean, 1.0)
+            step = ratio ** 0.5 if abs(math.log(ratio)) > 0.15 else ratio ** 1.6  # slow far off, hunting near
+            self._ae_exposure_us = float(np.clip(self._ae_exposure_us * step, EXPOSURE_LIMITS_US[0],
+                                                 EXPOSURE_LIMITS_US[1]))
+        meta.update({"exposure_us": exposure_us, "gain": gain, "auto_exposure": bool(st["auto_exposure"]),
+                     "emitter_enabled": bool(st["emitter_enabled"])})
+        return Frame(image, n, t_end * 1000.0, meta, exposure_start_s=t_start)
+
+    # ---- ExposureControl ---------------------------------------------------------------------------
+    def exposure_limits(self) -> dict:
+        return {"exposure_us": EXPOSURE_LIMITS_US, "gain": GAIN_LIMITS}
+
+    def set_auto_exposure(self, enabled: bool) -> None:
+        self.settings_timeline.set(time.monotonic(), auto_exposure=bool(enabled))
+
+    def set_manual_exposure(self, exposure_us: float, gain: float) -> dict:
+        lo, hi, step = EXPOSURE_LIMITS_US
+        glo, ghi, gstep = GAIN_LIMITS
+        e = float(np.clip(round(float(exposure_us) / step) * step, lo, hi))
+        g = float(np.clip(round(float(gain) / gstep) * gstep, glo, ghi))
+        self.settings_timeline.set(time.monotonic(), auto_exposure=False, exposure_us=e, gain=g)
+        return {"exposure_us": e, "gain": g}
+
+    def set_emitter(self, enabled: bool) -> None:
+        self.settings_timeline.set(time.monotonic(), emitter_enabled=bool(enabled))
 
     def factory_intrinsics(self) -> CameraModel | None:
         return self.model if self._expose else None
 
     def settings(self) -> dict:
         st = self._rig.settings
-        return {"driver": "sim", "scenario": self._rig.scenario.name, "seed": self._rig.scenario.seed,
-                "quality": self._rig.quality, **{k: v for k, v in st.to_dict().items()}}
+        out = {"driver": "sim", "scenario": self._rig.scenario.name, "seed": self._rig.scenario.seed,
+               "quality": self._rig.quality, **{k: v for k, v in st.to_dict().items()}}
+        if not self._rig.hardware.ideal:
+            cur = self.settings_timeline.current
+            out.update({"auto_exposure": bool(cur["auto_exposure"]), "exposure_us": float(cur["exposure_us"]),
+                        "gain": float(cur["gain"]), "emitter_enabled": bool(cur["emitter_enabled"])})
+        return out
 
 
 class SimProjector:
-    """ProjectorDriver: the image shown is what lights the board in the next rendered frame."""
+    """ProjectorDriver: an image shown is swapped at the next vsync and visible after the projector's
+    latency (hardware-like mode), or at once (ideal). `settle_s` is the latency the caller believes
+    (measured, drivers/settle.py): wait_presented returns the swap time plus `settle_s`."""
 
     def __init__(self, rig: "SimRig"):
         self._rig = rig
         self._ticket = 0
-        self._presented: dict[int, float] = {}
         self._closed = False
         W, H = self.size
         self._image = np.zeros((H, W), np.uint8)
+        self._image.setflags(write=False)
+        self.settle_s = 0.0
+        self.timeline = ProjectorTimeline(rig.hardware, rig.scenario.seed, time.monotonic(), self._image)
 
     @property
     def size(self) -> tuple[int, int]:
         return self._rig.scenario.rig.projector.size
 
     @property
+    def refresh_hz(self) -> float:
+        return float(self._rig.hardware.refresh_hz)
+
+    @property
+    def ticket(self) -> int:
+        """The ticket of the last image asked for (0: the black image at power-on)."""
+        return self._ticket
+
+    @property
     def image(self) -> np.ndarray:
-        """The image shown now ((H, W) uint8, read-only)."""
+        """The image last asked for ((H, W) uint8, read-only); on screen once its latency has passed."""
         return self._image
 
     def show(self, image: np.ndarray) -> int:
@@ -125,18 +252,25 @@ class SimProjector:
             self._image = img
             self._ticket += 1
             t = self._ticket
-            self._presented[t] = time.monotonic()
-            if len(self._presented) > 64:
-                for k in sorted(self._presented)[:-32]:
-                    del self._presented[k]
+            self.timeline.add(t, img, time.monotonic())
         return t
 
     def wait_presented(self, ticket: int, timeout_s: float = 2.0) -> float:
-        if ticket not in self._presented:
-            if 0 < ticket <= self._ticket:
-                return time.monotonic()
+        swap = self.timeline.swaps.get(int(ticket))
+        if swap is None:
             raise DeviceError(f"unknown projector ticket {ticket}")
-        return self._presented[ticket]
+        visible = swap + float(self.settle_s)
+        delay = visible - time.monotonic()
+        if delay > timeout_s:
+            raise DeviceTimeout(f"projector image {ticket} is not visible within {timeout_s:g} s")
+        if delay > 0:
+            time.sleep(delay)
+        return visible
+
+    def true_visible_s(self, ticket: int) -> float:
+        """When the image of `ticket` really became visible (the simulator's truth, for tests)."""
+        t = self.timeline
+        return t._times[[e[0] for e in t._entries].index(int(ticket))]
 
     def close(self) -> None:
         self._closed = True
@@ -209,7 +343,8 @@ class SimRig:
     kind = "sim"  # as drivers.factory names rigs
 
     def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
-                 settling_frames: int = 0, motion_jitter_mm: float = 0.0, **settings):
+                 settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
+                 latency_ms: float | None = None, hardware: HardwareModel | None = None, **settings):
         if quality not in QUALITIES:
             raise SpecError(f"unknown quality '{quality}' (one of {', '.join(QUALITIES)})")
         self.scenario = scenario
@@ -226,6 +361,13 @@ class SimRig:
         r = scenario.rig
         self.renderer = Renderer(r.camera, r.projector, r.T_cam_proj, r.mirror, r.mirror_rect, self.settings)
         self.motion_jitter_mm = float(motion_jitter_mm)
+        try:
+            self.hardware = hardware or HardwareModel.for_seed(scenario.seed, latency_ms, ideal=ideal)
+        except ValueError as e:
+            raise SpecError(str(e)) from None
+        #: frame number -> ((projector ticket, fraction of the exposure it was visible), ...)
+        self.frame_truth: dict[int, tuple[tuple[int, float], ...]] = {}
+        self._dots = None
         self._lock = threading.RLock()
         self._board: PlacedBoard | None = None
         self._prev: PlacedBoard | None = None
@@ -287,15 +429,49 @@ class SimRig:
             boards = (PlacedBoard(b.layout, T),)
         return SceneState(boards, img)
 
-    def _render_frame(self, frame_number: int):
+    def _record_truth(self, frame_number: int, seen) -> None:
+        with self._lock:
+            self.frame_truth[int(frame_number)] = tuple((int(t), float(f)) for t, f in seen)
+            if len(self.frame_truth) > 20000:
+                for k in sorted(self.frame_truth)[:5000]:
+                    del self.frame_truth[k]
+
+    def _render_frame(self, frame_number: int, segments=None, exposure_us: float | None = None,
+                      gain: float = 1.0, emitter: bool = False):
+        """The camera image of frame `frame_number` and its meta. Ideal (segments None): the projector's
+        current image. Hardware-like: the linear images of the projector images in `segments`
+        ((ticket, image, fraction)) blended by fraction, scaled by exposure x gain, banded when the
+        exposure is not a whole number of refresh periods, with the emitter's dots when it is on."""
         with self._lock:
             moving = self._board is not None and self._frames_since_move < self.operator.settling_frames
             move_id = self._move_id
         st = self.state(frame_number)
         rng = np.random.default_rng([self.scenario.seed, 1, frame_number])
-        img = self.renderer.render(st, rng)
         meta = {"sim": True, "moving": moving, "move_id": move_id,
                 "T_cam_board": None if not st.boards else st.boards[0].T_cam_board.tolist()}
+        if segments is None:
+            img = self.renderer.render(st, rng)
+            meta["mean_level"] = float(img[:, :, 0].mean())
+            return img, meta
+        hw = self.hardware
+        lin = None
+        for _, proj_img, frac in segments:
+            part = self.renderer.render_linear(SceneState(st.boards, proj_img)) * np.float32(frac)
+            lin = part if lin is None else lin + part
+        amp = banding_amplitude(exposure_us, hw.refresh_hz, hw.band_depth)
+        if amp > 0 and any(np.any(s[1]) for s in segments):
+            # the projector's share of the light (ambient is steady) flickers row by row
+            ambient = self.renderer.render_linear(SceneState(st.boards, None))
+            phase = 2 * np.pi * ((self.camera.exposure_start_s(frame_number) * hw.refresh_hz) % 1.0)
+            lin = ambient + (lin - ambient) * band_profile(lin.shape[0], amp, phase)
+        lin = lin * np.float32(exposure_us / REFERENCE_EXPOSURE_US * gain)
+        if emitter:
+            if self._dots is None:
+                self._dots = emitter_dots(lin.shape, self.scenario.seed)
+            lin = lin + self._dots * np.float32(exposure_us / REFERENCE_EXPOSURE_US * gain)
+        img = self.renderer.finish(lin, self.renderer.settings, rng)
+        meta["mean_level"] = float(img[:, :, 0].mean())
+        meta["banding_amplitude"] = amp
         return img, meta
 
     def render_still(self, noise_key: int) -> np.ndarray:
@@ -320,6 +496,7 @@ def _interpolate_pose(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
 
 def open_sim_rig(scenario: str = DEFAULT_SCENARIO, seed: int = 0, quality: str = "live", **settings) -> SimRig:
     """A simulated rig for a named scenario. Keyword settings: expose_intrinsics, settling_frames,
-    motion_jitter_mm, and any RenderSettings field (ambient, projector_gain, blur_sigma_px, read_noise_dn,
+    motion_jitter_mm, ideal (no latency, no frame clock, no exposure model: the fast mode for unit tests),
+    latency_ms (the projector's latency; default drawn in 60-120 ms from the seed), and any RenderSettings field (ambient, projector_gain, blur_sigma_px, read_noise_dn,
     electrons_per_dn, ...)."""
     return SimRig(get_scenario(scenario, seed), quality, **settings)

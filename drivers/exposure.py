@@ -1,0 +1,128 @@
+"""Choosing the camera's exposure by hand, while the projector's pattern lights the board.
+
+Auto exposure fights the projector (every pattern change moves the brightness) and, on the D4xx RGB
+sensor, the exposure auto exposure chose cannot be read back reliably. So the exposure is searched in
+manual mode (drivers.base.ExposureControl), with one entry point:
+
+    choice = search_exposure(camera, refresh_hz=projector.refresh_hz)
+
+Rules: the exposure is a whole number of the projector's refresh periods (a PWM / DLP projector
+flickers at its refresh rate: any other exposure catches a different share of the light on each row
+and bands the image); the gain stays as low as the brightness allows (gain amplifies noise); the lit
+board (the `percentile` of the image: its brightest pixels) ends near `target_level` and below
+`max_level` (no saturation, so the projected pattern's edges keep their shape). Every change is followed by
+`wait_frames` frames exposed after it before the next measurement (the sensor applies a change a
+frame or two late).
+
+Brightness is proportional to exposure x gain below saturation, so the search needs few
+measurements: one at the longest whole-period exposure that fits, one after stepping down whole
+periods if that saturates (predicted from the first), one after setting the gain, and one check.
+It converges within MAX_ROUNDS measurements, that is MAX_FRAMES frames exposed after a change (a
+driver that skips frames delivers fewer; the frames exposed before a change are not counted).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.errors import DeviceError
+
+#: Measurements the search takes at most.
+MAX_ROUNDS = 6
+#: Frames waited after each change (the last one is measured).
+WAIT_FRAMES = 3
+#: Camera frames the search uses at most (MAX_ROUNDS x WAIT_FRAMES + the first frame).
+MAX_FRAMES = MAX_ROUNDS * WAIT_FRAMES + 1
+
+
+@dataclass(frozen=True)
+class ExposureChoice:
+    """exposure_us, gain: what the camera applied; periods: exposure in refresh periods (a whole
+    number unless `whole_periods` is False: even one period saturated at the lowest gain); level: the
+    lit board's level measured last; frames: camera frames the search used (exposed after a change, and
+    the first)."""
+
+    exposure_us: float
+    gain: float
+    periods: float
+    whole_periods: bool
+    level: float
+    saturated_fraction: float
+    frames: int
+
+    def camera_settings(self) -> dict:
+        """The manifest's rig.camera_settings keys (docs/FORMATS.md)."""
+        return {"auto_exposure": False, "exposure_us": float(self.exposure_us), "gain": float(self.gain),
+                "emitter_enabled": False}
+
+
+def _level(image: np.ndarray, percentile: float) -> tuple[float, float]:
+    a = np.asarray(image)
+    g = a if a.ndim == 2 else a[:, :, 1]
+    return float(np.percentile(g, percentile)), float((g >= 254).mean())
+
+
+def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_level: float = 245.0,
+                    percentile: float = 99.99, wait_frames: int = WAIT_FRAMES,
+                    timeout_s: float = 3.0) -> ExposureChoice:
+    """Search the exposure as the module doc says; leaves the camera in manual mode at the choice.
+    Raises DeviceError when the camera cannot be set or the image stays dark."""
+    lim = camera.exposure_limits()
+    e_lo, e_hi, _ = lim["exposure_us"]
+    g_lo, g_hi, _ = lim["gain"]
+    if not refresh_hz or refresh_hz <= 0:
+        raise DeviceError(f"the projector's refresh rate is unknown ({refresh_hz}): cannot choose an exposure")
+    period_us = 1e6 / float(refresh_hz)
+    frames = 0
+    last = camera.get_frame(timeout_s).frame_number
+    frames += 1
+
+    def measure(exposure_us, gain):
+        nonlocal last, frames
+        t_set = time.monotonic()
+        applied = camera.set_manual_exposure(exposure_us, gain)
+        f, after, skipped = None, 0, 0
+        while after < max(1, int(wait_frames)):  # frames exposed after the change (when the driver can tell)
+            f = camera.get_frame(timeout_s, newer_than=last)
+            last = f.frame_number
+            if f.exposure_start_s is None or f.exposure_start_s >= t_set:
+                after += 1
+                frames += 1
+            else:
+                skipped += 1
+                if skipped > 10:
+                    raise DeviceError("the camera delivers no frame exposed after the exposure change")
+        lvl, sat = _level(f.image, percentile)
+        return float(applied["exposure_us"]), float(applied["gain"]), lvl, sat
+
+    n_max = int(math.floor(e_hi / period_us + 1e-9))
+    whole = n_max >= 1 and period_us >= e_lo
+    n = n_max if whole else 0
+    exp = n * period_us if whole else e_hi
+    gain = g_lo
+    exp, gain, lvl, sat = measure(exp, gain)
+    for _ in range(MAX_ROUNDS - 1):
+        if lvl > max_level:
+            # brightness ~ exposure x gain; a saturated level under-reads, so at least halve
+            scale = min(0.5, target_level / lvl) if lvl >= 254 else target_level / lvl
+            gain = g_lo
+            if whole and n > 1:
+                n = max(1, min(n - 1, int(math.floor(n * scale))))
+                exp = n * period_us
+            else:  # even one period is too bright at the lowest gain: the image will band
+                whole = False
+                exp = max(e_lo, exp * scale)
+        elif lvl < 0.7 * target_level and gain < g_hi:
+            if lvl < 2.0:
+                raise DeviceError("the camera image stays dark at the longest exposure: is the lens covered, "
+                                  "or the projector off?")
+            gain = float(np.clip(gain * target_level / lvl, g_lo, g_hi))  # only as much gain as needed
+        else:
+            break
+        exp, gain, lvl, sat = measure(exp, gain)
+    periods = exp / period_us
+    return ExposureChoice(exp, gain, periods, bool(whole and abs(periods - round(periods)) < 1e-3), lvl, sat, frames)
