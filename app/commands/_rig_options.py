@@ -3,8 +3,9 @@ the real rig's devices and boards (a private module: not a sub-command)."""
 
 
 def add_rig_options(p) -> None:
-    p.add_argument("--rig", choices=("sim", "realsense"), default=None,
-                   help="rig to use (default: realsense when one is connected, else sim)")
+    p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), default=None,
+                   help="rig to use (default: realsense when one is connected, else sim; sim-realsense: the "
+                        "simulated rig with its camera through the RealSense driver and librealsense)")
     p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
     p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
