@@ -97,7 +97,7 @@ class HardwareRig:
 def open_rig(kind: str, **options):
     """The rig `kind` names.
 
-    realsense: serial, width (1280), height (800), fps (30), projector_screen (None: the last screen),
+    realsense: serial, width (1280), height (800), fps (30), projector_screen (None: the non-primary screen of two),
       projector_size (None: the screen's), fullscreen (True), settle_s (0.0), pattern_positions,
       context (librealsense context or a software device, for tests). The projector window is created
       here, so call open_rig on the main thread (pyglet's) and run the station's logic in a worker

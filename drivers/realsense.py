@@ -75,6 +75,19 @@ COLOUR_EXPOSURE_UNIT_US = 100.0
 _rs_module = None
 
 
+def _import_error_message(e: BaseException) -> str:
+    """What to do when pyrealsense2 does not import, from the import error itself."""
+    text = str(e)
+    if "libusb" in text:
+        return (f"pyrealsense2 cannot be loaded because Debian's libusb is missing ({text}): install it with "
+                "`sudo apt-get install libusb-1.0-0`, or use the simulated rig (--rig sim)")
+    if isinstance(e, ModuleNotFoundError) and getattr(e, "name", "") == "pyrealsense2":
+        return ("pyrealsense2 is not installed: install it with `pip install pyrealsense2` (it also needs "
+                "`apt-get install libusb-1.0-0`), or use the simulated rig (--rig sim)")
+    return (f"pyrealsense2 cannot be imported ({text}); install it with pip and Debian's libusb-1.0-0 "
+            "(apt-get install libusb-1.0-0), or use the simulated rig (--rig sim)")
+
+
 def _rs():
     """pyrealsense2, imported on first use."""
     global _rs_module
@@ -82,21 +95,23 @@ def _rs():
         try:
             import pyrealsense2 as rs
         except ImportError as e:  # pragma: no cover - depends on the machine
-            raise DeviceError(
-                f"pyrealsense2 cannot be imported ({e}); install it with pip and Debian's libusb-1.0-0 "
-                "(apt-get install libusb-1.0-0), or use the simulated rig (--rig sim)"
-            ) from None
+            raise DeviceError(_import_error_message(e)) from None
         _rs_module = rs
     return _rs_module
 
 
-def realsense_available() -> bool:
-    """True when pyrealsense2 imports on this machine."""
+def realsense_import_error() -> str | None:
+    """Why pyrealsense2 is not usable here (what to install), or None when it is."""
     try:
         _rs()
-        return True
-    except DeviceError:
-        return False
+        return None
+    except DeviceError as e:
+        return str(e)
+
+
+def realsense_available() -> bool:
+    """True when pyrealsense2 imports on this machine."""
+    return realsense_import_error() is None
 
 
 # ---- device discovery -----------------------------------------------------------------------------

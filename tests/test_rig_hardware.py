@@ -165,3 +165,144 @@ def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
                 CalibrationResult.load_json(out / "ground_truth.json"))
     assert m.distance < 0.5 and m.angle_deg < 0.05 and m.proj_k_px < 1.0
     assert json.loads((out / "verification.json").read_text())["passed"] is True
+
+
+# ---- the projector's screen ------------------------------------------------------------------------------
+
+from _drivers_helpers import run_python, xvfb  # noqa: E402
+from drivers.errors import DeviceError  # noqa: E402
+from drivers.projector_window import choose_projector_screen  # noqa: E402
+
+
+def _screens(*specs):
+    return [{"index": i, "name": n, "primary": p, "x": x, "y": 0, "width": w, "height": h, "refresh_hz": r}
+            for i, (n, p, x, w, h, r) in enumerate(specs)]
+
+
+def test_the_default_projector_screen_is_the_non_primary_one():
+    laptop, projector = ("eDP-1", True, 0, 1920, 1080, 60.0), ("HDMI-1", False, 1920, 1920, 1080, 60.0)
+    assert choose_projector_screen(_screens(laptop, projector)) == 1
+    assert choose_projector_screen(_screens(projector, laptop)) == 0  # whatever order the outputs come in
+    assert choose_projector_screen(_screens(laptop, projector), 0) == 0  # an explicit choice stands
+    with pytest.raises(DeviceError, match=r"3 screens are connected: choose .*--projector-screen.*"
+                                          r"0: eDP-1 1920x1080 at \(0, 0\), 60 Hz, primary; 1: HDMI-1"):
+        choose_projector_screen(_screens(laptop, projector, ("DP-2", False, 3840, 1280, 720, 59.94)))
+    with pytest.raises(DeviceError, match="no primary screen is set.*--projector-screen"):
+        choose_projector_screen(_screens(("A", None, 0, 800, 600, None), ("B", None, 800, 800, 600, None)))
+    with pytest.raises(DeviceError, match="there is no screen 2; the screens are 0: eDP-1"):
+        choose_projector_screen(_screens(laptop, projector), 2)
+
+
+SCREEN_CHECKS = r"""
+import json, time
+from pyglet.libs.x11 import xlib, xrandr
+import drivers.projector_images as pi
+from drivers.errors import DeviceError
+from drivers.projector_window import ProjectorWindow
+
+out = {}
+other = xlib.XOpenDisplay(None)  # another X client (a window manager, a user) acting on our windows
+
+def err(fn):
+    try:
+        fn()
+        return None
+    except DeviceError as e:
+        return str(e)
+
+def present(win, image=None):
+    win.wait_presented(win.show(pi.white(win.size) if image is None else image), 3.0)
+
+win = ProjectorWindow(None)  # one screen: it is the one
+out["describe"] = win.describe()
+out["refresh"] = [win.refresh_hz, win.refresh_hz_known]
+present(win)
+out["first_ok"] = win.fault is None
+xlib.XMoveWindow(other, win._window._window, 100, 50)
+xlib.XSync(other, False)
+time.sleep(0.2)
+out["moved"] = err(lambda: present(win, pi.black(win.size)))
+out["moved_again"] = err(lambda: win.show(pi.black(win.size)))
+win.close()
+
+w2 = ProjectorWindow(None)
+present(w2)
+xlib.XUnmapWindow(other, w2._window._window)
+xlib.XSync(other, False)
+time.sleep(0.2)
+out["hidden"] = err(lambda: present(w2))
+w2.close()
+
+w3 = ProjectorWindow(None)
+present(w3)
+w3.close()
+out["closed"] = err(lambda: present(w3))
+
+w4 = ProjectorWindow(None, output_check_s=0.0)
+present(w4)
+root = xlib.XDefaultRootWindow(other)
+res = xrandr.XRRGetScreenResourcesCurrent(other, root)
+crtc = res.contents.crtcs[0]
+info = xrandr.XRRGetCrtcInfo(other, res, crtc).contents
+xrandr.XRRSetCrtcConfig(other, res, crtc, xlib.CurrentTime, 0, 0, 0, info.rotation, None, 0)  # output off
+xlib.XSync(other, False)
+time.sleep(0.2)
+out["vanished"] = err(lambda: present(w4))
+w4.close()
+print(json.dumps(out))
+"""
+
+
+def test_screen_checks_refuse_a_moved_hidden_or_closed_window_and_a_vanished_output():
+    """A real pyglet window under Xvfb; another X client moves it off its screen's origin, unmaps it, or
+    switches the output off (RandR): the next presentation fails with the reason."""
+    with xvfb((1280, 720)) as display:
+        r = run_python(SCREEN_CHECKS, display)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    d = out["describe"]
+    assert (d["index"], d["name"], d["x"], d["y"], d["width"], d["height"]) == (0, "screen", 0, 0, 1280, 720)
+    assert d["window_size"] == [1280, 720] and d["fullscreen"] is True
+    assert out["refresh"] == [60.0, False]  # Xvfb reports no refresh rate
+    assert out["first_ok"]
+    assert "is at (100, 50) but its screen screen starts at (0, 0)" in out["moved"]
+    assert out["moved_again"] == out["moved"]  # the window stays refused
+    assert "not visible" in out["hidden"]
+    assert "closed" in out["closed"]
+    assert "output screen (1280x720 at (0, 0)) is gone" in out["vanished"]
+
+
+# ---- procam devices and its messages -----------------------------------------------------------------------
+
+def test_devices_lists_outputs_with_name_primary_resolution_position_refresh():
+    with xvfb((1280, 720)) as display:
+        r = run_procam("devices", env_extra={"DISPLAY": display}, timeout=120)
+        j = run_procam("devices", "--json", env_extra={"DISPLAY": display}, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "0: screen 1280x720 at (0, 0), refresh rate unknown  <- projector (default)" in r.stdout
+    found = json.loads(j.stdout)
+    (s,) = found["screens"]
+    assert s == {"index": 0, "name": "screen", "primary": False, "x": 0, "y": 0, "width": 1280, "height": 720,
+                 "refresh_hz": None}
+    assert found["projector_screen"] == 0
+
+
+def test_devices_messages_say_what_to_fix(tmp_path):
+    no_display = run_procam("devices", env_extra={"DISPLAY": ""}, timeout=120)
+    assert "no display available: no display available" not in no_display.stdout
+    assert "DISPLAY is not set" in no_display.stdout
+    unreachable = run_procam("devices", env_extra={"DISPLAY": ":987"}, timeout=120)
+    assert "DISPLAY=:987 cannot be reached" in unreachable.stdout and "None" not in unreachable.stdout
+    # pyrealsense2 failing to load its libusb, as on a machine without Debian's libusb-1.0-0
+    fake = tmp_path / "pyrealsense2"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('libusb-1.0.so.0: cannot open shared object file: "
+                                      "No such file or directory')\n")
+    import os
+
+    from _station_helpers import REPO
+
+    env = {"PYTHONPATH": os.pathsep.join([str(tmp_path), str(REPO)]), "DISPLAY": ""}
+    r = run_procam("devices", env_extra=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "apt-get install libusb-1.0-0" in r.stdout and "libusb-1.0.so.0" in r.stdout

@@ -24,7 +24,7 @@ def add_rig_options(p) -> None:
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
     p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
     p.add_argument("--projector-screen", type=int, default=None,
-                   help="real rig: display the projector is connected to (default: the last one)")
+                   help="real rig: screen the projector is connected to, from `procam devices` (default: the non-primary one of two screens; required with more)")
     p.add_argument("--settle-s", type=float, default=None,
                    help="real rig: projector latency to wait after each image (seconds)")
     p.add_argument("--workers", type=int, default=2, help="detection threads for the calibration (default 2)")
