@@ -165,6 +165,40 @@ def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
                 CalibrationResult.load_json(out / "ground_truth.json"))
     assert m.distance < 0.5 and m.angle_deg < 0.05 and m.proj_k_px < 1.0
     assert json.loads((out / "verification.json").read_text())["passed"] is True
+    # `procam verify` sets the camera as the session recorded it (as the station's exposure search records it)
+    man["rig"]["camera_settings"].update({"auto_exposure": False, "exposure_us": 8333.0, "gain": 20.0,
+                                          "emitter_enabled": False, "projector": {"latency_ms": 40.0}})
+    (out / "session.json").write_text(json.dumps(man))
+    v = run_procam("verify", str(out), "--rig", "sim-realsense", "--out", str(tmp_path / "v.json"), timeout=600)
+    assert v.returncode == 0, v.stdout[-2000:] + v.stderr[-2000:]
+    assert "camera: manual exposure 8300 us, gain 20 as the session recorded (recorded 8333 us" in v.stderr
+    assert "emitter off" in v.stderr
+
+
+def test_verify_applies_the_recorded_camera_settings_and_latency(sim_rig):
+    from types import SimpleNamespace
+
+    from app.commands.verify import apply_recorded_camera, recorded_latency_s
+
+    def manifest(settings):
+        return SimpleNamespace(rig=SimpleNamespace(camera_settings=settings))
+
+    assert recorded_latency_s(manifest({"projector": {"latency_ms": 85.5}})) == pytest.approx(0.0855)
+    assert recorded_latency_s(manifest({"projector": {"latency_ms": "x"}})) is None
+    assert recorded_latency_s(manifest({})) is None
+    dev = SimRealSenseDevice(sim_rig.camera)
+    cam = SimRealSenseCamera(dev)
+    cam.start()
+    try:
+        cam.set_emitter(True)
+        line = apply_recorded_camera(cam, manifest({"auto_exposure": False, "exposure_us": 12000.0, "gain": 4.0,
+                                                    "emitter_enabled": False}))
+        assert dev.options() == {"auto_exposure": False, "exposure_us": 12000.0, "gain": 4.0, "emitter_enabled": False}
+        assert line.startswith("camera: manual exposure 12000 us, gain 4 as the session recorded; emitter off")
+        line = apply_recorded_camera(cam, manifest({"auto_exposure": True}))
+        assert dev.options()["auto_exposure"] is True and "no manual exposure" in line
+    finally:
+        cam.stop()
 
 
 # ---- the projector's screen ------------------------------------------------------------------------------
