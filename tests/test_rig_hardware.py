@@ -81,10 +81,17 @@ def test_the_bridge_forwards_the_drivers_option_writes_to_the_simulated_camera(s
         # the driver switched the emitter off at start; the device started with auto exposure
         assert ("emitter", False) in sim_cam.calls and ("auto", True) in sim_cam.calls
         applied = cam.set_manual_exposure(8333, 20.6)
-        f = cam.get_frame(5.0, newer_than=cam.get_frame(5.0).frame_number)
-        assert sim_cam.calls[-1] == ("manual", applied["exposure_us"], applied["gain"]) == ("manual", 8300.0, 21.0)
+        assert applied == {"exposure_us": pytest.approx(8300), "gain": 21}
+        # like a real camera, the new exposure shows in the frames a frame or two later
+        f = cam.get_frame(5.0)
+        for _ in range(4):
+            f = cam.get_frame(5.0, newer_than=f.frame_number)
+            if f.meta["actual_exposure_us"] == pytest.approx(8300):
+                break
         # the frame carries the exposure it was taken with, as D455 metadata (100 us units)
         assert f.meta["actual_exposure_us"] == pytest.approx(8300)
+        manual = [c for c in sim_cam.calls if c[0] == "manual"]
+        assert manual[-1] == ("manual", 8300.0, 21.0) and sim_cam.calls[-1] == manual[-1]
         n = len(sim_cam.calls)
         cam.get_frame(5.0, newer_than=f.frame_number)
         assert len(sim_cam.calls) == n  # nothing changed, nothing forwarded again

@@ -17,7 +17,8 @@ their frame numbers, in the global_time domain (host system clock, ms, at the st
 `actual_exposure`, `frame_timestamp` and `sensor_timestamp` metadata, so the driver's exposure_start_s
 estimate is exercised as on hardware. The simulated camera renders lazily, so the pusher renders only
 what the driver will hand out: it pushes while a caller waits in get_frame (the camera class below
-tells it) and no faster than the stream's frame rate.
+tells it), no faster than the stream's frame rate, and always the newest frame the simulated camera
+has delivered (as the driver's capture thread, draining a streaming camera, always holds the newest).
 
 Options: every option the driver writes is stored by librealsense; before each frame the pusher
 forwards changes to the simulated camera when it implements drivers.base.ExposureControl
@@ -262,7 +263,11 @@ class SimRealSenseCamera(RealSenseCamera):
                 if not started:
                     sim.start()
                 t_request = time.monotonic()
-                f = sim.get_frame(2.0, newer_than=last_number)
+                # a streaming D455 is drained continuously by the driver, which keeps the newest frame:
+                # take the newest frame the simulated camera has delivered, or wait for the next one
+                f = sim.get_frame(2.0)
+                if last_number is not None and f.frame_number <= last_number:
+                    f = sim.get_frame(2.0, newer_than=last_number)
                 exposure_us = float(f.meta.get("exposure_us") or settings["exposure_us"])
                 start_s = f.exposure_start_s if f.exposure_start_s is not None else t_request
                 before = self.stats.accepted
