@@ -31,15 +31,22 @@ class RecordingExposure:
     def exposure_limits(self):
         return {"exposure_us": (100.0, 1e6, 100.0), "gain": (0.0, 128.0, 1.0)}
 
+    def _pass(self, name, *args):  # and on to the simulated camera, when it has exposure control itself
+        fn = getattr(self._cam, name, None)
+        return fn(*args) if callable(fn) else None
+
     def set_auto_exposure(self, enabled):
         self.calls.append(("auto", bool(enabled)))
+        self._pass("set_auto_exposure", enabled)
 
     def set_manual_exposure(self, exposure_us, gain):
         self.calls.append(("manual", float(exposure_us), float(gain)))
+        self._pass("set_manual_exposure", exposure_us, gain)
         return {"exposure_us": exposure_us, "gain": gain}
 
     def set_emitter(self, enabled):
         self.calls.append(("emitter", bool(enabled)))
+        self._pass("set_emitter", enabled)
 
 
 @pytest.fixture
@@ -173,12 +180,13 @@ def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
     assert m.distance < 0.5 and m.angle_deg < 0.05 and m.proj_k_px < 1.0
     assert json.loads((out / "verification.json").read_text())["passed"] is True
     # `procam verify` sets the camera as the session recorded it (as the station's exposure search records it)
-    man["rig"]["camera_settings"].update({"auto_exposure": False, "exposure_us": 8333.0, "gain": 20.0,
-                                          "emitter_enabled": False, "projector": {"latency_ms": 40.0}})
+    # (one refresh period at 60 Hz, which the D455's 100 us steps cannot hit exactly; the lowest gain)
+    man["rig"]["camera_settings"].update({"auto_exposure": False, "exposure_us": 16666.7, "gain": 0.0,
+                                          "emitter_enabled": False})
     (out / "session.json").write_text(json.dumps(man))
     v = run_procam("verify", str(out), "--rig", "sim-realsense", "--out", str(tmp_path / "v.json"), timeout=600)
     assert v.returncode == 0, v.stdout[-2000:] + v.stderr[-2000:]
-    assert "camera: manual exposure 8300 us, gain 20 as the session recorded (recorded 8333 us" in v.stderr
+    assert "camera: manual exposure 16700 us, gain 0 as the session recorded (recorded 16666.7 us" in v.stderr
     assert "emitter off" in v.stderr
 
 

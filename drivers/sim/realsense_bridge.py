@@ -22,7 +22,8 @@ has delivered (as the driver's capture thread, draining a streaming camera, alwa
 
 Options: every option the driver writes is stored by librealsense; before each frame the pusher
 forwards changes to the simulated camera when it implements drivers.base.ExposureControl
-(auto exposure, manual exposure and gain, the emitter); until then they only live on the device.
+(auto exposure, manual exposure in us, the emitter, and the gain mapped linearly from the D455's
+0..128 onto the simulated camera's own gain range); otherwise they only live on the device.
 """
 
 from __future__ import annotations
@@ -160,10 +161,21 @@ class SimRealSenseDevice:
                     self.forwarded.append(("auto_exposure", True))
             elif (last.get("auto_exposure") is not False or now["exposure_us"] != last.get("exposure_us")
                   or now["gain"] != last.get("gain")):
-                cam.set_manual_exposure(now["exposure_us"], now["gain"])
-                self.forwarded.append(("manual", (now["exposure_us"], now["gain"])))
+                gain = self.sim_gain(now["gain"])
+                cam.set_manual_exposure(now["exposure_us"], gain)
+                self.forwarded.append(("manual", (now["exposure_us"], gain)))
             self._applied = now
         return now
+
+    def sim_gain(self, device_gain: float) -> float:
+        """The D455's gain control (0..128, no physical unit) mapped linearly onto the simulated camera's
+        gain range (its exposure_limits), so the device's minimum is the simulation's minimum."""
+        lo, hi = COLOUR_OPTIONS["gain"][:2]
+        try:
+            glo, ghi = (float(v) for v in self.sim_camera.exposure_limits()["gain"][:2])
+        except (AttributeError, KeyError, TypeError, ValueError):
+            return float(device_gain)
+        return glo + (float(device_gain) - lo) / (hi - lo) * (ghi - glo)
 
     # ---- frames ----------------------------------------------------------------------------------------
     def push(self, frame, exposure_us: float, exposure_start_s: float) -> None:
