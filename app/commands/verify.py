@@ -69,7 +69,10 @@ def add_arguments(p) -> None:
     sim.add_argument("--seed", type=int, default=None, help="scenario seed (default: the session's)")
     sim.add_argument("--quality", choices=("live", "session"), default="live",
                      help="render quality of the simulated camera (default live: 1 sample per pixel)")
-    hw = p.add_argument_group("--rig realsense")
+    sim.add_argument("--sim-latency-ms", type=float, default=None, metavar="MS",
+                     help="the simulated projector's true latency (default: the simulator's, drawn from the seed); "
+                          "the latency the station assumes is the session's recorded one, or --settle")
+    hw = p.add_argument_group("--rig realsense (--settle: every rig)")
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
     hw.add_argument("--screen", type=int, default=None, metavar="N",
                     help="projector screen from `procam devices` (default: the non-primary one of two screens)")
@@ -139,7 +142,10 @@ def _sim_options(manifest, args) -> dict:
         settings = {}
     render = {k: v for k, v in settings.items()
               if k in RenderSettings.__dataclass_fields__ and k != "supersample" and not isinstance(v, (dict, list))}
-    return {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render}
+    out = {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render}
+    if getattr(args, "sim_latency_ms", None) is not None:
+        out["latency_ms"] = float(args.sim_latency_ms)
+    return out
 
 
 def run(args) -> int:
@@ -185,10 +191,17 @@ def run(args) -> int:
         finally:
             rig.camera.stop()
 
+    if args.settle is not None and not args.settle >= 0:
+        raise SessionError(f"--settle must be >= 0 seconds, got {args.settle:g}")
     if args.rig in ("sim", "sim-realsense"):
         from drivers.factory import open_rig
 
         rig = open_rig(args.rig, **_sim_options(man, args))
+        settle = args.settle if args.settle is not None else recorded_latency_s(man)
+        if settle is not None and hasattr(rig.projector, "settle_s"):
+            rig.projector.settle_s = settle  # frames count from presentation + this latency
+            print(f"projector latency: {settle:g} s ({'--settle' if args.settle is not None else 'measured by the session'})",
+                  file=sys.stderr, flush=True)
         try:
             report = check(rig, settle_frames=1)
         finally:
