@@ -3,7 +3,7 @@
 Exit codes (scripts rely on them): 0 the calibration passes, 1 it fails the check (or too few pixels
 could be measured), 2 the check could not run (missing files, devices, bad arguments).
 
-On a RealSense camera (--rig realsense, sim-realsense) the camera is set as the session recorded it
+A camera with exposure control (RealSense, the simulated camera) is set as the session recorded it
 (session.json rig.camera_settings: manual exposure and gain, emitter off) and the projector's latency is
 the one the session measured (rig.camera_settings.projector.latency_ms), unless --settle is given.
 """
@@ -23,8 +23,8 @@ DESCRIPTION = (
     "and the distance from the pixel to it is measured. Prints the mean and worst distance and the verdict, "
     "writes SESSION/verification.json, and exits with 0 (pass), 1 (fail) or 2 (could not run). On --rig sim "
     "the simulated rig of the session's scenario is used (the session must come from `procam simulate` or a "
-    "simulated station session, or give --scenario). On a RealSense camera the session's recorded exposure, gain "
-    "and emitter setting and its measured projector latency are applied first."
+    "simulated station session, or give --scenario). The session's recorded exposure, gain and emitter setting "
+    "(on a camera with exposure control) and its measured projector latency are applied first."
 )
 
 
@@ -177,8 +177,7 @@ def run(args) -> int:
     def check(rig, settle_frames):
         rig.camera.start()
         try:
-            if args.rig != "sim":
-                print(apply_recorded_camera(rig.camera, man), file=sys.stderr, flush=True)
+            print(apply_recorded_camera(rig.camera, man), file=sys.stderr, flush=True)
             instruction = rig.operator.request_pose("verification", None, 0)
             print(instruction, file=sys.stderr, flush=True)
             if args.rig == "realsense" and args.delay > 0:
