@@ -193,7 +193,7 @@ def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
 def test_verify_applies_the_recorded_camera_settings_and_latency(sim_rig):
     from types import SimpleNamespace
 
-    from app.commands.verify import apply_recorded_camera, recorded_latency_s
+    from app.commands.verify import apply_recorded, recorded_latency_s
 
     def manifest(settings):
         return SimpleNamespace(rig=SimpleNamespace(camera_settings=settings))
@@ -203,15 +203,20 @@ def test_verify_applies_the_recorded_camera_settings_and_latency(sim_rig):
     assert recorded_latency_s(manifest({})) is None
     dev = SimRealSenseDevice(sim_rig.camera)
     cam = SimRealSenseCamera(dev)
+    rig = SimpleNamespace(camera=cam, projector=sim_rig.projector)
+    sim_rig.projector.settle_s = 0.0
     cam.start()
     try:
         cam.set_emitter(True)
-        line = apply_recorded_camera(cam, manifest({"auto_exposure": False, "exposure_us": 12000.0, "gain": 4.0,
-                                                    "emitter_enabled": False}))
+        lines = apply_recorded(rig, manifest({"auto_exposure": False, "exposure_us": 12000.0, "gain": 4.0,
+                                              "emitter_enabled": False, "projector": {"latency_ms": 85.5}}))
         assert dev.options() == {"auto_exposure": False, "exposure_us": 12000.0, "gain": 4.0, "emitter_enabled": False}
-        assert line.startswith("camera: manual exposure 12000 us, gain 4 as the session recorded; emitter off")
-        line = apply_recorded_camera(cam, manifest({"auto_exposure": True}))
-        assert dev.options()["auto_exposure"] is True and "no manual exposure" in line
+        assert lines[0] == "camera: manual exposure 12000 us, gain 4 as the session recorded; emitter off"
+        assert sim_rig.projector.settle_s == pytest.approx(0.0855)
+        assert lines[1] == "projector latency: 86 ms (as the session measured)"
+        apply_recorded(rig, manifest({"auto_exposure": False, "exposure_us": 12000.0, "gain": 4.0,
+                                      "projector": {"latency_ms": 85.5}}), settle_s=0.2)  # --settle wins
+        assert sim_rig.projector.settle_s == pytest.approx(0.2)
     finally:
         cam.stop()
 

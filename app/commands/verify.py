@@ -14,6 +14,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 NAME = "verify"
 HELP = "measure a session's calibration on the rig: epipolar curves drawn by the projector vs picked camera pixels"
@@ -98,31 +99,80 @@ def recorded_latency_s(manifest) -> float | None:
     return v / 1000.0 if v >= 0 and v == v and v != float("inf") else None
 
 
-def apply_recorded_camera(camera, manifest) -> str:
+def apply_recorded_camera(camera, manifest) -> dict:
     """Set an ExposureControl camera as the session recorded it: manual exposure and gain (auto exposure
-    off), the emitter as recorded (off when not said). Returns a line saying what the device applied."""
+    off), the emitter off. Returns what was applied, in the manifest's form ({} without exposure control;
+    no "exposure_us" when the session recorded no manual exposure: auto exposure is then on)."""
     from calib.errors import SessionError
     from drivers.base import ExposureControl
 
     if not isinstance(camera, ExposureControl):
-        return "camera: no exposure control, left as it is"
+        return {}
     rec = dict(manifest.rig.camera_settings or {})
-    emitter = rec.get("emitter_enabled")
-    camera.set_emitter(bool(emitter) if isinstance(emitter, bool) else False)
-    if rec.get("auto_exposure") is False and rec.get("exposure_us") is not None and rec.get("gain") is not None:
+    camera.set_emitter(False)
+    if rec.get("auto_exposure") is False and rec.get("exposure_us") is not None:
         try:
-            exposure_us, gain = float(rec["exposure_us"]), float(rec["gain"])
+            exposure_us, gain = float(rec["exposure_us"]), float(rec.get("gain", 1.0))
         except (TypeError, ValueError):
             raise SessionError(f"session.json: rig.camera_settings exposure_us / gain are not numbers: "
                                f"{rec.get('exposure_us')!r}, {rec.get('gain')!r}") from None
         got = camera.set_manual_exposure(exposure_us, gain)
-        note = "" if abs(got["exposure_us"] - exposure_us) <= 1e-6 * max(1.0, exposure_us) and got["gain"] == gain \
-            else f" (recorded {exposure_us:g} us, gain {gain:g}: the camera's range or step differs)"
-        return (f"camera: manual exposure {got['exposure_us']:g} us, gain {got['gain']:g} as the session recorded"
-                f"{note}; emitter {'on' if emitter else 'off'}")
+        return {"auto_exposure": False, "exposure_us": float(got["exposure_us"]), "gain": float(got["gain"]),
+                "emitter_enabled": False}
     camera.set_auto_exposure(True)
-    return (f"camera: the session recorded no manual exposure, so auto exposure is on (the measurement may "
-            f"flicker); emitter {'on' if emitter else 'off'}")
+    return {"auto_exposure": True, "emitter_enabled": False}
+
+
+def apply_recorded(rig, manifest, settle_s: float | None = None) -> list[str]:
+    """Make the rig time and expose frames as the session did: the camera's exposure, gain and emitter
+    and the projector's latency (`settle_s` overrides the recorded one). Uses the station's own
+    procedure (drivers.settle.apply_timing: it also searches an exposure / measures the latency the
+    session did not record) when this build has it, else re-applies what was recorded. Returns the lines
+    to print."""
+    rec = dict(manifest.rig.camera_settings or {})
+    if settle_s is not None:
+        rec["projector"] = {**(rec.get("projector") if isinstance(rec.get("projector"), dict) else {}),
+                            "latency_ms": float(settle_s) * 1000.0}
+    try:
+        from drivers.settle import apply_timing
+    except ImportError:
+        apply_timing = None
+    if apply_timing is not None:
+        got = apply_timing(rig.camera, rig.projector, rec)
+    else:
+        got = apply_recorded_camera(rig.camera, manifest)
+        latency = recorded_latency_s(SimpleNamespace(rig=SimpleNamespace(camera_settings=rec)))
+        if latency is not None and hasattr(rig.projector, "settle_s"):
+            rig.projector.settle_s = latency
+            got["projector"] = {"latency_ms": latency * 1000.0}
+    lines = []
+    if "exposure_us" in got:
+        recorded = rec.get("auto_exposure") is False and rec.get("exposure_us") is not None
+        line = f"camera: manual exposure {got['exposure_us']:g} us, gain {got['gain']:g}"
+        if recorded:
+            line += " as the session recorded"
+            try:
+                same = (abs(got["exposure_us"] - float(rec["exposure_us"])) <= 1e-6 * max(1.0, got["exposure_us"])
+                        and got["gain"] == float(rec.get("gain", got["gain"])))
+            except (TypeError, ValueError):
+                same = False
+            if not same:
+                line += (f" (recorded {float(rec['exposure_us']):g} us, gain {float(rec.get('gain', 0)):g}: the "
+                         "camera's range or step differs)")
+        else:
+            line += " (the session recorded none: searched now)"
+        lines.append(line + "; emitter off")
+    elif got:
+        lines.append("camera: the session recorded no manual exposure, so auto exposure is on (the measurement "
+                     "may flicker); emitter off")
+    else:
+        lines.append("camera: no exposure control, left as it is")
+    proj = got.get("projector")
+    if isinstance(proj, dict) and proj.get("latency_ms") is not None:
+        how = "--settle" if settle_s is not None else \
+            "as the session measured" if recorded_latency_s(manifest) is not None else "measured now"
+        lines.append(f"projector latency: {float(proj['latency_ms']):.0f} ms ({how})")
+    return lines
 
 
 def _sim_options(manifest, args) -> dict:
@@ -177,11 +227,13 @@ def run(args) -> int:
     def check(rig, settle_frames):
         rig.camera.start()
         try:
-            print(apply_recorded_camera(rig.camera, man), file=sys.stderr, flush=True)
             instruction = rig.operator.request_pose("verification", None, 0)
             print(instruction, file=sys.stderr, flush=True)
             if args.rig == "realsense" and args.delay > 0:
                 time.sleep(args.delay)
+            # exposure, emitter and projector latency as the session recorded them
+            for line in apply_recorded(rig, man, args.settle):
+                print(line, file=sys.stderr, flush=True)
             # the operator has been asked already: pass None so verify does not ask again
             # the session's board, found in the white frame, adds the predicted curves to the report
             return verify(rig.camera, rig.projector, None, result, grid=args.grid, threshold_px=args.threshold,
@@ -196,11 +248,6 @@ def run(args) -> int:
         from drivers.factory import open_rig
 
         rig = open_rig(args.rig, **_sim_options(man, args))
-        settle = args.settle if args.settle is not None else recorded_latency_s(man)
-        if settle is not None and hasattr(rig.projector, "settle_s"):
-            rig.projector.settle_s = settle  # frames count from presentation + this latency
-            print(f"projector latency: {settle:g} s ({'--settle' if args.settle is not None else 'measured by the session'})",
-                  file=sys.stderr, flush=True)
         try:
             report = check(rig, settle_frames=1)
         finally:
@@ -210,10 +257,7 @@ def run(args) -> int:
         from drivers.projector_window import run_projector_loop
 
         settle = args.settle if args.settle is not None else recorded_latency_s(man)
-        print(f"projector latency: {settle if settle is not None else DEFAULT_SETTLE_S:g} s "
-              f"({'--settle' if args.settle is not None else 'measured by the session' if settle is not None else 'default, none recorded'})",
-              file=sys.stderr, flush=True)
-        settle = DEFAULT_SETTLE_S if settle is None else settle
+        settle = DEFAULT_SETTLE_S if settle is None else settle  # until apply_recorded sets the recorded one
         rig = open_rig("realsense", serial=args.serial, projector_screen=args.screen, settle_s=settle,
                        projector_size=tuple(man.rig.projector_size))
         try:
