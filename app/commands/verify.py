@@ -70,15 +70,12 @@ def add_arguments(p) -> None:
     sim.add_argument("--seed", type=int, default=None, help="scenario seed (default: the session's)")
     sim.add_argument("--quality", choices=("live", "session"), default="live",
                      help="render quality of the simulated camera (default live: 1 sample per pixel)")
-    sim.add_argument("--sim-latency-ms", type=float, default=None, metavar="MS",
-                     help="the simulated projector's true latency (default: the simulator's, drawn from the seed); "
-                          "the latency the station assumes is the session's recorded one, or --settle")
-    hw = p.add_argument_group("--rig realsense (--settle: every rig)")
+    hw = p.add_argument_group("--rig realsense")
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
     hw.add_argument("--screen", type=int, default=None, metavar="N",
                     help="projector screen from `procam devices` (default: the non-primary one of two screens)")
     hw.add_argument("--settle", type=float, default=None, metavar="S",
-                    help="projector latency in seconds: how long after presentation an image counts as visible "
+                    help="projector latency in seconds (every rig): how long after presentation an image counts as visible "
                          "(default: the latency the session's rig check measured, session.json "
                          f"rig.camera_settings.projector.latency_ms; {DEFAULT_SETTLE_S:g} when none was recorded)")
     hw.add_argument("--delay", type=float, default=3.0, metavar="S",
@@ -192,10 +189,7 @@ def _sim_options(manifest, args) -> dict:
         settings = {}
     render = {k: v for k, v in settings.items()
               if k in RenderSettings.__dataclass_fields__ and k != "supersample" and not isinstance(v, (dict, list))}
-    out = {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render}
-    if getattr(args, "sim_latency_ms", None) is not None:
-        out["latency_ms"] = float(args.sim_latency_ms)
-    return out
+    return {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render}
 
 
 def run(args) -> int:
