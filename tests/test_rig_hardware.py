@@ -162,6 +162,54 @@ def test_unplug_and_reconnect_through_the_bridge(sim_rig):
 
 
 @pytest.mark.slow
+def test_captures_through_the_driver_show_only_the_image_recorded_for_them(tmp_path):
+    """With a 150 ms projector latency, every capture and every verification frame that went through
+    librealsense and the driver saw only the projector image recorded for it, for its whole exposure
+    (the hardware-like simulator's own record, SimRig.frame_truth)."""
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig as open_station_rig
+    from app.station.station import Station, StationOptions
+    from app.verification import verify
+    from calib.observations import STEP_PROJECTOR
+
+    req = RigRequest("sim-realsense", "nonoverlap-136", 0)
+    try:
+        rig = open_station_rig(req, latency_ms=150.0)
+    except Exception as e:  # noqa: BLE001 - the ideal simulator has no latency option
+        pytest.skip(f"needs the hardware-like simulator (projector latency, frame_truth): {e}")
+    try:
+        if not hasattr(rig.sim, "frame_truth"):
+            pytest.skip("needs the hardware-like simulator's record of what each frame saw (frame_truth)")
+        plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+        store = create_session(tmp_path / "s", rig, req, plan)
+        m = make_machine(store, rig, plan)
+        st = Station(rig, m, StationOptions(auto=False, follow_operator=True, auto_capture=True))
+        checks = st.check_rig()
+        assert all(c.ok for c in checks), checks
+        m.start_session()
+        m.choose_mirror_method("real-virtual")
+        for _ in range(300):
+            if len(m.captures_of(STEP_PROJECTOR)) >= 3:
+                break
+            if m.target is None:
+                m.proceed()
+            st.tick()
+        assert len(m.captures_of(STEP_PROJECTOR)) >= 3
+        numbers = rig.camera.device_numbers
+        for c in m.manifest.captures:
+            sim_n, ticket = numbers[c.meta["frame_number"]], c.meta["projector_ticket"]
+            assert rig.sim.frame_truth[sim_n] == ((int(ticket), 1.0),), (c.id, rig.sim.frame_truth[sim_n], ticket)
+        rig.operator.request_pose("verification", None, 0)
+        rep = verify(rig.camera, rig.projector, None, rig.ground_truth(), grid=(3, 2))
+        assert rep.passed, rep.summary()
+        for fn, ticket in rep.settings["frames"]:
+            sim_n = numbers[fn]
+            assert rig.sim.frame_truth[sim_n] == ((int(ticket), 1.0),), (fn, rig.sim.frame_truth[sim_n], ticket)
+    finally:
+        rig.close()
+
+
+@pytest.mark.slow
 def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
     out = tmp_path / "S"
     r = run_procam("session", "--rig", "sim-realsense", "--auto", "--poses-per-position", "2",

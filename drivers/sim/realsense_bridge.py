@@ -221,6 +221,9 @@ class SimRealSenseCamera(RealSenseCamera):
         self._pusher_stop = threading.Event()
         self._pusher: threading.Thread | None = None
         self.pushed = 0
+        #: driver frame number -> the simulated camera's frame number, for every frame handed out (so a
+        #: test can look up what the simulator showed during that frame's exposure)
+        self.device_numbers: dict[int, int] = {}
 
     def start(self) -> None:
         super().start()
@@ -247,7 +250,9 @@ class SimRealSenseCamera(RealSenseCamera):
             self._waiting += 1
             self._want.notify_all()
         try:
-            return super().get_frame(timeout_s, newer_than=newer_than, not_before_s=not_before_s)
+            f = super().get_frame(timeout_s, newer_than=newer_than, not_before_s=not_before_s)
+            self.device_numbers[f.frame_number] = int(f.meta["device_frame_number"])
+            return f
         finally:
             with self._want:
                 self._waiting -= 1
