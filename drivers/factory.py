@@ -1,5 +1,5 @@
 """Opening a rig by name, so the station swaps the simulated rig and the hardware with one flag
-(`--rig sim|realsense`).
+(`--rig sim|sim-realsense|realsense`).
 
     rig = open_rig("realsense", serial=None, projector_screen=1, settle_s=0.1)
     rig.camera.start(); ...; rig.close()
@@ -7,7 +7,9 @@
 Every rig has `.kind`, `.camera` (drivers.base.CameraDriver), `.projector` (ProjectorDriver) and
 `.operator` (Operator). On the real rig the operator is a person: HumanOperator.request_pose returns
 the instruction the panel shows and does nothing else. The simulated rig is the colleague's
-drivers.sim.rig.open_sim_rig, imported only when asked for.
+drivers.sim.rig.open_sim_rig, imported only when asked for; `sim-realsense` is the same simulated
+world with its camera delivered through drivers/realsense.py by a librealsense software device
+(drivers.sim.realsense_bridge).
 """
 
 from __future__ import annotations
@@ -18,7 +20,14 @@ from typing import Any
 from calib.errors import SpecError
 from drivers.errors import DeviceError
 
-RIG_KINDS = ("sim", "realsense")
+RIG_KINDS = ("sim", "sim-realsense", "realsense")
+#: rigs whose world is simulated (a scripted operator, a ground truth), whatever the camera path
+SIMULATED_KINDS = ("sim", "sim-realsense")
+
+
+def is_simulated(kind: str | None) -> bool:
+    """True for the rigs whose world is simulated (`sim`, `sim-realsense`)."""
+    return kind in SIMULATED_KINDS
 
 STEP_PROJECTOR = "projector"
 STEP_REAL_VIRTUAL = "mirror-real-virtual"
@@ -88,13 +97,19 @@ class HardwareRig:
 def open_rig(kind: str, **options):
     """The rig `kind` names.
 
-    realsense: serial, width (1280), height (800), fps (30), projector_screen (None: the last screen),
+    realsense: serial, width (1280), height (800), fps (30), projector_screen (None: the non-primary screen of two),
       projector_size (None: the screen's), fullscreen (True), settle_s (0.0), pattern_positions,
       context (librealsense context or a software device, for tests). The projector window is created
       here, so call open_rig on the main thread (pyglet's) and run the station's logic in a worker
       (drivers.projector_window.run_projector_loop).
     sim: scenario, seed, quality and the simulator's own options (drivers.sim.rig.open_sim_rig).
+    sim-realsense: the same, plus fps (30); its camera is drivers.realsense.RealSenseCamera on a
+      librealsense software device (drivers.sim.realsense_bridge).
     """
+    if kind == "sim-realsense":
+        from drivers.sim.realsense_bridge import open_sim_realsense_rig
+
+        return open_sim_realsense_rig(**options)
     if kind == "sim":
         from drivers.sim.rig import open_sim_rig
 

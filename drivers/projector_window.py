@@ -19,12 +19,33 @@ glFinish() returned and the X server processed every request (XSync), so a scree
 it. The projector itself needs longer (its own processing and the panel's response): `settle_s` is
 added to the presentation time; measure it with drivers.settle.measure_settle_time.
 
+Which screen: `list_screens()` describes every display output pyglet sees (name, primary flag,
+position, resolution, refresh rate; pyglet lists X outputs through RandR, ordered by output, not by
+the OS settings, pyglet #1246). Without an explicit index the projector goes to the one non-primary
+screen; with a single screen, to that screen; with more than two screens (or no way to tell the
+primary one) an explicit index is required (`choose_projector_screen`).
+
+Checks, because fullscreen on a second monitor has known problems (pyglet #763, #1330) and two
+screens of the same resolution would otherwise pass every size check: after going fullscreen the
+window's position (read back from the X server) must equal its screen's origin and its size the
+screen's size, else DeviceError. Every presentation checks again that the window is still mapped,
+in place and that its output is still listed (re-listed at most every `output_check_s`); a hidden,
+moved or closed window or a vanished output makes show() / wait_presented() raise DeviceError with
+the reason, which the station shows.
+
+Vsync: the window asks for it (pyglet's `vsync=True` sets the GLX swap interval); `self.vsync` is
+what pyglet reports back. Whether the driver honours the swap interval cannot be read back through
+pyglet, so it is not confirmed: an X server without a real display (Xvfb) presents at once.
+`refresh_hz` is the output's mode rate (None when the X server does not report one, as Xvfb; the
+ProjectorDriver property then falls back to 60 Hz and `refresh_hz_known` is False).
+
 pyglet opens the X display when `pyglet.window` is first imported, so this module imports pyglet
 only when a window is created or the screens are listed.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import sys
 import threading
@@ -47,20 +68,91 @@ def display_available() -> bool:
     return True
 
 
-def list_screens() -> list[dict]:
-    """The screens pyglet sees: [{index, x, y, width, height}], index as `screen_index` uses it.
-    Raises DeviceError when there is no display to talk to."""
+def _display_error(e: Exception) -> DeviceError:
+    """pyglet's 'Cannot connect to None' and friends, said so a person can act on it."""
+    shown = os.environ.get("DISPLAY")
+    if shown:
+        why = "" if "cannot connect" in str(e).lower() else f" ({e})"  # pyglet says 'Cannot connect to "None"'
+        return DeviceError(f"DISPLAY={shown} cannot be reached{why}: no X server answers there; start the X session, fix DISPLAY "
+                           "(e.g. DISPLAY=:0 for the local screen; over ssh use ssh -X or run on the rig's own "
+                           "desktop), or check that this user may use it (xhost / XAUTHORITY)")
+    return DeviceError(f"cannot open the display ({e}): run on the rig's desktop session or set DISPLAY")
+
+
+def _screen_rate(screen) -> float | None:
+    try:
+        mode = screen.get_mode()
+    except Exception:  # noqa: BLE001 - not every backend has modes
+        return None
+    rate = float(getattr(mode, "rate", 0) or 0) if mode is not None else 0.0
+    return rate if rate > 0 else None
+
+
+def _pyglet_screens() -> list:
     if not display_available():
-        raise DeviceError("no display available (DISPLAY is not set): connect a screen/projector or run "
-                          "under an X server")
+        raise DeviceError("DISPLAY is not set, so there is no screen to show patterns on: run on the rig's "
+                          "desktop session (or set DISPLAY=:0), with the projector connected as a screen")
     try:
         import pyglet
 
-        screens = pyglet.display.get_display().get_screens()
+        return list(pyglet.display.get_display().get_screens())
+    except DeviceError:
+        raise
     except Exception as e:  # noqa: BLE001 - pyglet raises its own types per platform
-        raise DeviceError(f"cannot open the display {os.environ.get('DISPLAY', '')!r}: {e}") from None
-    return [{"index": i, "x": int(s.x), "y": int(s.y), "width": int(s.width), "height": int(s.height)}
-            for i, s in enumerate(screens)]
+        raise _display_error(e) from None
+
+
+def describe_screen(index: int, screen) -> dict:
+    """{index, name, primary, x, y, width, height, refresh_hz} of a pyglet screen (primary and
+    refresh_hz are None when the platform does not say)."""
+    name = getattr(screen, "name", None)
+    if name is None and hasattr(screen, "get_monitor_name"):
+        try:
+            name = screen.get_monitor_name()
+        except Exception:  # noqa: BLE001
+            name = None
+    primary = getattr(screen, "is_primary", None)
+    return {"index": index, "name": str(name) if name else f"screen {index}",
+            "primary": None if primary is None else bool(primary), "x": int(screen.x), "y": int(screen.y),
+            "width": int(screen.width), "height": int(screen.height), "refresh_hz": _screen_rate(screen)}
+
+
+def list_screens() -> list[dict]:
+    """The display outputs pyglet sees: [{index, name, primary, x, y, width, height, refresh_hz}], index
+    as `screen_index` uses it. Raises DeviceError when there is no display to talk to."""
+    return [describe_screen(i, s) for i, s in enumerate(_pyglet_screens())]
+
+
+def screen_line(s: dict) -> str:
+    """One screen in words: '1: HDMI-1 1920x1080 at (1920, 0), 60 Hz'."""
+    rate = f"{s['refresh_hz']:.2f} Hz".replace(".00 Hz", " Hz") if s.get("refresh_hz") else "refresh rate unknown"
+    prim = ", primary" if s.get("primary") else ""
+    return f"{s['index']}: {s.get('name') or '?'} {s['width']}x{s['height']} at ({s['x']}, {s['y']}), {rate}{prim}"
+
+
+def choose_projector_screen(screens: list[dict], requested: int | None = None) -> int:
+    """The index of the projector's screen: `requested` when given (checked); else the only screen,
+    or with two screens the non-primary one. With more than two screens, or two where the primary
+    cannot be told, the operator has to choose (DeviceError listing them)."""
+    if not screens:
+        raise DeviceError("the display has no screens: connect the projector and turn it on")
+    listed = "; ".join(screen_line(s) for s in screens)
+    if requested is not None:
+        idx = int(requested)
+        if not 0 <= idx < len(screens):
+            raise DeviceError(f"there is no screen {requested}; the screens are {listed}")
+        return idx
+    if len(screens) == 1:
+        return 0
+    if len(screens) == 2:
+        others = [s for s in screens if s.get("primary") is False]
+        prim = [s for s in screens if s.get("primary")]
+        if len(prim) == 1 and len(others) == 1:
+            return int(others[0]["index"])
+        raise DeviceError(f"cannot tell which of the two screens is the projector (no primary screen is set): "
+                          f"choose it with --projector-screen N (screens: {listed})")
+    raise DeviceError(f"{len(screens)} screens are connected: choose the projector's with --projector-screen N "
+                      f"(screens: {listed}; `procam devices` lists them)")
 
 
 def to_rgba(image: np.ndarray, size: tuple[int, int]) -> bytes:
@@ -84,24 +176,21 @@ def to_rgba(image: np.ndarray, size: tuple[int, int]) -> bytes:
 class ProjectorWindow:
     """A fullscreen, pixel-exact pattern window (see the module doc).
 
-    screen_index: which screen (list_screens); None = the last one (with a laptop and a projector,
-    the projector is usually the second screen). size: the image size; None = the screen's size;
+    screen_index: which screen (list_screens); None = choose_projector_screen's choice (the
+    non-primary one of two). size: the image size; None = the screen's size;
     with fullscreen=True it must equal the screen's size (set the projector's resolution in the OS);
     with fullscreen=False a borderless window of `size` is put at the screen's top-left corner.
     settle_s: the projector's own latency, added to every presentation time.
+    output_check_s: how often a presentation re-lists the outputs to notice a vanished one.
     quit_keys: keys that close the window (Esc, q); () to ignore the keyboard.
     """
 
     def __init__(self, screen_index: int | None = None, size: tuple[int, int] | None = None,
                  fullscreen: bool = True, settle_s: float = 0.0, vsync: bool = True,
-                 quit_keys: tuple[str, ...] = QUIT_KEYS, caption: str = "procam projector"):
+                 quit_keys: tuple[str, ...] = QUIT_KEYS, caption: str = "procam projector",
+                 output_check_s: float = 1.0):
         screens = list_screens()
-        if not screens:
-            raise DeviceError("the display has no screens")
-        idx = len(screens) - 1 if screen_index is None else int(screen_index)
-        if not 0 <= idx < len(screens):
-            listed = ", ".join(f"{s['index']}: {s['width']}x{s['height']} at ({s['x']}, {s['y']})" for s in screens)
-            raise DeviceError(f"no screen {screen_index}; the display has {listed}")
+        idx = choose_projector_screen(screens, screen_index)
         info = screens[idx]
         sw, sh = info["width"], info["height"]
         if size is None:
@@ -119,6 +208,10 @@ class ProjectorWindow:
 
         self._pyglet, self._gl = pyglet, gl
         self.screen_index, self.screen = idx, info
+        self.fullscreen = bool(fullscreen)
+        self.output_check_s = float(output_check_s)
+        self._next_output_check = 0.0
+        self._fault: str | None = None
         self.settle_s = float(settle_s)
         self._size = size
         screen = pyglet.display.get_display().get_screens()[idx]
@@ -172,7 +265,12 @@ class ProjectorWindow:
             self._redraw = True
             self._exposed = True
 
-        window.push_handlers(on_key_press=on_key_press, on_close=on_close, on_expose=on_expose)
+        def on_hide():
+            if not self._closed:
+                self._fault = self._fault or ("the projector window is not visible any more (hidden, minimised "
+                                              "or unmapped): bring it back, or restart the station")
+
+        window.push_handlers(on_key_press=on_key_press, on_close=on_close, on_expose=on_expose, on_hide=on_hide)
         self._window_x11 = getattr(window, "_x_display", None)
         bits = [getattr(window.context.config, k, 0) or 0 for k in ("red_size", "green_size", "blue_size")]
         if min(bits) < 8:
@@ -196,6 +294,11 @@ class ProjectorWindow:
             window.close()
             raise DeviceError(f"the window's framebuffer is {fb[0]}x{fb[1]} instead of {size[0]}x{size[1]} "
                               "(desktop scaling?): turn display scaling off for the projector screen")
+        self.vsync = bool(getattr(window, "vsync", vsync))
+        problem = self._placement_problem()
+        if problem is not None:
+            window.close()
+            raise DeviceError(problem)
         gl.glDisable(gl.GL_DITHER)
         gl.glDisable(gl.GL_BLEND)
         gl.glDisable(gl.GL_FRAMEBUFFER_SRGB)
@@ -212,10 +315,78 @@ class ProjectorWindow:
     def closed(self) -> bool:
         return self._closed or self._close_requested
 
+    @property
+    def refresh_hz(self) -> float:
+        """The output's refresh rate; 60 when the X server does not report one (refresh_hz_known)."""
+        return float(self.screen.get("refresh_hz") or 60.0)
+
+    @property
+    def refresh_hz_known(self) -> bool:
+        return bool(self.screen.get("refresh_hz"))
+
+    @property
+    def fault(self) -> str | None:
+        """Why the window can no longer be trusted to show images (hidden, moved, output gone), or None."""
+        return self._fault
+
+    def describe(self) -> dict:
+        """The screen and window as recorded in the session manifest (rig.camera_settings.projector.screen)."""
+        return {**self.screen, "window_size": list(self._size), "fullscreen": self.fullscreen, "vsync": self.vsync,
+                "refresh_hz_known": self.refresh_hz_known}
+
+    def _placement_problem(self) -> str | None:
+        """Why the window is not exactly on its screen (position, size, mapped), or None."""
+        w = self._window
+        sx, sy, sw, sh = (self.screen[k] for k in ("x", "y", "width", "height"))
+        name = self.screen.get("name") or f"screen {self.screen_index}"
+        want_size = (sw, sh) if self.fullscreen else self._size
+        if self._window_x11 is not None:
+            from pyglet.libs.x11 import xlib
+
+            attrs = xlib.XWindowAttributes()
+            xlib.XGetWindowAttributes(self._window_x11, w._window, ctypes.byref(attrs))
+            if attrs.map_state != xlib.IsViewable:
+                return (f"the projector window on {name} is not visible (hidden, minimised or on another "
+                        "workspace): bring it back, or restart the station")
+        x, y = (int(v) for v in w.get_location())
+        size = tuple(int(v) for v in w.get_size())
+        if (x, y) != (sx, sy):
+            return (f"the projector window is at ({x}, {y}) but its screen {name} starts at ({sx}, {sy}): the "
+                    "window manager placed it elsewhere (it may be showing on another screen); check the screen "
+                    "arrangement, choose the screen with --projector-screen (see `procam devices`)")
+        if size != tuple(want_size):
+            return (f"the projector window is {size[0]}x{size[1]} but screen {name} is {want_size[0]}x{want_size[1]}: "
+                    "fullscreen did not cover the screen; turn off display scaling and check the projector's "
+                    "resolution in the operating system")
+        return None
+
+    def _output_problem(self) -> str | None:
+        """Why the window's output is no longer there, or None (re-lists the screens)."""
+        try:
+            screens = list_screens()
+        except DeviceError as e:
+            return f"the display went away: {e}"
+        mine = self.screen
+        for s in screens:
+            if s.get("name") == mine.get("name") and all(s[k] == mine[k] for k in ("x", "y", "width", "height")):
+                return None
+        now = "; ".join(screen_line(s) for s in screens) or "none"
+        return (f"the projector's output {mine.get('name')} ({mine['width']}x{mine['height']} at ({mine['x']}, "
+                f"{mine['y']})) is gone or changed (screens now: {now}): reconnect the projector, then restart")
+
+    def check(self, outputs: bool = True) -> None:
+        """Raise DeviceError when the window cannot be trusted to show images (see `fault`)."""
+        if self._fault is None and not self._closed:
+            self._fault = self._placement_problem() or (self._output_problem() if outputs else None)
+        if self._fault is not None:
+            raise DeviceError(self._fault)
+
     def show(self, image: np.ndarray) -> int:
         """Queue `image` for presentation; returns its ticket (tickets increase by one per image)."""
         data = to_rgba(image, self._size)
         with self._cond:
+            if self._fault is not None:
+                raise DeviceError(self._fault)
             if self.closed:
                 raise DeviceError("the projector window was closed")
             ticket = self._next_ticket
@@ -234,6 +405,8 @@ class ProjectorWindow:
         while True:
             with self._cond:
                 t = self._presented_at.get(ticket)
+                if self._fault is not None:
+                    raise DeviceError(self._fault)
                 if t is None:
                     if self.closed:
                         raise DeviceError("the projector window was closed before the image was shown")
@@ -295,6 +468,17 @@ class ProjectorWindow:
             self._current = ticket
             self._draw()
             t = time.monotonic()
+            # the image only counts if the window is still where it must be
+            now = time.monotonic()
+            check_outputs = now >= self._next_output_check
+            if check_outputs:
+                self._next_output_check = now + self.output_check_s
+            try:
+                self.check(outputs=check_outputs)
+            except DeviceError:
+                with self._cond:
+                    self._cond.notify_all()
+                return not self._closed
             with self._cond:
                 self._last_presented = ticket
                 self._presented_at[ticket] = t

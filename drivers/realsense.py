@@ -19,10 +19,37 @@ equal) is dropped and counted; a counter reset (number smaller, time larger) or 
 global time or hardware clock, `meta["timestamp_domain"]`), and `meta["host_time_s"]` is the host's
 time.monotonic() when the frame arrived.
 
+Frame times: `Frame.exposure_start_s` is the host `time.monotonic()` second at which the frame's
+exposure began, estimated from what the frame carries (see `_exposure_start`):
+- global_time / system_time domain (librealsense maps the device clock onto the host's system clock;
+  the default on the D4xx): the frame time minus the part of the frame that precedes it, converted
+  to the monotonic clock with the offset time.time() - time.monotonic() measured when the frame
+  arrives. When the frame carries both `frame_timestamp` (start of readout) and `sensor_timestamp`
+  (middle of exposure) metadata, the exposure start is the middle of exposure minus half the exposure;
+  otherwise the frame time is taken as the start of readout, i.e. the end of the exposure.
+- hardware_clock domain: the device clock mapped to the host clock by the smallest (arrival - device
+  time) of the last frames (transfer delays are never negative, so the smallest one has the least
+  jitter), minus one frame interval for the readout and transfer that smallest delay still contains.
+- otherwise: the host arrival time minus the exposure and one frame interval (readout and transfer).
+The exposure is the frame's `actual_exposure` metadata, else the manual exposure set, else a whole
+frame interval (the longest an exposure can be at the stream's rate). A constant error in these
+estimates is harmless to the station: the projector latency it measures is measured against the same
+exposure_start_s, so the bias ends up in the latency; what matters is the jitter, which the offsets above keep small.
+`get_frame(newer_than=N, not_before_s=T)` waits for a frame that is newer than N and whose exposure
+started at or after T, so a frame exposed before the projector's image became visible is never handed out.
+
+Exposure: the colour sensor's exposure and gain are only meaningful in manual mode (on the D4xx RGB
+sensor the values read while auto exposure is on are stored defaults, and its colour metadata is
+stale: librealsense issues #2549, #5035, #11355). The driver therefore implements
+drivers.base.ExposureControl: `set_manual_exposure(exposure_us, gain)` turns auto exposure off first,
+then sets both (clamped to the option's range, rounded to its step) and returns what the device reports
+back; nothing is ever read from auto exposure. The depth sensor's IR emitter (`emitter_enabled`)
+is switched off at start (its dots can show in the colour image, librealsense #7181).
+
 Disconnects: when librealsense reports the device removed (devices-changed callback) or when no frame
 arrives in time and the device is no longer listed, get_frame raises DeviceDisconnected; a timeout
 with the device still present raises DeviceTimeout. `reconnect(timeout_s)` (or `stop(); start()`)
-reopens the device when it is back and re-applies locked exposure / gain / white balance.
+reopens the device when it is back and re-applies the manual exposure / gain and the emitter setting.
 
 Factory intrinsics: see `convert_intrinsics` and docs/DRIVERS.md for how each librealsense
 distortion model becomes an OpenCV-style calib.camera.CameraModel.
@@ -48,6 +75,19 @@ COLOUR_EXPOSURE_UNIT_US = 100.0
 _rs_module = None
 
 
+def _import_error_message(e: BaseException) -> str:
+    """What to do when pyrealsense2 does not import, from the import error itself."""
+    text = str(e)
+    if "libusb" in text:
+        return (f"pyrealsense2 cannot be loaded because Debian's libusb is missing ({text}): install it with "
+                "`sudo apt-get install libusb-1.0-0`, or use the simulated rig (--rig sim)")
+    if isinstance(e, ModuleNotFoundError) and getattr(e, "name", "") == "pyrealsense2":
+        return ("pyrealsense2 is not installed: install it with `pip install pyrealsense2` (it also needs "
+                "`apt-get install libusb-1.0-0`), or use the simulated rig (--rig sim)")
+    return (f"pyrealsense2 cannot be imported ({text}); install it with pip and Debian's libusb-1.0-0 "
+            "(apt-get install libusb-1.0-0), or use the simulated rig (--rig sim)")
+
+
 def _rs():
     """pyrealsense2, imported on first use."""
     global _rs_module
@@ -55,21 +95,23 @@ def _rs():
         try:
             import pyrealsense2 as rs
         except ImportError as e:  # pragma: no cover - depends on the machine
-            raise DeviceError(
-                f"pyrealsense2 cannot be imported ({e}); install it with pip and Debian's libusb-1.0-0 "
-                "(apt-get install libusb-1.0-0), or use the simulated rig (--rig sim)"
-            ) from None
+            raise DeviceError(_import_error_message(e)) from None
         _rs_module = rs
     return _rs_module
 
 
-def realsense_available() -> bool:
-    """True when pyrealsense2 imports on this machine."""
+def realsense_import_error() -> str | None:
+    """Why pyrealsense2 is not usable here (what to install), or None when it is."""
     try:
         _rs()
-        return True
-    except DeviceError:
-        return False
+        return None
+    except DeviceError as e:
+        return str(e)
+
+
+def realsense_available() -> bool:
+    """True when pyrealsense2 imports on this machine."""
+    return realsense_import_error() is None
 
 
 # ---- device discovery -----------------------------------------------------------------------------
@@ -126,6 +168,24 @@ def _colour_sensor(dev):
     for s in dev.query_sensors():
         if _colour_profiles(s):
             return s
+    return None
+
+
+def _depth_sensor(dev, colour_sensor=None):
+    """The device's sensor with an IR emitter control (the D4xx "Stereo Module"), or None."""
+    rs = _rs()
+    try:
+        sensors = list(dev.query_sensors())
+    except RuntimeError:
+        return None
+    for s in sensors:
+        if colour_sensor is not None and s == colour_sensor:
+            continue
+        try:
+            if s.supports(rs.option.emitter_enabled):
+                return s
+        except RuntimeError:
+            continue
     return None
 
 
@@ -363,11 +423,12 @@ class RealSenseCamera:
     context: where devices are found (rs.context() by default; tests pass a software device).
     stale_after_s: get_frame() without `newer_than` returns the newest frame only when it arrived at
     most this long ago, else waits for a new one (default: 5 frame intervals, at least 0.5 s).
+    emitter_enabled: the depth sensor's IR emitter state applied at start (default off, see the module doc).
     """
 
     def __init__(self, serial: str | None = None, width: int = 1280, height: int = 800, fps: int = 30, *,
                  context=None, queue_capacity: int = 2, stale_after_s: float | None = None,
-                 intrinsics_tolerance_px: float = 0.05):
+                 intrinsics_tolerance_px: float = 0.05, emitter_enabled: bool = False):
         self._rs = _rs()
         self.serial = serial
         self.width, self.height, self.fps = int(width), int(height), int(fps)
@@ -389,7 +450,10 @@ class RealSenseCamera:
         self._counter = 0
         self._last_key: tuple[int, float] | None = None
         self.stats = _Stats()
-        self._locked: dict | None = None
+        self._manual: dict | None = None  # {"exposure_us", "gain"} as applied; re-applied after a reconnect
+        self._emitter_wanted = bool(emitter_enabled)
+        self._depth_sensor = None
+        self._offsets: list[float] = []  # recent (arrival - device time), hardware clock domain
         self._info: dict = {}
         self._callback_registered = False
 
@@ -424,14 +488,17 @@ class RealSenseCamera:
             self._thread_error = None
             self._last_key = None
             self._latest = None
+            self._offsets = []
             self._running = True
         self._register_callback()
         self._stop_evt = threading.Event()
         self._thread = threading.Thread(target=self._capture_loop, args=(queue, self._stop_evt),
                                         name="realsense-capture", daemon=True)
         self._thread.start()
-        if self._locked is not None:
-            self._apply_lock(**self._locked)
+        self._depth_sensor = _depth_sensor(dev, sensor)
+        self.set_emitter(self._emitter_wanted)
+        if self._manual is not None:
+            self.set_manual_exposure(self._manual["exposure_us"], self._manual["gain"])
 
     @property
     def running(self) -> bool:
@@ -454,6 +521,7 @@ class RealSenseCamera:
                 except RuntimeError:
                     pass  # already stopped, or the device is gone
         self._sensor = None
+        self._depth_sensor = None
         self._queue = None
 
     close = stop
@@ -465,7 +533,11 @@ class RealSenseCamera:
     def __exit__(self, *exc):
         self.stop()
 
-    def get_frame(self, timeout_s: float = 2.0, newer_than: int | None = None) -> Frame:
+    def get_frame(self, timeout_s: float = 2.0, newer_than: int | None = None,
+                  not_before_s: float | None = None) -> Frame:
+        """The newest frame (see drivers.base.CameraDriver); with `newer_than`, the first frame with a
+        larger number; with `not_before_s` (host time.monotonic() seconds), only a frame whose exposure
+        started at or after it: an older frame is never handed out, the call waits for a later one."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while True:
@@ -476,9 +548,11 @@ class RealSenseCamera:
                 if not self._running:
                     raise DeviceError(f"RealSense {self._label()}: not streaming; call start() first")
                 f = self._latest
-                if f is not None:
+                if f is not None and (not_before_s is None or (f.exposure_start_s is not None
+                                                               and f.exposure_start_s >= not_before_s)):
                     if newer_than is None:
-                        if time.monotonic() - f.meta["host_time_s"] <= self._stale_after_s:
+                        if not_before_s is not None or \
+                                time.monotonic() - f.meta["host_time_s"] <= self._stale_after_s:
                             return f
                     elif f.frame_number > newer_than:
                         return f
@@ -491,6 +565,8 @@ class RealSenseCamera:
                 self._disconnected = True
             raise DeviceDisconnected(self._disconnect_message())
         what = "no frame" if newer_than is None else f"no frame newer than #{newer_than}"
+        if not_before_s is not None:
+            what += f" exposed after t={not_before_s:.3f} s"
         raise DeviceTimeout(f"RealSense {self._label()}: {what} within {timeout_s:.2f} s "
                             f"(streaming {self.width}x{self.height}@{self.fps}); check the USB cable "
                             "and that no other program uses the camera")
@@ -508,81 +584,105 @@ class RealSenseCamera:
             "driver": "realsense",
             "device": dict(self._info) if self._info else {"serial": self.serial},
             "stream": {"width": self.width, "height": self.height, "fps": self.fps, "format": "bgr8"},
-            "locked": self._locked is not None,
+            "manual_exposure": self._manual is not None,
         }
         out.update(self._read_controls())
         f = self._latest
         if f is not None and "actual_exposure_us" in f.meta:
             out["exposure_us_actual"] = f.meta["actual_exposure_us"]
+        out["emitter_enabled"] = self.emitter_enabled()
         out["frames"] = {"accepted": self.stats.accepted, "dropped_duplicates": self.stats.duplicates,
                          "dropped_late": self.stats.late}
         return out
 
-    # ---- exposure / gain / white balance ---------------------------------------------------------------
-    def lock_exposure(self, exposure_us: float | None = None, gain: float | None = None,
-                      white_balance_k: float | None = None) -> dict:
-        """Turn auto exposure and auto white balance off and set exposure, gain and white balance
-        explicitly. A value of None keeps what the camera uses now (the auto value at this moment)
-        but locks it. Returns settings(); the lock is re-applied after a reconnect."""
+    # ---- exposure (drivers.base.ExposureControl) ----------------------------------------------------
+    def exposure_limits(self) -> dict:
+        """{"exposure_us": (min, max, step), "gain": (min, max, step)} as the colour sensor reports them
+        (exposure in microseconds)."""
+        rs = self._rs
+        self._require_started("read the exposure limits")
+        out = {}
+        for key, opt, scale in (("exposure_us", rs.option.exposure, COLOUR_EXPOSURE_UNIT_US),
+                                ("gain", rs.option.gain, 1.0)):
+            self._require(opt, key.split("_")[0])
+            r = self._sensor.get_option_range(opt)
+            out[key] = (float(r.min) * scale, float(r.max) * scale, float(r.step) * scale)
+        return out
+
+    def set_auto_exposure(self, enabled: bool) -> None:
+        """Auto exposure on (the manual values are forgotten) or off (the device keeps what it has)."""
+        rs = self._rs
+        self._require_started("change the auto exposure")
+        self._require(rs.option.enable_auto_exposure, "auto exposure")
+        self._set_option(rs.option.enable_auto_exposure, 1.0 if enabled else 0.0, "auto exposure")
+        if enabled:
+            self._manual = None
+
+    def set_manual_exposure(self, exposure_us: float, gain: float) -> dict:
+        """Auto exposure off first, then exposure (us) and gain, each clamped to the sensor's range and
+        rounded to its step. Returns what the device reports back: {"exposure_us", "gain"}; the values
+        are re-applied after a reconnect."""
+        rs = self._rs
+        self._require_started("set the exposure")
+        try:
+            exposure_us, gain = float(exposure_us), float(gain)
+        except (TypeError, ValueError):
+            raise DeviceError(f"exposure and gain must be numbers, got {exposure_us!r} and {gain!r}") from None
+        if not (np.isfinite(exposure_us) and np.isfinite(gain)):
+            raise DeviceError(f"exposure and gain must be finite, got {exposure_us} us and {gain}")
+        if self._sensor.supports(rs.option.enable_auto_exposure):
+            self._set_option(rs.option.enable_auto_exposure, 0.0, "auto exposure")
+        self._require(rs.option.exposure, "exposure")
+        self._require(rs.option.gain, "gain")
+        applied_exposure = self._set_option(rs.option.exposure, exposure_us / COLOUR_EXPOSURE_UNIT_US, "exposure",
+                                            unit_scale=COLOUR_EXPOSURE_UNIT_US, unit="us", clamp=True)
+        applied_gain = self._set_option(rs.option.gain, gain, "gain", clamp=True)
+        applied = {"exposure_us": applied_exposure * COLOUR_EXPOSURE_UNIT_US, "gain": applied_gain}
+        if self._sensor.supports(rs.option.enable_auto_exposure) and \
+                float(self._sensor.get_option(rs.option.enable_auto_exposure)) != 0.0:
+            raise DeviceError(f"RealSense {self._label()}: auto exposure is still on after switching it off")
+        self._manual = dict(applied)
+        return applied
+
+    def set_emitter(self, enabled: bool) -> None:
+        """The depth sensor's IR emitter on or off; a device without one (or without the option) is left
+        as it is. Applied again after a reconnect."""
+        rs = self._rs
+        self._emitter_wanted = bool(enabled)
+        d = self._depth_sensor
+        if d is None or not d.supports(rs.option.emitter_enabled):
+            return
+        try:
+            d.set_option(rs.option.emitter_enabled, 1.0 if enabled else 0.0)
+        except RuntimeError as e:
+            raise DeviceError(f"RealSense {self._label()}: cannot switch the IR emitter "
+                              f"{'on' if enabled else 'off'}: {e}") from None
+
+    def emitter_enabled(self) -> bool | None:
+        """The emitter as the depth sensor reports it; None when the device has none."""
+        d = self._depth_sensor
+        rs = self._rs
+        try:
+            if d is not None and d.supports(rs.option.emitter_enabled):
+                return bool(d.get_option(rs.option.emitter_enabled))
+        except RuntimeError:
+            pass
+        return None
+
+    def _require_started(self, what: str) -> None:
         if self._sensor is None:
-            raise DeviceError(f"RealSense {self._label()}: start() the camera before locking its exposure")
-        rs = self._rs
-        s = self._sensor
-        f = self._latest
-        measured_exposure_us = f.meta.get("actual_exposure_us") if f is not None else None
-        # auto off first: the firmware keeps the values it was using, which None then locks
-        if s.supports(rs.option.enable_auto_exposure):
-            self._set_option(rs.option.enable_auto_exposure, 0, "auto exposure")
-        if s.supports(rs.option.enable_auto_white_balance):
-            self._set_option(rs.option.enable_auto_white_balance, 0, "auto white balance")
-        current = self._read_controls()
-        if exposure_us is None:
-            exposure_us = measured_exposure_us if measured_exposure_us is not None else current.get("exposure_us")
-        if gain is None:
-            gain = current.get("gain")
-        if white_balance_k is None:
-            white_balance_k = current.get("white_balance_k")
-        self._apply_lock(exposure_us, gain, white_balance_k)
-        now = self._read_controls()
-        self._locked = {k: now.get(k) for k in ("exposure_us", "gain", "white_balance_k")}
-        return self.settings()
-
-    def unlock_exposure(self) -> dict:
-        """Give exposure and white balance back to the camera's automatics."""
-        rs = self._rs
-        self._locked = None
-        if self._sensor is not None:
-            for opt, label in ((rs.option.enable_auto_exposure, "auto exposure"),
-                               (rs.option.enable_auto_white_balance, "auto white balance")):
-                if self._sensor.supports(opt):
-                    self._set_option(opt, 1, label)
-        return self.settings()
-
-    def _apply_lock(self, exposure_us=None, gain=None, white_balance_k=None) -> None:
-        rs = self._rs
-        s = self._sensor
-        for opt, label in ((rs.option.enable_auto_exposure, "auto exposure"),
-                           (rs.option.enable_auto_white_balance, "auto white balance")):
-            if s.supports(opt):
-                self._set_option(opt, 0, label)
-        if exposure_us is not None:
-            self._require(rs.option.exposure, "exposure")
-            self._set_option(rs.option.exposure, float(exposure_us) / COLOUR_EXPOSURE_UNIT_US,
-                             "exposure", unit_scale=COLOUR_EXPOSURE_UNIT_US, unit="us")
-        if gain is not None:
-            self._require(rs.option.gain, "gain")
-            self._set_option(rs.option.gain, float(gain), "gain")
-        if white_balance_k is not None:
-            self._require(rs.option.white_balance, "white balance")
-            self._set_option(rs.option.white_balance, float(white_balance_k), "white balance", unit="K")
+            raise DeviceError(f"RealSense {self._label()}: start() the camera before trying to {what}")
 
     def _require(self, opt, label: str) -> None:
         if not self._sensor.supports(opt):
             raise DeviceError(f"RealSense {self._label()}: the colour sensor has no {label} control")
 
-    def _set_option(self, opt, value: float, label: str, unit_scale: float = 1.0, unit: str = "") -> float:
+    def _set_option(self, opt, value: float, label: str, unit_scale: float = 1.0, unit: str = "",
+                    clamp: bool = False) -> float:
         s = self._sensor
         r = s.get_option_range(opt)
+        if clamp:
+            value = min(max(value, r.min), r.max)
         if not (r.min - 1e-9 <= value <= r.max + 1e-9):
             raise DeviceError(
                 f"RealSense {self._label()}: {label} {value * unit_scale:g}{unit} is outside the camera's "
@@ -775,11 +875,16 @@ class RealSenseCamera:
         meta = {"device_frame_number": key[0], "timestamp_domain": str(vf.get_frame_timestamp_domain()).split(".")[-1],
                 "host_time_s": host_t, "serial": self.serial}
         md = rs.frame_metadata_value
-        try:
-            if vf.supports_frame_metadata(md.actual_exposure):
-                meta["actual_exposure_us"] = float(vf.get_frame_metadata(md.actual_exposure)) * COLOUR_EXPOSURE_UNIT_US
-        except RuntimeError:
-            pass
+        for name, value, scale in (("actual_exposure_us", md.actual_exposure, COLOUR_EXPOSURE_UNIT_US),
+                                  ("frame_timestamp_us", md.frame_timestamp, 1.0),
+                                  ("sensor_timestamp_us", md.sensor_timestamp, 1.0)):
+            try:
+                if vf.supports_frame_metadata(value):
+                    meta[name] = float(vf.get_frame_metadata(value)) * scale
+            except RuntimeError:
+                pass
+        start_s, source = self._exposure_start(key[1], meta, host_t, time.time() - time.monotonic())
+        meta["exposure_start_source"] = source
         with self._cond:
             last = self._last_key
             if last is not None and key[0] <= last[0] and key[1] <= last[1]:
@@ -788,5 +893,33 @@ class RealSenseCamera:
             self._last_key = key
             self._counter += 1
             self.stats.accepted += 1
-            self._latest = Frame(img, self._counter, key[1], meta)
+            self._latest = Frame(img, self._counter, key[1], meta, start_s)
             self._cond.notify_all()
+
+    def _exposure_start(self, timestamp_ms: float, meta: dict, arrival_s: float,
+                        wall_minus_mono_s: float) -> tuple[float, str]:
+        """(host monotonic seconds at which the exposure began, how it was estimated); see the module doc."""
+        period_s = 1.0 / max(self.fps, 1)
+        exposure_s = meta.get("actual_exposure_us")
+        if exposure_s is None and self._manual is not None:
+            exposure_s = self._manual["exposure_us"]
+        exposure_s = period_s if exposure_s is None else float(exposure_s) * 1e-6
+        # the exposure start relative to the instant the frame's timestamp stands for
+        if "frame_timestamp_us" in meta and "sensor_timestamp_us" in meta:
+            before_ref_s = (meta["frame_timestamp_us"] - meta["sensor_timestamp_us"]) * 1e-6 + exposure_s / 2
+        else:
+            before_ref_s = exposure_s  # the timestamp marks the start of readout = the end of the exposure
+        domain = meta.get("timestamp_domain")
+        if domain in ("global_time", "system_time"):
+            return timestamp_ms * 1e-3 - wall_minus_mono_s - before_ref_s, domain
+        if domain == "hardware_clock":
+            self._offsets.append(arrival_s - timestamp_ms * 1e-3)
+            del self._offsets[:-max(8, 2 * self.fps)]
+            ref_s = timestamp_ms * 1e-3 + min(self._offsets)
+            # a device-clock jump (reset, wrap) makes the mapped time land after the arrival or
+            # implausibly long before it: start over
+            if not arrival_s - 1.0 <= ref_s <= arrival_s:
+                self._offsets = [arrival_s - timestamp_ms * 1e-3]
+                ref_s = arrival_s
+            return ref_s - period_s - before_ref_s, domain
+        return arrival_s - period_s - exposure_s, "arrival"

@@ -30,12 +30,13 @@ class SoftwareRealSense:
     "unplug" it: the devices-changed callback fires like librealsense's would)."""
 
     def __init__(self, width=64, height=48, fps=30, serial="SW-D455-0001", intrinsics=None, fmt="bgr8",
-                 extra_modes=((640, 480, 30),)):
+                 extra_modes=((640, 480, 30),), with_emitter=True):
         import pyrealsense2 as rs
 
         self.rs = rs
         self.width, self.height, self.fps, self.serial = width, height, fps, serial
         self._fmt, self._extra_modes = fmt, tuple(extra_modes)
+        self._with_emitter = bool(with_emitter)
         if intrinsics is None:
             intrinsics = rs.intrinsics()
             intrinsics.width, intrinsics.height = width, height
@@ -68,6 +69,10 @@ class SoftwareRealSense:
         self._option(rs.option.gain, 0, 128, 1, 64)
         self._option(rs.option.enable_auto_white_balance, 0, 1, 1, 1)
         self._option(rs.option.white_balance, 2800, 6500, 10, 4600)
+        self.depth = None
+        if self._with_emitter:  # the stereo module's IR dot projector, on by default as on a D455
+            self.depth = self.device.add_sensor("Stereo Module")
+            self._option(rs.option.emitter_enabled, 0, 2, 1, 1, sensor=self.depth)
         self.present = True
 
     def _add_stream(self, w, h, fps, fmt, intr, uid):
@@ -78,12 +83,13 @@ class SoftwareRealSense:
         vs.intrinsics = intr
         return self.sensor.add_video_stream(vs).as_video_stream_profile()
 
-    def _option(self, opt, lo, hi, step, default):
+    def _option(self, opt, lo, hi, step, default, sensor=None):
+        sensor = self.sensor if sensor is None else sensor
         r = self.rs.option_range()
         # set fields by name: the positional constructor of this pyrealsense2 swaps step and default
         r.min, r.max, r.step, r.default = lo, hi, step, default
-        self.sensor.add_option(opt, r, True)
-        self.sensor.set_option(opt, default)
+        sensor.add_option(opt, r, True)
+        sensor.set_option(opt, default)
 
     # context interface used by RealSenseCamera
     def query_devices(self):
@@ -103,16 +109,20 @@ class SoftwareRealSense:
         """A new device with the same serial appears (its controls back at their defaults)."""
         self._build()
 
-    def push(self, image: np.ndarray, frame_number: int, timestamp_ms: float) -> None:
-        """Deliver one BGR frame through librealsense (as the USB backend would)."""
+    def push(self, image: np.ndarray, frame_number: int, timestamp_ms: float, domain: str = "hardware_clock",
+             metadata: dict | None = None) -> None:
+        """Deliver one BGR frame through librealsense (as the USB backend would), in timestamp `domain`
+        with frame metadata {name: int} (e.g. {"actual_exposure": 100} in 100 us units)."""
         rs = self.rs
+        for name, value in (metadata or {}).items():
+            self.sensor.set_metadata(getattr(rs.frame_metadata_value, name), int(value))
         f = rs.software_video_frame()
         img = np.ascontiguousarray(image, dtype=np.uint8)
         f.pixels = img
         f.bpp = 3
         f.stride = img.shape[1] * 3
         f.timestamp = float(timestamp_ms)
-        f.domain = rs.timestamp_domain.hardware_clock
+        f.domain = getattr(rs.timestamp_domain, domain)
         f.frame_number = int(frame_number)
         f.profile = self.profile
         self.sensor.on_video_frame(f)

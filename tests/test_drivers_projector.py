@@ -212,8 +212,11 @@ def test_window_protocol_threads_and_errors():
         r = run_python(PROTOCOL_SCRIPT, display)
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert out["screens"] == [{"index": 0, "x": 0, "y": 0, "width": 1280, "height": 720}]
-    assert "no screen 3" in out["bad_screen"] and "0: 1280x720 at (0, 0)" in out["bad_screen"]
+    (screen,) = out["screens"]  # Xvfb: one RandR output named "screen", no refresh rate
+    assert {k: screen[k] for k in ("index", "x", "y", "width", "height")} == \
+        {"index": 0, "x": 0, "y": 0, "width": 1280, "height": 720}
+    assert screen["name"] == "screen" and screen["refresh_hz"] is None
+    assert "no screen 3" in out["bad_screen"] and "0: screen 1280x720 at (0, 0)" in out["bad_screen"]
     assert "1280x720 but 800x600" in out["bad_fullscreen_size"]
     assert out["small_exact"] and out["small_outside_black"] == 0
     assert out["is_projector_driver"]

@@ -9,7 +9,7 @@ import pyrealsense2 as rs
 import pytest
 
 from _drivers_helpers import FramePusher, SoftwareRealSense
-from drivers.base import CameraDriver
+from drivers.base import CameraDriver, ExposureControl
 from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from drivers.realsense import (
     IntrinsicsConversionError,
@@ -38,8 +38,8 @@ def cam(rig):
     c.stop()
 
 
-def push_and_get(rig, cam, img, number, t_ms, newer_than=None):
-    rig.push(img, number, t_ms)
+def push_and_get(rig, cam, img, number, t_ms, newer_than=None, **push_kw):
+    rig.push(img, number, t_ms, **push_kw)
     return cam.get_frame(2.0, newer_than=newer_than)
 
 
@@ -175,7 +175,8 @@ def test_no_frames_with_device_present_is_a_timeout(rig, cam):
 
 
 def test_unplug_raises_disconnected_at_once_and_reconnect_recovers(rig, cam):
-    cam.lock_exposure(exposure_us=5000, gain=20, white_balance_k=4000)
+    cam.set_manual_exposure(5000, 20)
+    cam.set_emitter(False)
     f = push_and_get(rig, cam, numbered_image(1), 500, 20000.0)
     waiter = {}
 
@@ -201,9 +202,10 @@ def test_unplug_raises_disconnected_at_once_and_reconnect_recovers(rig, cam):
     g = push_and_get(rig, cam, numbered_image(2), 1, 3.0, newer_than=f.frame_number)
     assert g.frame_number == f.frame_number + 1  # numbering continues although the device restarted
     assert g.meta["device_frame_number"] == 1 and np.array_equal(g.image, numbered_image(2))
-    s = cam.settings()  # the lock was applied again to the new device
+    s = cam.settings()  # the manual exposure and the emitter were applied again to the new device
     assert s["auto_exposure"] is False and s["exposure_us"] == pytest.approx(5000)
-    assert s["gain"] == 20 and s["white_balance_k"] == 4000 and s["auto_white_balance"] is False
+    assert s["gain"] == 20 and s["emitter_enabled"] is False
+    assert rig.depth.get_option(rs.option.emitter_enabled) == 0
 
 
 def test_silent_unplug_is_detected_when_frames_stop(rig, cam):
@@ -220,25 +222,142 @@ def test_silent_unplug_is_detected_when_frames_stop(rig, cam):
 
 # ---- exposure ------------------------------------------------------------------------------------------
 
-def test_lock_exposure_turns_autos_off_and_reports_values(rig, cam):
+def test_manual_exposure_turns_auto_off_first_and_reads_back_what_the_device_applied(rig, cam):
+    assert isinstance(cam, ExposureControl)
     s0 = cam.settings()
-    assert s0["auto_exposure"] is True and s0["auto_white_balance"] is True and s0["locked"] is False
-    assert s0["exposure_us"] == pytest.approx(15600)  # D455 colour default 156 x 100 us
-    s1 = cam.lock_exposure()  # keep the current values, but locked
-    assert s1["locked"] and s1["auto_exposure"] is False and s1["auto_white_balance"] is False
-    assert s1["exposure_us"] == pytest.approx(15600) and s1["gain"] == 64 and s1["white_balance_k"] == 4600
-    s2 = cam.lock_exposure(exposure_us=8000, gain=30, white_balance_k=5200)
-    assert (s2["exposure_us"], s2["gain"], s2["white_balance_k"]) == (pytest.approx(8000), 30, 5200)
-    # values read back from librealsense itself
-    assert rig.sensor.get_option(rs.option.exposure) == 80
+    assert s0["auto_exposure"] is True and s0["manual_exposure"] is False
+    lim = cam.exposure_limits()  # the D455 colour sensor counts exposure in 100 us
+    assert lim["exposure_us"] == (pytest.approx(100), pytest.approx(1e6), pytest.approx(100))
+    assert lim["gain"] == (0, 128, 1)
+
+    applied = cam.set_manual_exposure(8333.3, 30.4)  # rounded to the steps: 83 x 100 us, gain 30
+    assert applied == {"exposure_us": pytest.approx(8300), "gain": 30}
     assert rig.sensor.get_option(rs.option.enable_auto_exposure) == 0
-    assert rig.sensor.get_option(rs.option.white_balance) == 5200
-    with pytest.raises(DeviceError, match="white balance 9000K is outside.*2800..6500K"):
-        cam.lock_exposure(white_balance_k=9000)
-    with pytest.raises(DeviceError, match="exposure 2e\\+06us is outside"):
-        cam.lock_exposure(exposure_us=2e6)
-    s3 = cam.unlock_exposure()
-    assert s3["auto_exposure"] is True and not s3["locked"]
+    assert rig.sensor.get_option(rs.option.exposure) == 83 and rig.sensor.get_option(rs.option.gain) == 30
+    s1 = cam.settings()
+    assert s1["auto_exposure"] is False and s1["exposure_us"] == pytest.approx(8300) and s1["gain"] == 30
+    # out of range: clamped to the range, and the reply says so
+    assert cam.set_manual_exposure(5e7, 500) == {"exposure_us": pytest.approx(1e6), "gain": 128}
+    assert cam.set_manual_exposure(1, -4) == {"exposure_us": pytest.approx(100), "gain": 0}
+    with pytest.raises(DeviceError, match="finite"):
+        cam.set_manual_exposure(float("nan"), 1)
+    cam.set_auto_exposure(True)
+    assert rig.sensor.get_option(rs.option.enable_auto_exposure) == 1 and cam.settings()["manual_exposure"] is False
+
+
+def test_manual_exposure_switches_auto_exposure_off_before_setting_values(rig):
+    """On the D4xx the exposure is only valid in manual mode: the driver never writes (or reads) it while
+    auto exposure is on. A sensor that refuses exposure writes in auto mode proves the order."""
+    from drivers.realsense import RealSenseCamera as Cam
+
+    calls = []
+
+    class Recording:
+        def __init__(self, sensor):
+            self._s = sensor
+
+        def __getattr__(self, name):
+            return getattr(self._s, name)
+
+        def set_option(self, opt, value):
+            calls.append((opt, value, self._s.get_option(rs.option.enable_auto_exposure)))
+            if opt in (rs.option.exposure, rs.option.gain) and self._s.get_option(rs.option.enable_auto_exposure):
+                raise RuntimeError("exposure can only be set in manual mode")
+            return self._s.set_option(opt, value)
+
+    cam = Cam(width=64, height=48, fps=30, context=rig)
+    cam.start()
+    try:
+        cam._sensor = Recording(cam._sensor)
+        cam.set_manual_exposure(10000, 16)
+        assert calls[0][:2] == (rs.option.enable_auto_exposure, 0.0)
+        assert [c[0] for c in calls[1:]] == [rs.option.exposure, rs.option.gain]
+        assert all(c[2] == 0 for c in calls[1:])  # auto exposure already off when they were written
+    finally:
+        cam._sensor = cam._sensor._s
+        cam.stop()
+
+
+def test_the_emitter_is_switched_off_at_start(rig):
+    assert rig.depth.get_option(rs.option.emitter_enabled) == 1  # as a D455 comes up
+    cam = RealSenseCamera(width=64, height=48, fps=30, context=rig)
+    cam.start()
+    try:
+        assert rig.depth.get_option(rs.option.emitter_enabled) == 0
+        assert cam.settings()["emitter_enabled"] is False
+        cam.set_emitter(True)
+        assert rig.depth.get_option(rs.option.emitter_enabled) == 1
+    finally:
+        cam.stop()
+    # a device without a stereo module: nothing to switch, no error
+    bare = SoftwareRealSense(with_emitter=False)
+    cam = RealSenseCamera(width=64, height=48, fps=30, context=bare)
+    cam.start()
+    try:
+        cam.set_emitter(False)
+        assert cam.settings()["emitter_enabled"] is None
+    finally:
+        cam.stop()
+
+
+# ---- frame times ---------------------------------------------------------------------------------------
+
+def test_exposure_start_from_global_time_and_exposure_metadata(rig, cam):
+    """A global-time frame: its timestamp (host system clock, ms) marks the start of readout; with the
+    exposure metadata the driver places the exposure start on the monotonic clock."""
+    wall_minus_mono = time.time() - time.monotonic()
+    t_end = time.monotonic() - 0.010  # readout began 10 ms ago, after an exposure of 20 ms
+    f = push_and_get(rig, cam, numbered_image(1), 1, (t_end + wall_minus_mono) * 1000, domain="global_time",
+                     metadata={"actual_exposure": 200})
+    assert f.meta["exposure_start_source"] == "global_time"
+    assert f.exposure_start_s == pytest.approx(t_end - 0.020, abs=0.002)
+    # with frame_timestamp (readout) and sensor_timestamp (middle of exposure), that one counts
+    g = push_and_get(rig, cam, numbered_image(2), 2, (t_end + 0.033 + wall_minus_mono) * 1000, domain="global_time",
+                     metadata={"actual_exposure": 200, "frame_timestamp": 1_000_000, "sensor_timestamp": 985_000},
+                     newer_than=f.frame_number)
+    assert g.exposure_start_s == pytest.approx(t_end + 0.033 - 0.015 - 0.010, abs=0.002)
+
+
+def test_exposure_start_on_the_hardware_clock_is_never_after_arrival_and_keeps_order(rig, cam):
+    cam.set_manual_exposure(5000, 16)
+    starts, last = [], None
+    for k in range(6):
+        f = push_and_get(rig, cam, numbered_image(k), 10 + k, 7000.0 + 33.3 * k, newer_than=last)
+        assert f.meta["exposure_start_source"] == "hardware_clock"
+        # the exposure (5 ms) and a frame interval for readout come before the frame's arrival
+        assert f.exposure_start_s <= f.meta["host_time_s"] - 0.005 - 1 / 30 + 1e-6
+        starts.append(f.exposure_start_s)
+        last = f.frame_number
+        time.sleep(0.02)
+    assert all(b > a for a, b in zip(starts, starts[1:]))
+
+
+def test_a_frame_exposed_before_the_requested_time_is_never_handed_out(rig, cam):
+    """get_frame(not_before_s=T) waits for a frame whose exposure began at or after T, even if newer
+    frames keep arriving that were exposed before it."""
+    wall_minus_mono = time.time() - time.monotonic()
+    t0 = time.monotonic()
+    visible = t0 + 0.3  # the projector's image counts as visible from here
+    first = push_and_get(rig, cam, numbered_image(0), 1, (t0 + wall_minus_mono) * 1000, domain="global_time",
+                         metadata={"actual_exposure": 100})
+    # late frames: arriving after `visible`, but exposed before it (a long transfer queue)
+    def late():
+        time.sleep(0.35)
+        for k in range(1, 4):
+            rig.push(numbered_image(k), 1 + k, (visible - 0.05 + 0.01 * k + wall_minus_mono) * 1000,
+                     domain="global_time", metadata={"actual_exposure": 100})
+            time.sleep(0.03)
+        rig.push(numbered_image(9), 9, (visible + 0.02 + wall_minus_mono) * 1000, domain="global_time",
+                 metadata={"actual_exposure": 100})
+
+    th = threading.Thread(target=late)
+    th.start()
+    f = cam.get_frame(3.0, newer_than=first.frame_number, not_before_s=visible)
+    th.join()
+    assert f.meta["device_frame_number"] == 9 and np.array_equal(f.image, numbered_image(9))
+    assert f.exposure_start_s >= visible
+    with pytest.raises(DeviceTimeout, match="exposed after"):
+        cam.get_frame(0.3, not_before_s=time.monotonic() + 5)
 
 
 # ---- intrinsics ----------------------------------------------------------------------------------------

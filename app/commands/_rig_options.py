@@ -3,8 +3,9 @@ the real rig's devices and boards (a private module: not a sub-command)."""
 
 
 def add_rig_options(p) -> None:
-    p.add_argument("--rig", choices=("sim", "realsense"), default=None,
-                   help="rig to use (default: realsense when one is connected, else sim)")
+    p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), default=None,
+                   help="rig to use (default: realsense when one is connected, else sim; sim-realsense: the "
+                        "simulated rig with its camera through the RealSense driver and librealsense)")
     p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
     p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
@@ -24,7 +25,7 @@ def add_rig_options(p) -> None:
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
     p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
     p.add_argument("--projector-screen", type=int, default=None,
-                   help="real rig: display the projector is connected to (default: the last one)")
+                   help="real rig: screen the projector is connected to, from `procam devices` (default: the non-primary one of two screens; required with more)")
     p.add_argument("--settle-s", type=float, default=None,
                    help="real rig: projector latency to wait after each image (seconds)")
     p.add_argument("--workers", type=int, default=2, help="detection threads for the calibration (default 2)")

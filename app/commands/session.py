@@ -49,8 +49,10 @@ def plan_from_args(args, base=None):
 
 
 def rig_options(args, kind: str) -> dict:
-    """Device options for drivers.factory.open_rig (the simulated rig: its projector latency)."""
-    if kind == "sim":
+    """Device options for drivers.factory.open_rig (simulated rigs: their projector latency)."""
+    from drivers.factory import is_simulated
+
+    if is_simulated(kind):
         from app.commands._rig_options import sim_latency_ms
 
         v = sim_latency_ms(args)
@@ -90,11 +92,13 @@ def open_session(args, log=print):
         folder = Path(args.out)
         kind = args.rig or default_rig_kind()
         req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
-        if kind != "sim" and not args.board:
+        from drivers.factory import is_simulated
+
+        if not is_simulated(kind) and not args.board:
             raise SessionError("a real rig needs the board spec: --board COLSxROWS:DICT:SQUARE[:MARKER]")
         rig = open_rig(req, **rig_options(args, kind))
         kw = {}
-        if kind != "sim":
+        if not is_simulated(kind):
             board = CharucoSpec.parse(args.board, args.units)
             kw = dict(board=board, mirror_board=CharucoSpec.parse(args.mirror_board, args.units)
                       if args.mirror_board else None, view=VIEW_DIRECT if args.direct else VIEW_MIRROR)
@@ -104,7 +108,8 @@ def open_session(args, log=print):
         if args.method:
             machine.extra_state["method"] = args.method  # a resumed session calibrates the same way
             machine._persist()
-        what = f"simulated rig '{req.scenario}' (seed {req.seed})" if kind == "sim" else f"{kind} rig"
+        what = f"{kind} rig" if not is_simulated(kind) else f"simulated rig '{req.scenario}' (seed {req.seed})" + (
+            "" if kind == "sim" else ", camera through the RealSense driver")
         log(f"new session in {folder} on the {what}")
     if args.camera_intrinsics:
         machine.skip_camera(args.camera_intrinsics)
@@ -173,12 +178,14 @@ def run(args) -> int:
     from app.station.setup import default_rig_kind, resume_request
 
     kind = resume_request(args.resume, kind=args.rig).kind if args.resume else (args.rig or default_rig_kind())
-    if kind == "sim" and not args.auto:
+    from drivers.factory import is_simulated
+
+    if is_simulated(kind) and not args.auto:
         raise SessionError("the simulated rig has nobody to move the board: add --auto, or operate it from "
                            "the browser with `procam station --rig sim`")
     rig, store, machine, req = open_session(args, log)
     opts = StationOptions(auto=True, mirror_method=args.mirror_method, follow_operator=True)
-    if req.kind != "sim":  # a person needs time, and a pose too close to another is never kept
+    if not is_simulated(req.kind):  # a person needs time, and a pose too close to another is never kept
         opts.max_frames_per_target = 10**9
         opts.stuck_frames = 10**9
     station = Station(rig, machine, opts, log=log)
@@ -204,7 +211,7 @@ def run(args) -> int:
                 raise SessionError("the rig check failed: " + "; ".join(f"{c.name}: {c.detail}" for c in bad))
         while machine.state != DONE:
             station.tick()
-            if req.kind != "sim":
+            if not is_simulated(req.kind):
                 hint = station.instruction()
                 if hint != last_hint:
                     print(hint, flush=True)

@@ -28,7 +28,7 @@ def _size(text: str) -> tuple[int, int]:
 
 def add_arguments(p) -> None:
     p.add_argument("--screen", type=int, default=None, metavar="N",
-                   help="screen index from `procam devices` (default: the last screen)")
+                   help="screen index from `procam devices` (default: the non-primary one of two screens; required with more)")
     p.add_argument("--pattern", choices=("circles", "chessboard"), default="circles")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--position", type=int, default=0, metavar="K", help="pattern position (0-based, default 0)")
@@ -48,12 +48,10 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from calib.pattern import PatternSpec
     from drivers.errors import DeviceError
-    from drivers.projector_window import ProjectorWindow, list_screens, run_projector_loop
+    from drivers.projector_window import ProjectorWindow, choose_projector_screen, list_screens, run_projector_loop
 
     screens = list_screens()
-    idx = len(screens) - 1 if args.screen is None else args.screen
-    if not 0 <= idx < len(screens):
-        raise DeviceError(f"no screen {idx}: `procam devices` lists {len(screens)} screen(s)")
+    idx = choose_projector_screen(screens, args.screen)
     screen_size = (screens[idx]["width"], screens[idx]["height"])
     size = args.size or screen_size
     # build the pattern before opening the window so a bad spec fails without flashing a window

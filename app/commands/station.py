@@ -43,7 +43,9 @@ def add_arguments(p) -> None:
 
 
 def rig_note(req, defaulted: bool) -> str:
-    if req.kind == "sim":
+    from drivers.factory import is_simulated
+
+    if is_simulated(req.kind):
         note = f"**Simulated rig** `{req.scenario}` (seed {req.seed})"
         if defaulted:
             note += ": no RealSense camera is connected, so the station uses the simulated rig"
@@ -71,7 +73,9 @@ def run(args) -> int:
         args.rig = kind
     args.out = args.session
     rig, store, machine, req = open_session(args, print)
-    sim = req.kind == "sim"
+    from drivers.factory import is_simulated
+
+    sim = is_simulated(req.kind)  # sim, sim-realsense: a simulated operator moves the board
     opts = StationOptions(auto=bool(args.auto and sim), follow_operator=(not sim) or bool(args.auto),
                           mirror_method=args.mirror_method)
     if not sim:

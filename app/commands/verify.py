@@ -1,7 +1,11 @@
-"""`procam verify SESSION --rig sim|realsense`: the automatic epipolar check of SESSION/calibration.json.
+"""`procam verify SESSION --rig sim|sim-realsense|realsense`: the automatic epipolar check of SESSION/calibration.json.
 
 Exit codes (scripts rely on them): 0 the calibration passes, 1 it fails the check (or too few pixels
 could be measured), 2 the check could not run (missing files, devices, bad arguments).
+
+A camera with exposure control (RealSense, the simulated camera) is set as the session recorded it
+(session.json rig.camera_settings: manual exposure and gain, emitter off) and the projector's latency is
+the one the session measured (rig.camera_settings.projector.latency_ms), unless --settle is given.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 NAME = "verify"
 HELP = "measure a session's calibration on the rig: epipolar curves drawn by the projector vs picked camera pixels"
@@ -19,7 +24,8 @@ DESCRIPTION = (
     "and the distance from the pixel to it is measured. Prints the mean and worst distance and the verdict, "
     "writes SESSION/verification.json, and exits with 0 (pass), 1 (fail) or 2 (could not run). On --rig sim "
     "the simulated rig of the session's scenario is used (the session must come from `procam simulate` or a "
-    "simulated station session, or give --scenario)."
+    "simulated station session, or give --scenario). The session's recorded exposure, gain and emitter setting "
+    "(on a camera with exposure control) and its measured projector latency are applied first."
 )
 
 
@@ -48,7 +54,8 @@ def add_arguments(p) -> None:
     from app.verification import DEFAULT_GRID, DEFAULT_THRESHOLD_PX
 
     p.add_argument("session", metavar="SESSION", help="session folder (with session.json and calibration.json)")
-    p.add_argument("--rig", choices=("sim", "realsense"), required=True, help="the rig to measure on")
+    p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), required=True,
+                   help="the rig to measure on (sim-realsense: the simulated rig through the RealSense driver)")
     p.add_argument("--threshold", type=_positive, default=DEFAULT_THRESHOLD_PX, metavar="PX",
                    help=f"verdict threshold on the mean distance, projector pixels (default {DEFAULT_THRESHOLD_PX:g}; "
                         "the worst pixel may reach twice it)")
@@ -58,7 +65,7 @@ def add_arguments(p) -> None:
                    help="calibration to verify (default SESSION/calibration.json)")
     p.add_argument("--out", metavar="FILE", default=None, help="report file (default SESSION/verification.json)")
     p.add_argument("--average", type=int, default=1, metavar="N", help="camera frames averaged per image (default 1)")
-    sim = p.add_argument_group("--rig sim")
+    sim = p.add_argument_group("--rig sim, sim-realsense")
     sim.add_argument("--scenario", default=None, help="scenario (default: the one the session was simulated with)")
     sim.add_argument("--seed", type=int, default=None, help="scenario seed (default: the session's)")
     sim.add_argument("--quality", choices=("live", "session"), default="live",
@@ -68,11 +75,104 @@ def add_arguments(p) -> None:
     add_sim_latency_option(sim)
     hw = p.add_argument_group("--rig realsense")
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
-    hw.add_argument("--screen", type=int, default=None, metavar="N", help="projector screen (default: the last)")
-    hw.add_argument("--settle", type=float, default=0.1, metavar="S",
-                    help="projector settle time in seconds (see `procam devices --settle`; default 0.1)")
+    hw.add_argument("--screen", type=int, default=None, metavar="N",
+                    help="projector screen from `procam devices` (default: the non-primary one of two screens)")
+    hw.add_argument("--settle", type=float, default=None, metavar="S",
+                    help="projector latency in seconds (every rig): how long after presentation an image counts as visible "
+                         "(default: the latency the session's rig check measured, session.json "
+                         f"rig.camera_settings.projector.latency_ms; {DEFAULT_SETTLE_S:g} when none was recorded)")
     hw.add_argument("--delay", type=float, default=3.0, metavar="S",
                     help="seconds between the instruction to hold the board and the measurement (default 3)")
+
+
+DEFAULT_SETTLE_S = 0.1
+
+
+def recorded_latency_s(manifest) -> float | None:
+    """The projector latency the session measured (seconds), or None."""
+    proj = (manifest.rig.camera_settings or {}).get("projector")
+    v = proj.get("latency_ms") if isinstance(proj, dict) else None
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return v / 1000.0 if v >= 0 and v == v and v != float("inf") else None
+
+
+def apply_recorded_camera(camera, manifest) -> dict:
+    """Set an ExposureControl camera as the session recorded it: manual exposure and gain (auto exposure
+    off), the emitter off. Returns what was applied, in the manifest's form ({} without exposure control;
+    no "exposure_us" when the session recorded no manual exposure: auto exposure is then on)."""
+    from calib.errors import SessionError
+    from drivers.base import ExposureControl
+
+    if not isinstance(camera, ExposureControl):
+        return {}
+    rec = dict(manifest.rig.camera_settings or {})
+    camera.set_emitter(False)
+    if rec.get("auto_exposure") is False and rec.get("exposure_us") is not None:
+        try:
+            exposure_us, gain = float(rec["exposure_us"]), float(rec.get("gain", 1.0))
+        except (TypeError, ValueError):
+            raise SessionError(f"session.json: rig.camera_settings exposure_us / gain are not numbers: "
+                               f"{rec.get('exposure_us')!r}, {rec.get('gain')!r}") from None
+        got = camera.set_manual_exposure(exposure_us, gain)
+        return {"auto_exposure": False, "exposure_us": float(got["exposure_us"]), "gain": float(got["gain"]),
+                "emitter_enabled": False}
+    camera.set_auto_exposure(True)
+    return {"auto_exposure": True, "emitter_enabled": False}
+
+
+def apply_recorded(rig, manifest, settle_s: float | None = None) -> list[str]:
+    """Make the rig time and expose frames as the session did: the camera's exposure, gain and emitter
+    and the projector's latency (`settle_s` overrides the recorded one). Uses the station's own
+    procedure (drivers.settle.apply_timing: it also searches an exposure / measures the latency the
+    session did not record) when this build has it, else re-applies what was recorded. Returns the lines
+    to print."""
+    rec = dict(manifest.rig.camera_settings or {})
+    if settle_s is not None:
+        rec["projector"] = {**(rec.get("projector") if isinstance(rec.get("projector"), dict) else {}),
+                            "latency_ms": float(settle_s) * 1000.0}
+    try:
+        from drivers.settle import apply_timing
+    except ImportError:
+        apply_timing = None
+    if apply_timing is not None:
+        got = apply_timing(rig.camera, rig.projector, rec)
+    else:
+        got = apply_recorded_camera(rig.camera, manifest)
+        latency = recorded_latency_s(SimpleNamespace(rig=SimpleNamespace(camera_settings=rec)))
+        if latency is not None and hasattr(rig.projector, "settle_s"):
+            rig.projector.settle_s = latency
+            got["projector"] = {"latency_ms": latency * 1000.0}
+    lines = []
+    if "exposure_us" in got:
+        recorded = rec.get("auto_exposure") is False and rec.get("exposure_us") is not None
+        line = f"camera: manual exposure {got['exposure_us']:g} us, gain {got['gain']:g}"
+        if recorded:
+            line += " as the session recorded"
+            try:
+                same = (abs(got["exposure_us"] - float(rec["exposure_us"])) <= 1e-6 * max(1.0, got["exposure_us"])
+                        and got["gain"] == float(rec.get("gain", got["gain"])))
+            except (TypeError, ValueError):
+                same = False
+            if not same:
+                line += (f" (recorded {float(rec['exposure_us']):g} us, gain {float(rec.get('gain', 0)):g}: the "
+                         "camera's range or step differs)")
+        else:
+            line += " (the session recorded none: searched now)"
+        lines.append(line + "; emitter off")
+    elif got:
+        lines.append("camera: the session recorded no manual exposure, so auto exposure is on (the measurement "
+                     "may flicker); emitter off")
+    else:
+        lines.append("camera: no exposure control, left as it is")
+    proj = got.get("projector")
+    if isinstance(proj, dict) and proj.get("latency_ms") is not None:
+        how = "--settle" if settle_s is not None else \
+            "as the session measured" if recorded_latency_s(manifest) is not None else "measured now"
+        lines.append(f"projector latency: {float(proj['latency_ms']):.0f} ms ({how})")
+    return lines
 
 
 def _sim_options(manifest, args) -> dict:
@@ -82,11 +182,14 @@ def _sim_options(manifest, args) -> dict:
 
     settings = dict(manifest.rig.camera_settings or {})
     state = dict(manifest.state or {})
-    scenario = args.scenario or settings.get("scenario") or state.get("scenario")
-    seed = args.seed if args.seed is not None else settings.get("seed", state.get("seed", 0))
+    request = state.get("rig_request") if isinstance(state.get("rig_request"), dict) else {}
+    scenario = args.scenario or settings.get("scenario") or state.get("scenario") or request.get("scenario")
+    seed = args.seed if args.seed is not None else settings.get("seed", state.get("seed", request.get("seed", 0)))
     if not scenario:
         raise SessionError("this session was not recorded on the simulated rig, so its scenario is unknown; "
                            "give --scenario NAME (see `procam simulate --list`) or use --rig realsense")
+    if settings.get("driver") not in (None, "sim"):  # a RealSense driver's settings are not the renderer's
+        settings = {}
     render = {k: v for k, v in settings.items()
               if k in RenderSettings.__dataclass_fields__ and k != "supersample" and not isinstance(v, (dict, list))}
     from app.commands._rig_options import sim_latency_ms
@@ -131,12 +234,11 @@ def run(args) -> int:
         try:
             instruction = rig.operator.request_pose("verification", None, 0)
             print(instruction, file=sys.stderr, flush=True)
-            if args.rig == "sim":  # exposure and projector latency as the session recorded them (or measured)
-                from drivers.settle import apply_timing
-
-                apply_timing(rig.camera, rig.projector, man.rig.camera_settings)
             if args.rig == "realsense" and args.delay > 0:
                 time.sleep(args.delay)
+            # exposure, emitter and projector latency as the session recorded them
+            for line in apply_recorded(rig, man, args.settle):
+                print(line, file=sys.stderr, flush=True)
             # the operator has been asked already: pass None so verify does not ask again
             # the session's board, found in the white frame, adds the predicted curves to the report
             return verify(rig.camera, rig.projector, None, result, grid=args.grid, threshold_px=args.threshold,
@@ -145,16 +247,23 @@ def run(args) -> int:
         finally:
             rig.camera.stop()
 
-    if args.rig == "sim":
+    if args.settle is not None and not args.settle >= 0:
+        raise SessionError(f"--settle must be >= 0 seconds, got {args.settle:g}")
+    if args.rig in ("sim", "sim-realsense"):
         from drivers.factory import open_rig
 
-        rig = open_rig("sim", **_sim_options(man, args))
-        report = check(rig, settle_frames=1)
+        rig = open_rig(args.rig, **_sim_options(man, args))
+        try:
+            report = check(rig, settle_frames=1)
+        finally:
+            rig.close()
     else:
         from drivers.factory import open_rig
         from drivers.projector_window import run_projector_loop
 
-        rig = open_rig("realsense", serial=args.serial, projector_screen=args.screen, settle_s=args.settle,
+        settle = args.settle if args.settle is not None else recorded_latency_s(man)
+        settle = DEFAULT_SETTLE_S if settle is None else settle  # until apply_recorded sets the recorded one
+        rig = open_rig("realsense", serial=args.serial, projector_screen=args.screen, settle_s=settle,
                        projector_size=tuple(man.rig.projector_size))
         try:
             report = run_projector_loop(rig.projector, lambda: check(rig, settle_frames=2))

@@ -54,8 +54,10 @@ def open_rig(req: RigRequest, **options):
     call this on the main thread (the projector window's) and run the station with `run_on_rig`."""
     from drivers.factory import open_rig as factory_open
 
-    if req.kind == "sim":
-        rig = factory_open("sim", scenario=req.scenario, seed=req.seed, quality=req.quality, **options)
+    from drivers.factory import is_simulated
+
+    if is_simulated(req.kind):
+        rig = factory_open(req.kind, scenario=req.scenario, seed=req.seed, quality=req.quality, **options)
     else:
         rig = factory_open(req.kind, **options)
     start = getattr(rig.camera, "start", None)
@@ -67,7 +69,9 @@ def open_rig(req: RigRequest, **options):
 def run_on_rig(rig, work):
     """Run `work()`: directly on the simulated rig; on the hardware in a worker thread while the main
     thread runs the projector window's event loop (pyglet wants the main thread)."""
-    if getattr(rig, "kind", "sim") == "sim":
+    from drivers.factory import is_simulated
+
+    if is_simulated(getattr(rig, "kind", "sim")):
         return work()
     from drivers.projector_window import run_projector_loop
 
@@ -103,7 +107,9 @@ def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_boa
     """The manifest of a new session on `rig`: specs from the simulated scenario, or as given."""
     cam_size = tuple(rig.camera.size)
     proj_size = tuple(rig.projector.size)
-    if kind == "sim":
+    from drivers.factory import is_simulated
+
+    if is_simulated(kind):
         s = sim_specs(rig)
         board, mirror_board, pattern, view = s["board"], s["mirror_board"], s["pattern"], s["view"]
         thickness = s["thickness"] if s["mirror_method"] == "real-mirror" else 0.0
@@ -130,7 +136,9 @@ def create_session(folder, rig, req: RigRequest, plan: Plan | None = None, **man
     store = SessionStore.create(folder, man)
     store.update(state={"step": "check_rig", "rig_request": req.to_dict(),
                         "plan": (plan or Plan()).to_dict()})
-    if req.kind == "sim" and hasattr(rig, "ground_truth"):
+    from drivers.factory import is_simulated
+
+    if is_simulated(req.kind) and hasattr(rig, "ground_truth"):
         rig.ground_truth().save_json(folder / GROUND_TRUTH_FILE)
     return store
 

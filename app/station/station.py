@@ -102,7 +102,9 @@ class Station:
         self.machine = machine
         self.options = options or StationOptions()
         self.kind = getattr(rig, "kind", "sim")
-        self.is_sim = self.kind == "sim"
+        from drivers.factory import is_simulated
+
+        self.is_sim = is_simulated(self.kind)
         self.log = log or (lambda text: None)
         if self.options.follow_operator is None:
             self.options.follow_operator = self.options.auto or not self.is_sim

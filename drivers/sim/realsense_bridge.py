@@ -1,0 +1,340 @@
+"""`--rig sim-realsense`: the simulated world seen through the real RealSense driver.
+
+    rig = open_sim_realsense_rig("nonoverlap-136", seed=0, quality="live")
+    rig.camera        # drivers.realsense.RealSenseCamera, streaming from a librealsense software device
+    rig.projector, rig.operator, rig.scenario, rig.ground_truth()   # the simulated rig's own
+
+`SimRealSenseDevice` is a librealsense `rs.software_device` that stands in for a D455: a colour sensor
+("RGB Camera") with one BGR8 profile carrying the simulated camera's intrinsics (brown_conrady), the
+colour controls the D455 reports (enable_auto_exposure, exposure in 100 us units, gain, auto white
+balance, white balance) and a stereo module with `emitter_enabled` (on at power-up, as on a D455).
+It is the `context` of drivers.realsense.RealSenseCamera, so everything the driver does (opening the
+sensor, the frame queue, option ranges and steps, frame metadata, the devices-changed callback and
+reconnecting) runs through librealsense.
+
+Frames: a pusher thread takes frames from the simulated camera and hands them to librealsense with
+their frame numbers, in the global_time domain (host system clock, ms, at the start of readout) with
+`actual_exposure`, `frame_timestamp` and `sensor_timestamp` metadata, so the driver's exposure_start_s
+estimate is exercised as on hardware. The simulated camera renders lazily, so the pusher renders only
+what the driver will hand out: it pushes while a caller waits in get_frame (the camera class below
+tells it), no faster than the stream's frame rate, and always the newest frame the simulated camera
+has delivered (as the driver's capture thread, draining a streaming camera, always holds the newest).
+
+Options: every option the driver writes is stored by librealsense; before each frame the pusher
+forwards changes to the simulated camera when it implements drivers.base.ExposureControl
+(auto exposure, manual exposure in us, the emitter, and the gain mapped linearly from the D455's
+0..128 onto the simulated camera's own gain range); otherwise they only live on the device.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from drivers.base import ExposureControl
+from drivers.errors import DeviceError
+from drivers.realsense import COLOUR_EXPOSURE_UNIT_US, RealSenseCamera, _rs
+
+#: D455 colour sensor controls: (min, max, step, default) in the device's own units.
+COLOUR_OPTIONS = {
+    "enable_auto_exposure": (0, 1, 1, 1),
+    "exposure": (1, 10000, 1, 156),  # x 100 us
+    "gain": (0, 128, 1, 64),
+    "enable_auto_white_balance": (0, 1, 1, 1),
+    "white_balance": (2800, 6500, 10, 4600),
+}
+
+
+class _Removed:
+    """What a devices-changed callback receives when the device goes away."""
+
+    def __init__(self, dev):
+        self._dev = dev
+
+    def was_removed(self, dev) -> bool:
+        return dev is self._dev or dev == self._dev
+
+
+class SimRealSenseDevice:
+    """A software D455 fed by a simulated camera; a librealsense context for RealSenseCamera (see the
+    module doc). `unplug()` / `replug()` take it away and bring a fresh one (controls at their defaults)."""
+
+    def __init__(self, sim_camera, fps: int = 30, serial: str = "SIM-D455-0001"):
+        self.rs = _rs()
+        self.sim_camera = sim_camera
+        self.fps = int(fps)
+        self.serial = serial
+        self._callbacks: list = []
+        self._lock = threading.Lock()
+        self._mono0 = time.monotonic()
+        self._applied: dict[str, float] = {}
+        self.forwarded: list[tuple[str, Any]] = []  # (what, value) handed to the simulated camera
+        self._build()
+
+    # ---- the software device ------------------------------------------------------------------------
+    def _build(self) -> None:
+        rs = self.rs
+        model = self.sim_camera.model
+        w, h = model.size
+        dev = rs.software_device()
+        for key, value in (("name", "Intel RealSense D455 (simulated)"), ("serial_number", self.serial),
+                           ("firmware_version", "5.16.0.1"), ("usb_type_descriptor", "3.2"),
+                           ("product_line", "D400")):
+            dev.register_info(getattr(rs.camera_info, key), value)
+        colour = dev.add_sensor("RGB Camera")
+        intr = rs.intrinsics()
+        intr.width, intr.height = w, h
+        intr.fx, intr.fy, intr.ppx, intr.ppy = model.fx, model.fy, model.cx, model.cy
+        d = np.zeros(5)
+        dist = np.asarray(model.dist, float).reshape(-1)
+        if dist.size > 5 and np.any(dist[5:] != 0):
+            raise DeviceError("the simulated camera's distortion has rational terms, which a RealSense "
+                              "brown_conrady profile cannot carry")
+        d[: min(5, dist.size)] = dist[:5]
+        intr.model = rs.distortion.brown_conrady
+        intr.coeffs = [float(c) for c in d]
+        vs = rs.video_stream()
+        vs.type, vs.index, vs.uid = rs.stream.color, 0, 0
+        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = w, h, self.fps, 3, rs.format.bgr8
+        vs.intrinsics = intr
+        profile = colour.add_video_stream(vs).as_video_stream_profile()
+        for name, (lo, hi, step, default) in COLOUR_OPTIONS.items():
+            self._option(colour, getattr(rs.option, name), lo, hi, step, default)
+        depth = dev.add_sensor("Stereo Module")
+        self._option(depth, rs.option.emitter_enabled, 0, 2, 1, 1)
+        with self._lock:
+            self.device, self.colour, self.depth, self.profile = dev, colour, depth, profile
+            self.present = True
+            self._applied = {}
+
+    def _option(self, sensor, opt, lo, hi, step, default) -> None:
+        r = self.rs.option_range()
+        r.min, r.max, r.step, r.default = lo, hi, step, default  # by name: the constructor's order differs
+        sensor.add_option(opt, r, True)
+        sensor.set_option(opt, default)
+
+    # ---- librealsense context interface (RealSenseCamera's `context`) -----------------------------------
+    def query_devices(self):
+        return [self.device] if self.present else []
+
+    def set_devices_changed_callback(self, callback) -> None:
+        self._callbacks.append(callback)
+
+    def unplug(self) -> None:
+        """The camera goes away: the devices-changed callback fires, frames stop."""
+        with self._lock:
+            self.present = False
+            dev = self.device
+        for cb in list(self._callbacks):
+            cb(_Removed(dev))
+
+    def replug(self) -> None:
+        """A camera with the same serial comes back, its controls at their power-up defaults."""
+        self._build()
+
+    # ---- options -> the simulated camera ----------------------------------------------------------------
+    def options(self) -> dict:
+        """The device's controls as the driver left them (exposure in us)."""
+        rs = self.rs
+        c, d = self.colour, self.depth
+        return {"auto_exposure": bool(c.get_option(rs.option.enable_auto_exposure)),
+                "exposure_us": float(c.get_option(rs.option.exposure)) * COLOUR_EXPOSURE_UNIT_US,
+                "gain": float(c.get_option(rs.option.gain)),
+                "emitter_enabled": bool(d.get_option(rs.option.emitter_enabled))}
+
+    def forward_options(self) -> dict:
+        """Hand changed controls to the simulated camera (when it implements ExposureControl)."""
+        now = self.options()
+        cam = self.sim_camera
+        if isinstance(cam, ExposureControl):
+            last = self._applied
+            if now["emitter_enabled"] != last.get("emitter_enabled"):
+                cam.set_emitter(now["emitter_enabled"])
+                self.forwarded.append(("emitter", now["emitter_enabled"]))
+            if now["auto_exposure"]:
+                if last.get("auto_exposure") is not True:
+                    cam.set_auto_exposure(True)
+                    self.forwarded.append(("auto_exposure", True))
+            elif (last.get("auto_exposure") is not False or now["exposure_us"] != last.get("exposure_us")
+                  or now["gain"] != last.get("gain")):
+                gain = self.sim_gain(now["gain"])
+                cam.set_manual_exposure(now["exposure_us"], gain)
+                self.forwarded.append(("manual", (now["exposure_us"], gain)))
+            self._applied = now
+        return now
+
+    def sim_gain(self, device_gain: float) -> float:
+        """The D455's gain control (0..128, no physical unit) mapped linearly onto the simulated camera's
+        gain range (its exposure_limits), so the device's minimum is the simulation's minimum."""
+        lo, hi = COLOUR_OPTIONS["gain"][:2]
+        try:
+            glo, ghi = (float(v) for v in self.sim_camera.exposure_limits()["gain"][:2])
+        except (AttributeError, KeyError, TypeError, ValueError):
+            return float(device_gain)
+        return glo + (float(device_gain) - lo) / (hi - lo) * (ghi - glo)
+
+    # ---- frames ----------------------------------------------------------------------------------------
+    def push(self, frame, exposure_us: float, exposure_start_s: float) -> None:
+        """Deliver a simulated frame through librealsense: global-time stamp at the start of readout,
+        metadata placing the exposure so that the driver's estimate comes out at `exposure_start_s`
+        (never later)."""
+        rs = self.rs
+        units = max(1, int(round(exposure_us / COLOUR_EXPOSURE_UNIT_US)))
+        exp_dev_s = units * COLOUR_EXPOSURE_UNIT_US * 1e-6
+        readout_s = exposure_start_s + exposure_us * 1e-6
+        frame_ts_us = int(round((readout_s - self._mono0) * 1e6))
+        # the driver places the start at readout - (frame_ts - sensor_ts) - exposure / 2: round that
+        # distance up so the estimate is never after the true start
+        sensor_ts_us = frame_ts_us - int(math.ceil((exposure_us * 1e-6 - exp_dev_s / 2) * 1e6))
+        wall_minus_mono = time.time() - time.monotonic()
+        sensor = self.colour
+        md = rs.frame_metadata_value
+        sensor.set_metadata(md.actual_exposure, units)
+        sensor.set_metadata(md.frame_timestamp, frame_ts_us)
+        sensor.set_metadata(md.sensor_timestamp, sensor_ts_us)
+        img = np.ascontiguousarray(frame.image, dtype=np.uint8)
+        f = rs.software_video_frame()
+        f.pixels = img
+        f.bpp = 3
+        f.stride = img.shape[1] * 3
+        f.timestamp = (readout_s + wall_minus_mono) * 1000.0
+        f.domain = rs.timestamp_domain.global_time
+        f.frame_number = int(frame.frame_number)
+        f.profile = self.profile
+        sensor.on_video_frame(f)
+
+
+class SimRealSenseCamera(RealSenseCamera):
+    """The real driver, unchanged, plus one thing the emulation needs: while a caller waits in
+    get_frame the pusher is told to deliver frames (the simulated camera renders only on demand)."""
+
+    def __init__(self, device: SimRealSenseDevice, **kw):
+        w, h = device.sim_camera.size
+        super().__init__(device.serial, w, h, device.fps, context=device, **kw)
+        self.sim_device = device
+        self._waiting = 0
+        self._want = threading.Condition()
+        self._pusher_stop = threading.Event()
+        self._pusher: threading.Thread | None = None
+        self.pushed = 0
+        #: driver frame number -> the simulated camera's frame number, for every frame handed out (so a
+        #: test can look up what the simulator showed during that frame's exposure)
+        self.device_numbers: dict[int, int] = {}
+
+    def start(self) -> None:
+        super().start()
+        if self._pusher is None or not self._pusher.is_alive():
+            self._pusher_stop = threading.Event()
+            self._pusher = threading.Thread(target=self._push_loop, args=(self._pusher_stop,),
+                                            name="sim-realsense-pusher", daemon=True)
+            self._pusher.start()
+
+    def stop(self) -> None:
+        self._pusher_stop.set()
+        with self._want:
+            self._want.notify_all()
+        if self._pusher is not None:
+            self._pusher.join(5.0)
+            self._pusher = None
+        super().stop()
+
+    close = stop
+
+    def get_frame(self, timeout_s: float = 2.0, newer_than: int | None = None,
+                  not_before_s: float | None = None):
+        with self._want:
+            self._waiting += 1
+            self._want.notify_all()
+        try:
+            f = super().get_frame(timeout_s, newer_than=newer_than, not_before_s=not_before_s)
+            self.device_numbers[f.frame_number] = int(f.meta["device_frame_number"])
+            return f
+        finally:
+            with self._want:
+                self._waiting -= 1
+
+    def _push_loop(self, stop: threading.Event) -> None:
+        dev = self.sim_device
+        sim = dev.sim_camera
+        period = 1.0 / max(1, dev.fps)
+        last_number: int | None = None
+        next_at = 0.0
+        while not stop.is_set():
+            with self._want:
+                if self._waiting == 0:
+                    self._want.wait(0.1)
+                    continue
+            if not dev.present or not self.running:
+                time.sleep(0.02)
+                continue
+            delay = next_at - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            try:
+                settings = dev.forward_options()
+                started = getattr(sim, "running", True)
+                if not started:
+                    sim.start()
+                t_request = time.monotonic()
+                # a streaming D455 is drained continuously by the driver, which keeps the newest frame:
+                # take the newest frame the simulated camera has delivered, or wait for the next one
+                f = sim.get_frame(2.0)
+                if last_number is not None and f.frame_number <= last_number:
+                    f = sim.get_frame(2.0, newer_than=last_number)
+                exposure_us = float(f.meta.get("exposure_us") or settings["exposure_us"])
+                start_s = f.exposure_start_s if f.exposure_start_s is not None else t_request
+                before = self.stats.accepted
+                dev.push(f, exposure_us, start_s)
+            except Exception as e:  # noqa: BLE001 - the driver reports a stalled stream as a timeout
+                self.push_error = e
+                time.sleep(0.05)
+                continue
+            last_number = f.frame_number
+            self.pushed += 1
+            next_at = max(next_at + period, time.monotonic())
+            # let the driver's capture thread take it before deciding whether more is wanted
+            deadline = time.monotonic() + 0.5
+            while self.stats.accepted == before and time.monotonic() < deadline and not stop.is_set():
+                time.sleep(0.001)
+
+
+class SimRealSenseRig:
+    """A simulated rig whose camera is the RealSense driver on a software device (module doc)."""
+
+    kind = "sim-realsense"
+
+    def __init__(self, sim_rig, fps: int = 30):
+        self.sim = sim_rig
+        self.device = SimRealSenseDevice(sim_rig.camera, fps)
+        self.camera = SimRealSenseCamera(self.device)
+
+    def __getattr__(self, name):  # scenario, projector, operator, ground_truth, renderer, ...
+        return getattr(self.sim, name)
+
+    def close(self) -> None:
+        try:
+            self.camera.stop()
+        finally:
+            self.sim.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int = 30,
+                           **settings) -> SimRealSenseRig:
+    """The simulated rig of `scenario` (drivers.sim.rig.open_sim_rig options) with its camera delivered
+    through librealsense and drivers/realsense.py."""
+    from drivers.sim.rig import open_sim_rig
+
+    args = () if scenario is None else (scenario,)
+    sim = open_sim_rig(*args, seed=seed, quality=quality, **settings)
+    sim.camera.start()
+    return SimRealSenseRig(sim, fps)
