@@ -72,7 +72,7 @@ from app.station.panel_results import (
     parameters_text,
     worst_views_text,
 )
-from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane, update_rig
+from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane, update_rig, view_whole_rig
 from calib.observations import STEP_PROJECTOR
 
 LIVE_WIDTH = 640
@@ -129,6 +129,7 @@ class StationPanel(ControlsMixin):
         self._scene_key = None
         self._global_cache: dict = {}
         self.image_updates = 0  # live images sent (the test and the caption read the rate)
+        self.frames_shown = 0  # of which showed a camera frame not shown before (the rest: a new detection)
         self._image_times: list[float] = []
         self._last_image_key = None
         self._beat = 0
@@ -194,6 +195,8 @@ class StationPanel(ControlsMixin):
         self.h_check = g.add_markdown("", order=5)
         with g.add_folder("3D view", order=7, expand_by_default=False):
             g.add_markdown(SCENE_LEGEND)
+            self.h_view_rig = g.add_button("View the whole rig")
+        self.h_view_rig.on_click(lambda event: view_whole_rig(self.server, event.client))
         # a second window, docked on the left of the 3D view: what the camera sees and what is covered
         self.live_panel = g.add_panel()
         with self.live_panel.add_tab("Live camera"):
@@ -460,9 +463,10 @@ class StationPanel(ControlsMixin):
         return float(mask.mean())
 
     # ---- the live image -----------------------------------------------------------------------------
-    def live_image(self) -> tuple[np.ndarray, tuple] | None:
+    def live_image(self, unless_key=None) -> tuple[np.ndarray, tuple] | None:
         """The newest frame, downscaled, with the newest detection, the verified pixels and the next-pose
-        box drawn over it (RGB), and a key that changes when any of them does."""
+        box drawn over it (RGB), and a key that changes when any of them does; None when there is no
+        frame yet or the key is `unless_key` (nothing new to draw)."""
         st = self.station
         frame = st.preview
         live = st.live
@@ -472,31 +476,32 @@ class StationPanel(ControlsMixin):
             image, number = live.image, live.frame_number
         else:
             image, number = frame.image, frame.frame_number
+        m = self.machine
+        verifying = m.state in (CALIBRATION, VERIFICATION, DONE)
+        rep = m.report if verifying and getattr(m.report, "checks", None) else None
+        pc = st.pixel_check if verifying else None
+        key = (number, None if live is None else live.frame_number, m.state, id(self.suggestion),
+               id(rep), len(self._predicted.get(id(rep), {})), id(pc), len(self._predicted.get(id(pc), {})))
+        if key == unless_key:
+            return None
         det = live.detection if live is not None else None
         dec = live.decision if live is not None else None
-        m = self.machine
         H, W = image.shape[:2]
         s = LIVE_WIDTH / W
         small = cv2.resize(image, (LIVE_WIDTH, int(round(H * s))), interpolation=cv2.INTER_AREA)
         if small.ndim == 2:
             small = cv2.cvtColor(small, cv2.COLOR_GRAY2BGR)
         draw_detection(small, det, s)
-        key = (number, None if live is None else live.frame_number)
         if m.state in CAPTURE_STATES:
             draw_suggestion(small, self.suggestion)
         footer = ""
-        if m.state in (CALIBRATION, VERIFICATION, DONE):
+        if rep is not None or pc is not None:
             thr, factor = self.verdict_threshold()
-            rep = m.report
-            if rep is not None and getattr(rep, "checks", None):
+            if rep is not None:
                 draw_checks(small, rep.checks, s, thr, factor, self._predicted.get(id(rep)))
-                key += (id(rep), len(self._predicted.get(id(rep), {})))
-            pc = st.pixel_check
             if pc is not None:
-                draw_checks(small, [pc], s, thr, factor, {0: self._predicted[id(pc)][0]}
-                            if 0 in self._predicted.get(id(pc), {}) else None)
+                draw_checks(small, [pc], s, thr, factor, self._predicted.get(id(pc)))
                 footer = "pixel check " + self.pixel_check_verdict(pc).replace("**", "")
-                key += (id(pc), len(self._predicted.get(id(pc), {})))
         draw_banner(small, self._banner(det, dec), (80, 230, 80) if dec is not None and dec.capture else (240, 240, 240))
         draw_banner(small, footer, (240, 240, 240), top=False)
         if time.monotonic() - st.last_capture_s < 0.8:  # flash green: captured
@@ -554,6 +559,11 @@ class StationPanel(ControlsMixin):
         update_rig(self.server, m.manifest, m.result, self.station.camera_model)
         if m.result is not None and self._plane_key != id(m.result):
             self._plane_key = id(m.result)
+            for ctl in list(self._clients.values()):  # calibrated: show every browser the rig as it is now
+                try:
+                    view_whole_rig(self.server, ctl.client)
+                except Exception:  # a browser that went away
+                    pass
             centre, w, h, wxyz = camera_plane(m.result.camera)
             self.h_plane = self.server.scene.add_image(IMAGE_PLANE_NAME, np.zeros((8, 8, 3), np.uint8), w, h,
                                                        format="jpeg", jpeg_quality=70, position=tuple(centre),
@@ -652,10 +662,12 @@ class StationPanel(ControlsMixin):
         while not self._stop.is_set():
             t0 = time.monotonic()
             try:
-                out = self.live_image()
+                out = self.live_image(unless_key=self._last_image_key)
                 if out is not None:
                     img, key = out
                     if key != self._last_image_key:
+                        if self._last_image_key is None or key[0] != self._last_image_key[0]:
+                            self.frames_shown += 1
                         self._last_image_key = key
                         self.h_image.image = img
                         self.image_updates += 1

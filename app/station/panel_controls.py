@@ -23,7 +23,7 @@ from app.station.machine import (
 )
 from app.station.panel_guidance import unmet_targets
 from app.station.panel_results import results_zip, write_report_if_available
-from app.station.panel_scene import click_to_pixel, view_from_camera, view_whole_rig
+from app.station.panel_scene import click_to_pixel, view_from_camera
 from calib.errors import ProcamError
 
 # which folder of controls each step shows (the rest stay hidden unless all are asked for)
@@ -98,13 +98,14 @@ class ControlsMixin:
                                                  bool(self.station.options.follow_operator))
             with g.add_folder(FOLDER_TITLES["calibration"]) as f["calibration"]:
                 h["calibrate"] = g.add_button("Calibrate")
+                # viser 1.1 shows no tooltip on buttons: what Calibrate would say is written under it
+                h["calibrate_note"] = g.add_markdown("")
             with g.add_folder(FOLDER_TITLES["verification"]) as f["verification"]:
                 h["verify"] = g.add_button("Verify")
                 h["pick_hint"] = g.add_markdown("Check one pixel: **click on the camera image in the 3D view** "
                                                 "(or type it here).")
                 h["view_camera"] = g.add_button("View from the camera",
                                                 hint="puts the 3D view at the camera: the live image fills it")
-                h["view_rig"] = g.add_button("View the whole rig")
                 W, H = m.manifest.rig.camera_size
                 h["pixel_x"] = g.add_number("Pixel x (camera px)", float(W // 2), min=0.0, max=float(W - 1), step=0.5)
                 h["pixel_y"] = g.add_number("Pixel y (camera px)", float(H // 2), min=0.0, max=float(H - 1), step=0.5)
@@ -146,7 +147,6 @@ class ControlsMixin:
             "check_pixel": lambda: self._check_pixel(float(h["pixel_x"].value), float(h["pixel_y"].value)),
             "download": lambda: self._download(ctl),
             "view_camera": lambda: self._view(ctl, True),
-            "view_rig": lambda: self._view(ctl, False),
         }
         for name, fn in actions.items():
             if name in h:
@@ -229,11 +229,8 @@ class ControlsMixin:
         return f"{name} sent ({len(data) / 1024:.0f} kB): {', '.join(names)}{note}"
 
     def _view(self, ctl: ClientControls, camera: bool) -> str:
-        if camera:
-            view_from_camera(ctl.client, self.click_camera())
-            return "the 3D view looks from the camera; click on the image to check a pixel"
-        view_whole_rig(self.server, ctl.client)
-        return "the 3D view shows the whole rig"
+        view_from_camera(ctl.client, self.click_camera())
+        return "the 3D view looks from the camera; click on the image to check a pixel"
 
     def on_image_click(self, event) -> None:
         """A click on the camera image in the 3D view: check that pixel (operators only)."""
@@ -278,8 +275,9 @@ class ControlsMixin:
         if name == "capture" and out is not None:
             return f"{out.id} written to the session"
         if name == "calibrate":
-            unmet = unmet_targets(self.bars_now())
-            extra = f" Not met yet: {'; '.join(unmet)}." if unmet else ""
+            unmet = [b for b in self.bars_now() if not b.met]
+            extra = (" Diversity targets not met yet: " + ", ".join(f"{b.name} ({b.fraction * 100:.0f}%)" for b in unmet)
+                     + " (the note under the button says more).") if unmet else ""
             return "running; the results appear at the top when it is done." + extra
         if name == "verify":
             return "running; the verified pixels appear on the live image and the verdict at the top"
@@ -356,7 +354,6 @@ class ControlsMixin:
             "download": ("there is no calibration yet" if m.result is None else
                          f"the station is busy ({m.busy})" if m.busy else None),
             "view_camera": None if m.result is not None else "the camera image is clickable once calibrated",
-            "view_rig": None,
         }
 
     def _cached(self, ctl: ClientControls, key, value) -> bool:
@@ -388,6 +385,13 @@ class ControlsMixin:
                 b.color = colour
             if self._cached(ctl, (name, "hint"), hint):
                 b.hint = hint
+        note = ""
+        if refusals["calibrate"]:
+            note = f"Not possible now: {refusals['calibrate']}."
+        elif unmet:
+            note = "Possible now. Diversity targets not met yet: " + "; ".join(unmet) + "."
+        if self._cached(ctl, "calibrate_note", note):
+            h["calibrate_note"].content = note
         if self._cached(ctl, "download_visible", m.result is not None):
             h["download"].visible = m.result is not None
         if self._cached(ctl, "cal_label", "Re-run calibration" if m.result is not None else "Calibrate"):

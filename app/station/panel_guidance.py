@@ -106,7 +106,7 @@ def suggest_next(counts: np.ndarray, features, bars: list[Bar]) -> Suggestion:
 
 
 def unmet_targets(bars: list[Bar]) -> list[str]:
-    """The diversity targets not met yet, in words (for the Calibrate button's tooltip)."""
+    """The diversity targets not met yet, in words (for the note under the Calibrate button)."""
     return [f"{b.name} spans {b.detail}, the target is a range of {b.target} ({b.fraction * 100:.0f}% there)"
             for b in bars if not b.met]
 

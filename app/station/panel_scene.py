@@ -13,6 +13,8 @@ from calib.observations import STEP_PROJECTOR
 
 IMAGE_PLANE_NAME = "/rig/camera_image"
 IMAGE_PLANE_DEPTH_M = 0.3  # in front of the camera, closer than the boards
+VIEW_FOV_DEG = 50.0  # vertical field of view of the initial 3D view
+VIEW_SHIFT = 0.3  # how far right of the canvas's centre the rig shows (fraction of the half height)
 
 SCENE_LEGEND = ("**3D view** (metres, camera frame): blue frustum camera, orange frustum projector, grey frustum "
                 "the virtual camera behind the mirror, light blue the mirror, green boards of the mirror step, "
@@ -88,8 +90,16 @@ def update_rig(server, manifest, result, camera_model) -> None:
     centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
     extent = float(max(np.ptp(pts, axis=0).max(), 0.6))
     ic = server.initial_camera
-    ic.look_at = tuple(centre)
-    ic.position = tuple(centre + 1.3 * extent * np.array([-0.9, -1.1, -1.0]))
+    ic.fov = float(np.radians(VIEW_FOV_DEG))
+    d = np.array([-0.9, -1.1, -1.0]) / np.linalg.norm([-0.9, -1.1, -1.0])  # behind, above and left
+    dist = 1.1 * extent / np.tan(np.radians(VIEW_FOV_DEG) / 2)
+    # the live window covers the left of the 3D canvas: aim left of the rig so it shows right of the
+    # canvas's centre, in the part left free
+    right = np.cross(-d, [0.0, -1.0, 0.0])
+    right /= np.linalg.norm(right)
+    shift = VIEW_SHIFT * dist * np.tan(np.radians(VIEW_FOV_DEG) / 2)
+    ic.look_at = tuple(centre - shift * right)
+    ic.position = tuple(centre + dist * d - shift * right)
     ic.near = 0.01
     ic.far = 1000.0
 
@@ -118,3 +128,4 @@ def view_whole_rig(server, client) -> None:
     client.camera.up_direction = (0.0, -1.0, 0.0)
     client.camera.position = tuple(ic.position)
     client.camera.look_at = tuple(ic.look_at)
+    client.camera.fov = float(np.radians(VIEW_FOV_DEG))
