@@ -1,7 +1,10 @@
-"""The panel in a real Chromium (Debian's, driven by playwright): a session operated by its buttons
-through to a verified calibration, what the panel shows on the way, and the access-code lock when the
-station is served on the network. A small configuration keeps it short: 1 board pose per pattern
-position (13 projector captures) and 3 mirror captures."""
+"""The panel in a real Chromium (Debian's, driven by playwright, 1600x1000): a session operated by its
+buttons through to a verified calibration, what the panel shows on the way (the current step's controls
+only, guidance, results at the top, the verified pixels and a clicked pixel with their verdicts, the
+results zip downloaded through the button, every capture with a thumbnail), and the access-code lock
+when the station is served on the network. A small configuration keeps it short: 1 board pose per
+pattern position (13 projector captures) and 3 mirror captures. Screenshots are left in the test's
+temporary folder (step 2, calibrated, from the camera, results, captures, done) for a person to judge."""
 
 import json
 import re
@@ -164,6 +167,8 @@ def test_a_session_operated_from_the_browser(tmp_path):
             page.get_by_role("tab", name="Captures").click()
             see(page, r"16 captures")
             expect(page.locator("img[alt^='p']")).to_have_count(13)  # every capture listed, with a thumbnail
+            expect(page.locator("img[alt^='mrv']")).to_have_count(3)
+            page.screenshot(path=str(tmp_path / "captures.png"))
             page.get_by_role("tab", name="Live camera").click()
             time.sleep(1.0)
             page.screenshot(path=str(tmp_path / "panel.png"))
