@@ -118,14 +118,20 @@ def draw_checks(img: np.ndarray, checks, s: float, threshold_px: float, worst_fa
 
 
 def draw_suggestion(img: np.ndarray, suggestion) -> None:
+    """The dashed box where to hold the board next, labelled on a dark band just below it (above it when
+    the box reaches the bottom of the image)."""
     if suggestion is None:
         return
     dashed_rect(img, suggestion.rect, (255, 255, 255))
     h, w = img.shape[:2]
-    x = int(suggestion.rect[0] * (w - 1)) + 4
-    y = int(suggestion.rect[3] * (h - 1)) - 6
-    label = "hold the board here next" + (f", tilted ~{suggestion.tilt_deg:.0f} deg" if suggestion.tilt_deg else "")
-    cv2.putText(img, label, (x, max(y, 12)), FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    label = "hold the board here next" + (f", tilted {suggestion.tilt_deg:.0f} deg" if suggestion.tilt_deg else "")
+    (tw, th), _ = cv2.getTextSize(label, FONT, 0.4, 1)
+    x = min(max(int(suggestion.rect[0] * (w - 1)), 0), w - tw - 6)
+    y = int(suggestion.rect[3] * (h - 1)) + th + 8
+    if y > h - 4:
+        y = int(suggestion.rect[1] * (h - 1)) - 8
+    cv2.rectangle(img, (x, y - th - 4), (x + tw + 6, y + 4), (0, 0, 0), -1)
+    cv2.putText(img, label, (x + 3, y), FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 def flash(img: np.ndarray) -> None:
