@@ -135,6 +135,12 @@ def test_a_session_operated_from_the_browser(tmp_path):
             page.screenshot(path=str(tmp_path / "calibrated.png"))
             see(page, r"camera: k1 [+-]\d")  # distortion coefficients shown
             see(page, r"fx px")
+            # the worst views by reprojection RMS, and every file written, listed
+            page.get_by_text("Worst views (reprojection RMS)", exact=True).click()
+            expect(page.get_by_role("cell", name=re.compile(r"^(p|mrv)\d{4}$")).first).to_be_visible()
+            page.get_by_text("Files written", exact=True).click()
+            see(page, r"calibration\.yaml \(\d+(\.\d)? (bytes|kB)\)")
+            see(page, r"images/: 16 files")
             click(page, "Verify")
             see(page, r"Verification PASSED", timeout=60_000)
             # every verified pixel is drawn on the live image with its distance and verdict

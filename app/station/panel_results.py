@@ -111,7 +111,7 @@ def session_files(folder) -> list[FileEntry]:
     out = []
     try:
         for p in sorted(folder.rglob("*")):
-            if p.is_file() and not p.is_symlink():
+            if p.is_file() and not p.is_symlink() and not p.name.startswith("."):  # not the folder's lock
                 out.append(FileEntry(str(p.relative_to(folder)), p.stat().st_size))
     except OSError:
         pass
