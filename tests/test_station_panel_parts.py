@@ -109,3 +109,31 @@ def test_after_a_retake_the_same_still_pose_is_not_captured_again(rng):
     # moved and tilted to a new pose: captured once still, and the rule is spent
     out = [ac.update(det(observe(board_at(30.0, centre=(150.0, 0, 900.0)), 0.1, rng), 10 + i)) for i in range(3)]
     assert out[-1].capture and ac.avoided == []
+
+
+def test_the_zip_goes_out_even_when_the_report_fails(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from app.station.panel_results import write_report_if_available
+
+    make_rig(136).ground_truth().save_json(tmp_path / "calibration.json")
+    fake = types.ModuleType("app.report")
+
+    def broken(session_dir, out_path=None):
+        raise ImportError("cannot import name 'x'")
+
+    fake.write_report = broken
+    monkeypatch.setitem(sys.modules, "app.report", fake)
+    path, why = write_report_if_available(tmp_path)
+    assert path is None and "ImportError" in why
+    assert results_zip(tmp_path)[1] == ["calibration.json"]
+
+    def works(session_dir, out_path=None):
+        out_path.write_text("<html></html>")
+        return out_path
+
+    fake.write_report = works
+    path, why = write_report_if_available(tmp_path)
+    assert why is None and path == tmp_path / "report.html"
+    assert results_zip(tmp_path)[1] == ["calibration.json", "report.html"]

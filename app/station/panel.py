@@ -66,11 +66,13 @@ from app.station.panel_live import (
     predicted_curves,
 )
 from app.station.panel_results import (
+    REPORT_MISSING,
     captures_html,
     check_passes,
     files_text,
     parameters_text,
     worst_views_text,
+    write_report_if_available,
 )
 from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane, update_rig, view_whole_rig
 from calib.observations import STEP_PROJECTOR
@@ -140,6 +142,8 @@ class StationPanel(ControlsMixin):
         self._plane_key = None
         self.h_plane = None  # the clickable camera image in the 3D view (once calibrated)
         self._plane_s = 0.0
+        self._report_key = None
+        self.report_lock = threading.Lock()  # one report.html written at a time (auto and Download)
         self.server.gui.configure_theme(control_width="large", control_layout="fixed", show_share_button=False)
         self.server.scene.set_up_direction("-y")
         ic = self.server.initial_camera  # behind and above the camera, looking at the rig (metres)
@@ -617,6 +621,7 @@ class StationPanel(ControlsMixin):
                 self._set(self.h_progress, "value", float(min(100.0, 100.0 * prog[0] / prog[1])))
             self._update_guidance()
             self._update_predicted()
+            self._auto_report()
             self._set(self.h_checks, "content", self.checks_text())
             for ctl in list(self._clients.values()):
                 if ctl.unlocked:
@@ -625,6 +630,25 @@ class StationPanel(ControlsMixin):
                     except Exception:  # a browser that went away mid-update
                         pass
             self.update_scene()
+
+    def _auto_report(self) -> None:
+        """After each calibration and each verification: report.html in the session (app.report, when
+        installed), written in the background; the log says where, or why not."""
+        m = self.machine
+        key = (id(m.result), id(m.report))
+        if m.result is None or m.result_stale or m.busy or key == self._report_key:
+            return
+        self._report_key = key
+
+        def work():
+            with self.report_lock:
+                path, why = write_report_if_available(m.store.folder)
+            if path is not None:
+                m.log(f"report written: {path}")
+            elif why != REPORT_MISSING:
+                m.log(f"report.html not written: {why}")
+
+        threading.Thread(target=work, name="panel-report", daemon=True).start()
 
     def _notify_loop_errors(self) -> None:
         """A toast in every browser for each unexpected error of the capture loop."""

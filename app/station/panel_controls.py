@@ -219,7 +219,8 @@ class ControlsMixin:
             raise ActionRefused("download the results", f"the station is busy ({m.busy}); wait until it finishes")
         folder = Path(m.store.folder)
         note = ""
-        _, why = write_report_if_available(folder)
+        with self.report_lock:
+            _, why = write_report_if_available(folder)
         if why:
             note = f" (no report.html: {why})"
         data, names = results_zip(folder)

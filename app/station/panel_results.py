@@ -22,6 +22,7 @@ from calib.errors import ProcamError
 #: The files the results zip carries, in this order, when they exist in the session folder.
 RESULT_FILES = ("calibration.json", "calibration.yaml", "verification.json", "report.html")
 REPORT_FILE = "report.html"
+REPORT_MISSING = "the report module is not installed"
 THUMB_WIDTH = 112
 
 
@@ -149,13 +150,15 @@ def write_report_if_available(folder) -> tuple[Path | None, str | None]:
     try:
         from app.report import write_report
     except ImportError:
-        return None, "the report module is not installed"
+        return None, REPORT_MISSING
     try:
         return Path(write_report(Path(folder), Path(folder) / REPORT_FILE)), None
     except ProcamError as e:
         return None, str(e)
     except OSError as e:
         return None, f"cannot write the report: {e.strerror or e}"
+    except Exception as e:  # a bug in the report must not keep the results from leaving: said, not hidden
+        return None, f"the report failed ({type(e).__name__}: {e})"
 
 
 def results_zip(folder) -> tuple[bytes, list[str]]:
