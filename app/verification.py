@@ -303,7 +303,9 @@ class VerificationReport:
     def to_dict(self) -> dict:
         return {"schema": SCHEMA, "version": VERSION, "created": self.created, "passed": self.passed,
                 "verdict": self.verdict, "threshold_px": self.threshold_px, "threshold_unit": "projector px",
-                "worst_factor": WORST_FACTOR, "mean_px": _num(self.mean_px), "worst_px": _num(self.worst_px),
+                "worst_factor": WORST_FACTOR,
+                # camera pixels, named so (version 1 files wrote "mean_px"/"worst_px": from_dict reads both)
+                "mean_camera_px": _num(self.mean_px), "worst_camera_px": _num(self.worst_px),
                 "mean_proj_px": _num(self.mean_proj_px), "worst_proj_px": _num(self.worst_proj_px),
                 "n_checks": len(self.checks), "n_measured": self.n_measured,
                 "n_failed_detection": self.n_failed_detection, "calibration": self.calibration,
@@ -329,11 +331,11 @@ class VerificationReport:
         if not isinstance(d.get("passed"), bool):
             raise FormatError(path, "passed", "must be true or false")
 
-        def num(k):
-            v = d.get(k)
+        def num(k, old=None):
+            v = d.get(k, d.get(old) if old else None)
             return None if v is None else float(v)
 
-        return cls(cs, num("mean_px"), num("worst_px"), num("mean_proj_px"), num("worst_proj_px"), float(thr),
+        return cls(cs, num("mean_camera_px", "mean_px"), num("worst_camera_px", "worst_px"), num("mean_proj_px"), num("worst_proj_px"), float(thr),
                    d["passed"], int(d.get("n_failed_detection", 0)), str(d.get("verdict", "")),
                    dict(d.get("calibration") or {}), dict(d.get("settings") or {}), str(d.get("created", "")))
 
@@ -528,12 +530,38 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     if progress is not None:
         progress(len(pts), len(pts), "done")
     info = {"method": result.method, "units": result.units, **(calibration_info or {})}
+    if info.get("path") and "sha256" not in info:  # which calibration file this report verified
+        info["sha256"] = file_sha256(info["path"])
     settings = {"grid": list(grid) if pixels is None else None, "settle_frames": settle_frames, "average": average,
                 "stroke_px": stroke_px, "min_measured": min_measured, "board_pose_known": board_pose is not None}
     report = judge(checks, threshold_px, min_measured, info, settings)
     if session_dir is not None:
         report.save_json(Path(session_dir) / "verification.json")
     return report
+
+
+def file_sha256(path) -> str | None:
+    """SHA-256 of a file's bytes (hex), or None when it cannot be read."""
+    import hashlib
+
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def verification_is_stale(report_file, calibration_file) -> bool | None:
+    """Whether the verification report in `report_file` describes another calibration than the one now in
+    `calibration_file` (the report records the SHA-256 of the file it verified). None when it cannot
+    tell: no report, or a report written before the hash was recorded."""
+    try:
+        data = json.loads(Path(report_file).read_text(encoding="utf-8"))
+        recorded = (data.get("calibration") or {}).get("sha256")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(recorded, str):
+        return None
+    return recorded != file_sha256(calibration_file)
 
 
 def _session_board(folder):

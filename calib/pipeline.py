@@ -67,7 +67,7 @@ def paper_stages(obs: SessionObservations, camera: CameraModel | None = None, pr
         if progress is not None:
             progress(i, len(stages), label)
 
-    tick(0, "camera")
+    tick(0, "starting")  # then each call names the stage just finished (done of total)
     t0 = time.perf_counter()
     cc = calibrate_camera(obs, camera)
     timing["camera"] = time.perf_counter() - t0

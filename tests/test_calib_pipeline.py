@@ -99,5 +99,7 @@ def test_methods_registry_is_one_line_to_extend(monkeypatch):
 def test_progress_reports_each_stage():
     seen = []
     calibrate_observations(observations("136"), method="paper", progress=lambda d, t, label: seen.append((d, t, label)))
-    assert seen[0] == (0, 3, "camera") and seen[-1] == (3, 3, "projector")
-    assert [s[2] for s in seen] == ["camera", "camera", "mirror", "projector"]
+    # "starting", then each call names the stage just finished, so a log reads camera 1/3, mirror 2/3, ...
+    assert seen[0] == (0, 3, "starting") and seen[-1] == (3, 3, "projector")
+    assert [s[2] for s in seen] == ["starting", "camera", "mirror", "projector"]
+    assert [s[0] for s in seen] == [0, 1, 2, 3]

@@ -21,6 +21,11 @@ def test_correct_calibration_passes_and_writes_the_report(tmp_path, capsys):
     d = json.loads((tmp_path / "verification.json").read_text())
     assert d["passed"] is True and d["n_checks"] == 6 and d["n_measured"] == 6
     assert d["settings"]["grid"] == [3, 2] and d["calibration"]["path"].endswith("calibration.json")
+    # it records which calibration it verified (the file's hash) and says its pixels are the camera's
+    import hashlib
+
+    assert d["calibration"]["sha256"] == hashlib.sha256((tmp_path / "calibration.json").read_bytes()).hexdigest()
+    assert 0 <= d["mean_camera_px"] <= d["worst_camera_px"]
     # the session's board was found: every check carries the predicted curve for the panel's overlay
     assert d["settings"]["board_pose_known"] and all(len(c["predicted_curve"]) > 10 for c in d["checks"])
 

@@ -42,18 +42,18 @@ def add_arguments(p) -> None:
     a = sub.add_parser("accuracy", help="calibration accuracy on simulated sessions vs ground truth")
     a.add_argument("--scenarios", nargs="+", default=None, metavar="NAME",
                    help="scenarios (default: all; `procam simulate --list`)")
-    a.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds 0..N-1 per scenario (default 1)")
+    a.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds 0..N-1 per scenario (default %(default)s)")
     a.add_argument("--methods", default=None,
                    help="comma-separated calibration methods (default: every registered method)")
-    a.add_argument("--quality", choices=("live", "session"), default="session", help="render quality (default session)")
+    a.add_argument("--quality", choices=("live", "session"), default="session", help="render quality (default %(default)s)")
     a.add_argument("--noise", type=float, default=None, metavar="SIGMA", help="read noise override (levels)")
     a.add_argument("--blur", type=float, default=None, metavar="SIGMA", help="optical blur override (px)")
     a.add_argument("--keep", metavar="DIR", default=None, help="keep the simulated sessions under DIR")
     a.add_argument("--json", metavar="FILE", default=None, help="also write every run's numbers to FILE")
-    a.add_argument("--workers", type=int, default=2, help="render processes and detection threads (default 2)")
+    a.add_argument("--workers", type=int, default=2, help="render processes and detection threads (default %(default)s)")
     r = sub.add_parser("render", help="frames per second of the simulated camera per render mode")
-    r.add_argument("--scenario", default="nonoverlap-136")
-    r.add_argument("--frames", type=int, default=20, help="frames per mode (default 20)")
+    r.add_argument("--scenario", default="nonoverlap-136", help="scenario (default %(default)s)")
+    r.add_argument("--frames", type=int, default=20, help="frames per mode (default %(default)s)")
 
 
 # ---- accuracy ---------------------------------------------------------------------------------------------
@@ -155,7 +155,7 @@ def accuracy_table(runs, seeds: int) -> str:
     lines.append("  ".join("-" * w for w in widths))
     for r in rows:
         lines.append("  ".join(str(v).ljust(w) if i < 2 else str(v).rjust(w) for i, (v, w) in enumerate(zip(r, widths))))
-    note = f"(mean over {seeds} seed{'s' if seeds != 1 else ''}; lengths in mm; paper = its headline numbers, GEOMETRY.md)"
+    note = f"(mean over {seeds} seed{'s' if seeds != 1 else ''}; lengths in mm; paper = its headline numbers, docs/GEOMETRY.md)"
     return "\n".join(lines) + "\n" + note
 
 
@@ -213,6 +213,14 @@ def run_accuracy(args) -> int:
         raise SpecError(f"unknown method(s) {', '.join(unknown)} (registered: {', '.join(METHODS)})")
     if args.seeds < 1:
         raise SpecError("--seeds must be >= 1")
+    if args.workers < 1:
+        raise SpecError("--workers must be >= 1")
+    from app.commands._outputs import check_output_file, check_output_folder
+
+    if args.json:
+        check_output_file(args.json, "--json")
+    if args.keep:
+        check_output_folder(args.keep, "--keep")
     print(f"procam bench accuracy: {len(scenarios)} scenario(s) x {args.seeds} seed(s), methods {', '.join(methods)}",
           file=sys.stderr)
     runs = accuracy_runs(scenarios, args.seeds, methods, args.quality, args.keep, args.noise, args.blur,
@@ -223,7 +231,12 @@ def run_accuracy(args) -> int:
     if args.json:
         from calib.fileio import atomic_write_text
 
-        atomic_write_text(args.json, json.dumps(runs, indent=1) + "\n")
+        from app.commands._outputs import write_error
+
+        try:
+            atomic_write_text(args.json, json.dumps(runs, indent=1) + "\n")
+        except OSError as e:
+            raise write_error(args.json, e) from None
     return 0 if all("metrics" in r for r in runs) else 1
 
 
@@ -264,6 +277,10 @@ def render_speed(scenario: str = "nonoverlap-136", frames: int = 20, modes=None)
 def run_render(args) -> int:
     from drivers.sim.scenarios import get_scenario
 
+    from calib.errors import SpecError
+
+    if args.frames < 1:
+        raise SpecError("--frames must be >= 1")
     sc = get_scenario(args.scenario)
     W, H = sc.rig.camera.size
     print(f"simulated camera {W}x{H}, scenario {args.scenario}, board in view, pattern shown")

@@ -95,6 +95,9 @@ def _check_out(path: Path) -> None:
         raise SpecError(f"--out {path}: the file name must end in {', '.join(FORMATS)} (it picks the format)")
     if not path.parent.is_dir():
         raise SpecError(f"--out {path}: folder {path.parent} does not exist")
+    from app.commands._outputs import check_output_file  # never a session's file; a writable folder
+
+    check_output_file(path)
 
 
 def run(args) -> int:
@@ -109,6 +112,9 @@ def run(args) -> int:
         root = Path(args.assets)
         if root.exists() and not root.is_dir():
             raise SpecError(f"--assets {root} is a file, not a folder")
+        from app.commands._outputs import check_output_folder
+
+        check_output_folder(root, "--assets")
         files = asset_files()
         for rel, data in files.items():
             path = root / rel

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,85 +15,162 @@ DESCRIPTION = (
 )
 
 
+MODELS = ("auto", "none", "k1", "k1k2", "5coef", "rational")
+DEFAULT_METHOD = "joint"
+RESULT_NAME = "calibration.json"
+VERIFICATION_NAME = "verification.json"
+
+
 def add_arguments(p) -> None:
     p.add_argument("session", metavar="SESSION", help="session folder (with session.json)")
-    p.add_argument("--method", default="joint",
-                   help="calibration method: joint (default: the paper's pipeline, then one joint maximum-likelihood "
-                        "refinement, docs/JOINT.md) or paper (the method of Vanherck et al.)")
-    models = ("auto", "none", "k1", "k1k2", "5coef", "rational")
-    p.add_argument("--camera-model", choices=models, default=None,
+    p.add_argument("--method", default=DEFAULT_METHOD,
+                   help=f"calibration method: joint (default: the paper's pipeline, then one joint maximum-likelihood "
+                        f"refinement, docs/JOINT.md) or paper (the method of Vanherck et al.). When SESSION/"
+                        f"{RESULT_NAME} holds another method's result, it is kept and this one is written to "
+                        f"SESSION/calibration-METHOD.json")
+    p.add_argument("--camera-model", choices=MODELS, default=None,
                    help="joint method: camera distortion model (default auto: selected by significance tests)")
-    p.add_argument("--projector-model", choices=models, default=None,
+    p.add_argument("--projector-model", choices=MODELS, default=None,
                    help="joint method: projector distortion model (default auto)")
     p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
                    help="pre-calibrated camera: a calibration.json or an OpenCV YAML with camera_matrix and "
                         "distortion_coefficients; skips the camera stage")
-    p.add_argument("--out", metavar="FILE", default=None,
-                   help="result file (default SESSION/calibration.json); the YAML export goes beside it")
-    p.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
+    p.add_argument("--out", metavar="FILE.json", default=None,
+                   help=f"result file, *.json (default SESSION/{RESULT_NAME}); the YAML export goes beside it with "
+                        f"the same name and .yaml. Session files (session.json, detections.json, images...) are "
+                        f"refused")
+    p.add_argument("--workers", type=int, default=2, help="detection threads (default %(default)s)")
     p.add_argument("--redetect", action="store_true",
                    help="detect every image again instead of reusing the session's detections.json (results "
                         "of earlier runs, kept per image and detector version)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress output (default: bars on a terminal, a line per stage otherwise)")
 
 
-class _Bars:
-    """tqdm bars on stderr, one per phase, fed by progress(done, total, label) callbacks."""
+def check_session_arg(path) -> Path:
+    """SESSION must be a folder; a session.json (or any file) given instead is said to be a file."""
+    from calib.errors import SessionError
 
-    def __init__(self, enabled: bool):
-        self.enabled = enabled
-        self.bars = {}
+    session = Path(path)
+    if session.is_file():
+        if session.name == "session.json":
+            raise SessionError(f"{session} is the session's manifest file; give its folder: "
+                               f"procam calibrate {session.parent}")
+        raise SessionError(f"{session} is a file, not a session folder (a folder holding session.json and images/)")
+    if not session.exists():
+        raise SessionError(f"session folder {session} does not exist")
+    return session
 
-    def callback(self, phase: str):
-        def cb(done, total, label=""):
-            if not self.enabled:
-                return
-            from tqdm import tqdm
 
-            bar = self.bars.get(phase)
-            if bar is None:
-                bar = self.bars[phase] = tqdm(total=total, desc=phase, file=sys.stderr, unit="step" if phase != "detect" else "img",
-                                              leave=True, dynamic_ncols=True)
-            if bar.total != total:
-                bar.total = total
-            bar.n = done
-            bar.set_postfix_str(str(label), refresh=False)
-            bar.refresh()
-        return cb
+def _method_of(path: Path) -> str | None:
+    """The method recorded in a calibration.json, or None when there is none or it cannot be read."""
+    import json
 
-    def close(self):
-        for bar in self.bars.values():
-            bar.close()
+    try:
+        m = json.loads(path.read_text(encoding="utf-8")).get("method")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return m if isinstance(m, str) else None
+
+
+def default_output(session: Path, method: str) -> tuple[Path, str | None]:
+    """Where a result goes without --out, and a note when that is not SESSION/calibration.json: a result
+    of another method already there is kept (it may be the verified one), this one is named by method."""
+    main = session / RESULT_NAME
+    other = _method_of(main)
+    if other is None or other == method:
+        return main, None
+    alt = session / f"calibration-{method}.json"
+    return alt, (f"note: {main} holds the {other} calibration and was kept; this {method} calibration is "
+                 f"{alt.name} (--out {main} would replace the other)")
+
+
+def validate(args):
+    """Every check that needs no detection: the session, the options, the intrinsics file, the outputs.
+    Returns (session, camera model or None, JSON path, YAML path, note or None)."""
+    from calib.errors import SessionError
+    from calib.pipeline import METHODS, load_camera_intrinsics
+    from calib.session import SessionStore
+
+    from app.commands._outputs import check_output_file, result_paths
+
+    session = check_session_arg(args.session)
+    if args.workers < 1:
+        raise SessionError("--workers must be at least 1")
+    if args.method not in METHODS:
+        raise SessionError(f"unknown calibration method '{args.method}' (available: {', '.join(sorted(METHODS))})")
+    if (args.camera_model or args.projector_model) and args.method != "joint":
+        raise SessionError("--camera-model / --projector-model apply to --method joint only")
+    store = SessionStore.open(session)
+    camera = None
+    if args.camera_intrinsics is not None:
+        if not Path(args.camera_intrinsics).is_file():
+            what = "is a folder, not a file" if Path(args.camera_intrinsics).is_dir() else "does not exist"
+            raise SessionError(f"--camera-intrinsics {args.camera_intrinsics} {what} (give a calibration.json or "
+                               f"an OpenCV YAML with camera_matrix and distortion_coefficients)")
+        size = tuple(store.manifest.rig.camera_size)
+        camera = load_camera_intrinsics(args.camera_intrinsics, size)
+        if tuple(camera.size) != size:
+            raise SessionError(f"--camera-intrinsics {args.camera_intrinsics} is for {camera.width}x{camera.height} "
+                               f"images but the session's are {size[0]}x{size[1]}; give intrinsics calibrated at the "
+                               f"session's resolution")
+    note = None
+    if args.out:
+        json_path, yaml_path = result_paths(args.out)
+    else:
+        json_path, note = default_output(session, args.method)
+        yaml_path = json_path.with_suffix(".yaml")
+    for p in (json_path, yaml_path):
+        check_output_file(p, "--out" if args.out else "the result file", inputs=[args.camera_intrinsics])
+    return session, camera, json_path, yaml_path, note
 
 
 def run(args) -> int:
-    from calib.errors import SessionError
     from calib.pipeline import calibrate_session
 
-    session = Path(args.session)
-    if not session.is_dir():
-        raise SessionError(f"session folder {session} does not exist")
-    if args.workers < 1:
-        raise SessionError("--workers must be at least 1")
-    bars = _Bars(not args.no_progress)
+    from app.commands._outputs import write_error
+    from app.commands._progress import Progress, progress_mode
+
+    session, camera, out, yaml_path, note = validate(args)
+    bars = Progress(progress_mode(args.no_progress))
     try:
         opts = {k: v for k, v in (("camera_model", args.camera_model), ("projector_model", args.projector_model))
                 if v is not None}
-        if opts and args.method != "joint":
-            raise SessionError("--camera-model / --projector-model apply to --method joint only")
-        result = calibrate_session(session, args.method, args.camera_intrinsics, args.workers,
-                                   progress=bars.callback("calibrate"), detect_progress=bars.callback("detect"),
+        result = calibrate_session(session, args.method, camera, args.workers,
+                                   progress=bars.callback("calibrate", stages=True),
+                                   detect_progress=bars.callback("detect", unit="images"),
                                    method_options=opts or None, detect_cache="refresh" if args.redetect else "use")
     finally:
         bars.close()
-    out = Path(args.out) if args.out else session / "calibration.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    result.save_json(out)
-    yaml_path = out.with_suffix(".yaml")
-    result.save_opencv_yaml(yaml_path)
+    for path, save in ((out, result.save_json), (yaml_path, result.save_opencv_yaml)):
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            save(path)
+        except OSError as e:
+            raise write_error(path, e) from None
     print(format_summary(result))
     print(f"\nwrote {out}\nwrote {yaml_path}")
+    if note:
+        print(note)
+    stale = stale_verification_note(session, out)
+    if stale:
+        print(stale)
     return 0
+
+
+def stale_verification_note(session: Path, written: Path) -> str | None:
+    """A note when `written` replaced SESSION/calibration.json and SESSION/verification.json verified
+    something else (it records the SHA-256 of the calibration it checked)."""
+    main = session / RESULT_NAME
+    report = session / VERIFICATION_NAME
+    if not report.exists() or written.resolve() != main.resolve():
+        return None
+    from app.verification import verification_is_stale
+
+    if verification_is_stale(report, main) is False:
+        return None
+    return (f"note: {report} verified the calibration this one replaced, so it is stale: run "
+            f"`procam verify {session} --rig ...` again")
 
 
 def _fmt_model(name: str, cam) -> list[str]:
@@ -124,6 +200,30 @@ def _fmt_uncertainty(unc, units: str) -> list[str]:
     return lines if len(lines) > 1 else []
 
 
+#: units of the RMS values of the paper's stages (the joint method's are all camera pixels)
+RMS_UNITS = {"camera": "px", "projector": "projector px", "stereo": "px"}
+
+
+def format_rms(result) -> str:
+    """The RMS line, every value with its unit: pixels (of which image, when not the camera's) or the
+    length unit for the mirror plane's fit."""
+    rms = result.rms or {}
+    given = result.diagnostics.get("rms_units", {}) if isinstance(result.diagnostics, dict) else {}
+    parts = []
+    for key, v in rms.items():
+        if not isinstance(v, (int, float)) or isinstance(v, bool):
+            continue
+        if key == "mirror_plane":
+            unit = result.units
+        elif key in RMS_UNITS:
+            unit = RMS_UNITS[key]
+        else:
+            unit = given.get(key) or "px"
+        parts.append(f"{key} {v:.3f} {unit}")
+    tail = " (px: camera pixels unless marked)" if parts else ""
+    return "RMS: " + (", ".join(parts) if parts else "none") + tail
+
+
 def format_summary(result) -> str:
     """A readable multi-line summary of a CalibrationResult."""
     from calib.transforms import invert_T, rotation_angle_deg
@@ -150,16 +250,7 @@ def format_summary(result) -> str:
         lines.append(f"mirror: normal ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}), d = {result.mirror.d:.2f} {u}{extra}")
     else:
         lines.append("mirror: none (direct view)")
-    rms = result.rms or {}
-    parts = []
-    for key, unit in (("camera", "px"), ("mirror_plane", u), ("projector", "px"), ("stereo", "px")):
-        v = rms.get(key)
-        if v is not None:
-            parts.append(f"{key} {v:.3f} {unit}")
-    for key, v in rms.items():
-        if key not in ("camera", "mirror_plane", "projector", "stereo") and isinstance(v, (int, float)):
-            parts.append(f"{key} {v:.3f}")
-    lines.append("RMS: " + ", ".join(parts))
+    lines.append(format_rms(result))
     lines += _fmt_uncertainty(result.uncertainty, u)
     timing = result.diagnostics.get("timing_s", {}) if isinstance(result.diagnostics, dict) else {}
     if timing:

@@ -20,13 +20,36 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
 
 
+#: the method name of a ground truth (calib.synthetic, the simulator's ground_truth.json)
+GROUND_TRUTH_METHOD = "ground-truth"
+
+
+def _check_file(path: str, what: str, example: str) -> None:
+    from pathlib import Path
+
+    from calib.errors import SessionError
+
+    p = Path(path)
+    if p.is_dir():
+        hint = p / example
+        more = f": give {hint}" if hint.is_file() else f" (give a file such as {hint})"
+        raise SessionError(f"{what} {path} is a folder, not a file{more}")
+    if not p.exists():
+        raise SessionError(f"{what} {path} does not exist")
+
+
 def run(args) -> int:
-    from calib.errors import FormatError
+    from calib.errors import FormatError, SessionError
     from calib.metrics import compare
     from calib.result import CalibrationResult
 
+    _check_file(args.result, "RESULT", "calibration.json")
+    _check_file(args.ground_truth, "GROUND_TRUTH", "ground_truth.json")
     result = CalibrationResult.load_json(args.result)
     truth = CalibrationResult.load_json(args.ground_truth)
+    if result.method == GROUND_TRUTH_METHOD and truth.method != GROUND_TRUTH_METHOD:
+        raise SessionError(f"the arguments are swapped: {args.result} is a ground truth and {args.ground_truth} a "
+                           f"{truth.method} calibration; run procam evaluate {args.ground_truth} {args.result}")
     if result.units != truth.units:
         raise FormatError(args.ground_truth, "units",
                           f"is '{truth.units}' but the result is in '{result.units}'; compare like with like")
@@ -35,5 +58,8 @@ def run(args) -> int:
         print(json.dumps(m.to_dict(), indent=2))
     else:
         print(f"{args.result} vs {args.ground_truth} (method {result.method}, units {result.units})")
+        if truth.method != GROUND_TRUTH_METHOD:
+            print(f"note: GROUND_TRUTH {args.ground_truth} is a '{truth.method}' result, not a ground truth: "
+                  f"the numbers are differences between two calibrations")
         print(m.format_table())
     return 0

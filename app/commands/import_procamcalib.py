@@ -25,11 +25,12 @@ def add_arguments(p) -> None:
     p.add_argument("--mirror", metavar="DIR", help="mirror-calibration folder (M... real-virtual, F... real-mirror)")
     p.add_argument("--mirror-board", metavar="SPEC", help="board of the mirror step (default: --board)")
     p.add_argument("--board-thickness", type=float, default=0.0, metavar="T",
-                   help="real-mirror: printed face above the mirror surface, in --units (default 0)")
+                   help="real-mirror: printed face above the mirror surface, in --units (default %(default)s)")
     p.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
                    help="length unit of the square/marker lengths (default mm)")
     p.add_argument("--out", required=True, metavar="SESSION", help="session folder to create (new or empty)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress output (default: a bar on a terminal, a line at start and end otherwise)")
 
 
 def run(args) -> int:
@@ -43,23 +44,21 @@ def run(args) -> int:
         raise SpecError("--mirror-board needs --mirror DIR (the mirror-calibration images)")
     if args.board_thickness < 0:
         raise SpecError("--board-thickness must be >= 0")
-    bar = None
-    if not args.no_progress:
-        from tqdm import tqdm
+    from app.commands._outputs import check_output_folder
+    from app.commands._progress import Progress, progress_mode
 
-        bar = tqdm(desc="import", unit="img", file=sys.stderr, dynamic_ncols=True)
+    check_output_folder(args.out, inputs=[args.recording, args.patterns, args.mirror])
+    bars = Progress(progress_mode(args.no_progress))
+    tick = bars.callback("import", unit="images")
 
     def progress(done, total, name):
-        if bar is not None:
-            bar.total = total
-            bar.update(done - bar.n)
+        tick(done, total, name)
 
     try:
         store = import_procamcalib(args.recording, args.patterns, board, args.out, args.mirror, mboard,
                                    args.board_thickness, progress)
     finally:
-        if bar is not None:
-            bar.close()
+        bars.close()
     m = store.manifest
     n_proj = len(m.captures_of("projector"))
     n_mirror = len(m.captures) - n_proj

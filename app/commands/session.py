@@ -120,8 +120,9 @@ def summary(machine, folder, elapsed_s: float) -> str:
                  f"at {c['positions_done']}/{c['positions']} pattern positions")
     res = machine.result
     if res is not None:
-        rms = ", ".join(f"{k} {v:.3f}" for k, v in res.rms.items() if isinstance(v, (int, float)))
-        lines.append(f"  calibration ({res.method}): RMS {rms}")
+        from app.commands.calibrate import format_rms  # every RMS value with its unit
+
+        lines.append(f"  calibration ({res.method}): {format_rms(res)}")
         t = res.T_cam_proj[:3, 3]
         lines.append(f"  projector position in the camera frame: [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}] {res.units}")
         if res.mirror is not None:

@@ -8,7 +8,6 @@ scene: devices, mirror rectangle, board poses per capture, render settings).
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,11 +22,18 @@ DESCRIPTION = (
 )
 
 
+def _scenario_default(name: str):
+    """A Scenario field's default, so that the help says what the code does."""
+    from drivers.sim.scenarios import Scenario
+
+    return Scenario.__dataclass_fields__[name].default
+
+
 def add_arguments(p) -> None:
     p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="scenario name (see --list)")
     p.add_argument("--list", action="store_true", help="print the scenarios, one per line, and exit")
-    p.add_argument("--out", metavar="DIR", help="session folder to create")
-    p.add_argument("--seed", type=int, default=0, help="seed of the board poses and the noise (default 0)")
+    p.add_argument("--out", metavar="DIR", help="session folder to create (new or empty, unless --force)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the board poses and the noise (default %(default)s)")
     p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
                    help="read noise sigma in 8-bit levels (default: the scenario's); 0 turns all noise off "
                         "unless --shot is given")
@@ -37,12 +43,14 @@ def add_arguments(p) -> None:
     p.add_argument("--quality", choices=("live", "session"), default="session",
                    help="anti-aliasing: session = 3x3 samples per pixel (default), live = 1")
     p.add_argument("--per-position", type=int, default=None, metavar="N",
-                   help="board poses per pattern position (default: the scenario's, 4 as in the paper)")
+                   help=f"board poses per pattern position (default: the scenario's, "
+                        f"{_scenario_default('per_position')} as in the paper)")
     p.add_argument("--mirror-count", type=int, default=None, metavar="N",
-                   help="mirror-calibration captures (default: the scenario's, 7)")
-    p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
+                   help=f"mirror-calibration captures (default: the scenario's, {_scenario_default('mirror_count')})")
+    p.add_argument("--workers", type=int, default=2, help="render processes (default %(default)s)")
     p.add_argument("--force", action="store_true", help="write into DIR even if it holds a session")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress output (default: a bar on a terminal, a line at start and end otherwise)")
 
 
 def run(args) -> int:
@@ -57,7 +65,12 @@ def run(args) -> int:
         raise SpecError("name a scenario (procam simulate --list shows them), e.g. procam simulate nonoverlap-136 --out DIR")
     if not args.out:
         raise SpecError("give the session folder to write with --out DIR")
+    if args.workers < 1:
+        raise SpecError("--workers must be at least 1")
     scenario = get_scenario(args.scenario, args.seed)
+    from app.commands._outputs import check_output_folder
+
+    check_output_folder(args.out)
     changes = {}
     if args.per_position is not None:
         if args.per_position < 1:
@@ -88,7 +101,7 @@ def run(args) -> int:
         scenario = replace(scenario, **changes)
     simulate_session(scenario, args.out, quality=args.quality, workers=args.workers, force=args.force,
                      progress=not args.no_progress)
-    print(f"wrote {args.out}: session.json, images/, ground_truth.json, scene.json", file=sys.stderr)
+    print(f"wrote {args.out}: session.json, images/, ground_truth.json, scene.json")
     return 0
 
 
@@ -157,11 +170,11 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
         state={"simulated": True, "scenario": scenario.name, "seed": scenario.seed},
     )
     store = SessionStore.create(out, manifest, exist_ok=force)
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    from app.commands._progress import Progress, progress_mode
 
-        bar = tqdm(total=len(jobs), desc=f"simulate {scenario.name}", unit="img", file=sys.stderr, dynamic_ncols=True)
+    bars = Progress(progress_mode(not progress))
+    tick = bars.callback(f"simulate {scenario.name}", unit="images")
+    tick(0, len(jobs))
     results: dict[int, tuple] = {}
     scene_caps = []
     next_key = 0
@@ -177,8 +190,7 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
                                "pattern_position": job["position"], "pose_index": job["index"],
                                "T_cam_board": T.tolist()})
             next_key += 1
-            if bar is not None:
-                bar.update(1)
+            tick(next_key, len(jobs))
 
     if workers > 1 and len(jobs) > 1:
         import multiprocessing as mp
@@ -197,8 +209,7 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
             res = _render_job(job)
             results[res[0]] = res
             flush()
-    if bar is not None:
-        bar.close()
+    bars.close()
     scenario.ground_truth().save_json(out / "ground_truth.json")
     scene = scenario.to_dict()
     scene.update({

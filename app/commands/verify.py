@@ -109,6 +109,10 @@ def run(args) -> int:
     if args.average < 1:
         raise SessionError("--average must be >= 1")
     out = Path(args.out) if args.out else folder / "verification.json"
+    if out.resolve() != (folder / "verification.json").resolve():  # never a session's file (app/commands/_outputs.py)
+        from app.commands._outputs import check_output_file
+
+        check_output_file(out, "--out", inputs=[cal_path])
     info = {"path": str(cal_path), "method": result.method, "units": result.units}
 
     def progress(done, total, label):

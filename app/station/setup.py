@@ -164,6 +164,8 @@ def make_verify_fn(rig, folder):
         return None
 
     def run(result, **kw):
+        # the machine saved `result` as calibration.json before verifying: the report records its hash
+        kw.setdefault("calibration_info", {"path": str(Path(folder) / "calibration.json")})
         report = verify(rig.camera, rig.projector, rig.operator, result, **kw)
         report.save_json(Path(folder) / VERIFICATION_FILE)
         return report
@@ -191,7 +193,10 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
         vfile = Path(store.folder) / VERIFICATION_FILE
         if m.result is not None and not m.result_stale and saved.get("verified") is not None and vfile.exists():
             try:
-                from app.verification import VerificationReport
+                from app.verification import VerificationReport, verification_is_stale
+
+                if verification_is_stale(vfile, Path(store.folder) / "calibration.json"):
+                    raise ValueError("it verified another calibration.json (replaced since)")
 
                 m.report = VerificationReport.from_json(vfile)
                 m._persist()
