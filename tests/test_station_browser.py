@@ -162,6 +162,9 @@ def test_a_session_operated_from_the_browser(tmp_path):
             page.mouse.click(x, box["y"] + box["height"] / 2)
             see(page, r"Check pixel: checking pixel \(\d+\.\d, \d+\.\d\) camera px")
             see(page, r"Pixel check \(\d+\.\d, \d+\.\d\): \d+\.\d+ camera px.*: (pass|FAIL)", timeout=60_000)
+            print("clicked at", x, box["y"] + box["height"] / 2, "canvas", box)
+            time.sleep(1.5)
+            page.screenshot(path=str(tmp_path / "clicked.png"))
             # the results leave the browser: a zip of exactly the result files the session has
             with page.expect_download() as dl:
                 click(page, "Download results (zip)")

@@ -14,7 +14,7 @@ from calib.observations import STEP_PROJECTOR
 IMAGE_PLANE_NAME = "/rig/camera_image"
 IMAGE_PLANE_DEPTH_M = 0.3  # in front of the camera, closer than the boards
 VIEW_FOV_DEG = 50.0  # vertical field of view of the initial 3D view
-VIEW_SHIFT = 0.3  # how far right of the canvas's centre the rig shows (fraction of the half height)
+VIEW_ASPECT = 0.55  # width / height of the 3D canvas the view is framed for
 
 SCENE_LEGEND = ("**3D view** (metres, camera frame): blue frustum camera, orange frustum projector, grey frustum "
                 "the virtual camera behind the mirror, light blue the mirror, green boards of the mirror step, "
@@ -92,14 +92,11 @@ def update_rig(server, manifest, result, camera_model) -> None:
     ic = server.initial_camera
     ic.fov = float(np.radians(VIEW_FOV_DEG))
     d = np.array([-0.9, -1.1, -1.0]) / np.linalg.norm([-0.9, -1.1, -1.0])  # behind, above and left
-    dist = 1.1 * extent / np.tan(np.radians(VIEW_FOV_DEG) / 2)
-    # the live window covers the left of the 3D canvas: aim left of the rig so it shows right of the
-    # canvas's centre, in the part left free
-    right = np.cross(-d, [0.0, -1.0, 0.0])
-    right /= np.linalg.norm(right)
-    shift = VIEW_SHIFT * dist * np.tan(np.radians(VIEW_FOV_DEG) / 2)
-    ic.look_at = tuple(centre - shift * right)
-    ic.position = tuple(centre + dist * d - shift * right)
+    # the 3D canvas between the two windows is about half as wide as high (1600x1000 page): fit the
+    # extent across its width
+    dist = 1.6 * extent / (2 * np.tan(np.radians(VIEW_FOV_DEG) / 2) * VIEW_ASPECT)
+    ic.look_at = tuple(centre)
+    ic.position = tuple(centre + dist * d)
     ic.near = 0.01
     ic.far = 1000.0
 
