@@ -185,6 +185,12 @@ def thumbnail_data_url(path, width: int = THUMB_WIDTH) -> str | None:
     return "data:image/jpeg;base64," + base64.b64encode(buf.tobytes()).decode() if ok else None
 
 
+def _pose_number(meta) -> str:
+    """The pose number a capture's metadata gives (1-based), or "?" for a malformed one (untrusted file)."""
+    k = meta.get("pose_index", 0) if isinstance(meta, dict) else None
+    return str(k + 1) if isinstance(k, int) and not isinstance(k, bool) else "?"
+
+
 def captures_html(captures, folder, per_view_rms: dict, thumbs: dict) -> str:
     """Every capture, newest first, in a scrollable table with thumbnails (`thumbs`: capture id ->
     data URL, filled here for the ones missing; the caller keeps the dict between calls)."""
@@ -199,9 +205,9 @@ def captures_html(captures, folder, per_view_rms: dict, thumbs: dict) -> str:
         img = f"<img src='{t}' alt='{html.escape(c.id)}' style='width:{THUMB_WIDTH}px;display:block'>" if t else ""
         pos = "" if c.pattern_position is None else str(c.pattern_position + 1)
         rms = per_view_rms.get(c.id)
-        rms_s = "" if rms is None else f"{rms:.3f}"
+        rms_s = f"{rms:.3f}" if isinstance(rms, (int, float)) else ""
         rows.append(f"<tr><td>{img}</td><td>{html.escape(c.id)}<br><small>{html.escape(c.step)}</small></td>"
-                    f"<td>{pos}</td><td>{c.meta.get('pose_index', 0) + 1}</td>"
+                    f"<td>{pos}</td><td>{_pose_number(c.meta)}</td>"
                     f"<td>{html.escape(str(c.meta.get('how', '')))}</td><td>{rms_s}</td></tr>")
     head = ("<tr><th></th><th>capture</th><th>position</th><th>pose</th><th>how</th><th>RMS px</th></tr>")
     return (f"<p>{len(caps)} captures (newest first)</p><div style='max-height:70vh;overflow-y:auto'>"
