@@ -622,6 +622,8 @@ class StationPanel(ControlsMixin):
             self._update_guidance()
             self._update_predicted()
             self._auto_report()
+            if m.retake_target is None and st.autocap.avoided:  # the retaken slot is filled: the rule is spent
+                st.autocap.forget_avoided()
             self._set(self.h_checks, "content", self.checks_text())
             for ctl in list(self._clients.values()):
                 if ctl.unlocked:
