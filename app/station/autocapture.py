@@ -294,7 +294,7 @@ class AutoCapture:
 
 # ---- diversity bars -------------------------------------------------------------------------------
 #: The range each bar asks for (it is full, and its target met, when the captured poses span this much):
-#: (name, good range, how the range reads, its unit)
+#: (name, the range that fills the bar, that range in words)
 BAR_TARGETS = (("position x", 0.45, "45% of the width"), ("position y", 0.45, "45% of the height"),
                ("size", 0.25, "25% of the image"), ("tilt", 25.0, "25 deg"))
 
