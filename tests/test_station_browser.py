@@ -1,15 +1,22 @@
-"""The panel in a real Chromium (Debian's, driven by playwright): a session operated by its buttons
-through to a verified calibration, what the panel shows on the way, and the access-code lock when the
-station is served on the network. A small configuration keeps it short: 1 board pose per pattern
-position (13 projector captures) and 3 mirror captures."""
+"""The panel in a real Chromium (Debian's, driven by playwright, 1600x1000): a session operated by its
+buttons through to a verified calibration, what the panel shows on the way (the current step's controls
+only, guidance, results at the top, the verified pixels and a clicked pixel with their verdicts, the
+results zip downloaded through the button, every capture with a thumbnail), and the access-code lock
+when the station is served on the network. A small configuration keeps it short: 1 board pose per
+pattern position (13 projector captures) and 3 mirror captures. Screenshots are left in the test's
+temporary folder (step 2, calibrated, from the camera, results, captures, done) for a person to judge."""
 
 import json
 import re
 import time
+import zipfile
 
+import cv2
+import numpy as np
 import pytest
 from playwright.sync_api import expect, sync_playwright
 
+from app.station.panel_results import RESULT_FILES
 from calib.session import SessionStore
 from tests._station_helpers import StationProcess, launch_chromium, text_input
 
@@ -44,6 +51,17 @@ def live_image_sources(page, seconds=3.0):
     return seen
 
 
+def scroll_panels_to_top(page):
+    page.evaluate("""() => { for (const el of document.querySelectorAll('*')) {
+        if (el.scrollHeight > el.clientHeight + 2 && getComputedStyle(el).overflowY !== 'visible') el.scrollTop = 0; } }""")
+
+
+def colour_pixels(png_bytes, bgr, tol=40):
+    """Pixels of a screenshot within `tol` of the colour `bgr`."""
+    img = cv2.imdecode(np.frombuffer(png_bytes, np.uint8), cv2.IMREAD_COLOR)
+    return int((np.abs(img.astype(int) - np.array(bgr)).max(axis=2) <= tol).sum())
+
+
 def test_a_session_operated_from_the_browser(tmp_path):
     T0[0] = time.monotonic()
     folder = tmp_path / "session"
@@ -51,19 +69,26 @@ def test_a_session_operated_from_the_browser(tmp_path):
     try:
         with sync_playwright() as p:
             browser = launch_chromium(p)
-            page = browser.new_page(viewport={"width": 1440, "height": 900})
+            page = browser.new_page(viewport={"width": 1600, "height": 1000}, accept_downloads=True)
             page.goto(st.url)
             see(page, r"Simulated rig")
-            see(page, r"no RealSense camera is connected|Move board")
+            see(page, r"no RealSense camera is connected|Check rig")
             see(page, r"Projector capture: 0 / 13 captures")
+            see(page, r"Step 1 of 6: Check the rig")
+            # the other steps' controls are out of the way until asked for
+            expect(page.get_by_role("button", name="Calibrate", exact=True)).to_have_count(0)
+            page.get_by_text("Show every step's controls").click()
             # an impossible action is refused, with its reason shown
             click(page, "Calibrate")
             see(page, r"Refused: Calibrate\. Calibration comes after the captures")
+            page.get_by_text("Show every step's controls").click()
+            expect(page.get_by_role("button", name="Calibrate", exact=True)).to_have_count(0)
             text_input(page, "Intrinsics file").fill(str(tmp_path / "nowhere.json"))
             click(page, "Skip camera step")
             see(page, r"Refused: Skip camera step\..*does not exist")
             click(page, "Check rig")
             see(page, r"Check the rig: camera ok; projector ok")
+            see(page, r"Done.*Check rig: the rig is ready")  # successes are notified too, not only refusals
             click(page, "Start")
             see(page, r"Choose how to calibrate the mirror")
             click(page, "Next step")
@@ -72,37 +97,87 @@ def test_a_session_operated_from_the_browser(tmp_path):
             for k in range(1, 4):  # the simulated operator places the board; auto-capture takes it
                 click(page, "Move board")
                 see(page, rf"Mirror capture \(real-virtual\): {k} / 3 captures")
+                if k == 2:  # guidance: camera coverage, bars with their targets, where to hold the board next
+                    see(page, r"board corners cover \d+% of the camera image; \d of 4 image corners reached")
+                    see(page, r"position x: \d+% \(.*; (target: a range of 45% of the width|✔ target met)\)")
+                    see(page, r"Hold the board next towards")
+                    page.screenshot(path=str(tmp_path / "mirror-step.png"))
             # the live image keeps changing with detections drawn on it
             assert len(live_image_sources(page, 2.0)) >= 3
             click(page, "Next step")
             see(page, r"The projector shows the pattern at position 1 of 13")
             click(page, "Move board")
             see(page, r"Projector capture: 1 / 13 captures")
-            # retake the last capture: deleted, and the same pose is asked for again
+            # retake the last capture: deleted, and the board must take another pose (the simulated
+            # operator holds it differently) before it is captured again
             click(page, "Retake last")
-            see(page, r"Projector capture: 0 / 13 captures")
-            click(page, "Move board")
+            see(page, r"Retake last: p\d+ deleted; the simulated operator holds the board in another pose")
             see(page, r"Projector capture: 1 / 13 captures")
             # from here the simulated operator follows the station by itself
             page.get_by_text("Simulated operator moves the board by itself").click()
             see(page, r"Projector capture: 13 / 13 captures, 13 / 13 pattern positions complete", timeout=90_000)
-            see(page, r"covered by the pattern positions captured: \d+%")
+            see(page, r"covered by the pattern positions captured|pattern positions captured cover \d+%")
+            # the capture to change defaults to the newest one (Delete selected removes what was just taken)
+            page.get_by_text("Change captures", exact=True).click()
+            newest = json.loads((folder / "session.json").read_text())["captures"][-1]["id"]
+            expect(text_input(page, "Capture to change")).to_have_value(newest)
+            # Calibrate is possible; the note under it names the diversity targets not met yet
+            see(page, r"Possible now\. Diversity targets not met yet: .*the target is a range of")
             click(page, "Calibrate")
-            see(page, r"Calibration \(paper", timeout=90_000)
+            see(page, r"Calibrate: running.*Diversity targets not met yet: ")
+            see(page, r"Calibration\*? \(paper", timeout=90_000)
             see(page, r"Projector in the camera frame")
-            see(page, r"Mirror: normal")
+            # the results are at the top: visible without scrolling, with the Download button
+            scroll_panels_to_top(page)
+            time.sleep(0.5)
+            expect(page.get_by_text(re.compile(r"RMS reprojection error")).first).to_be_in_viewport()
+            expect(page.get_by_role("button", name="Download results (zip)")).to_be_in_viewport()
+            page.screenshot(path=str(tmp_path / "calibrated.png"))
+            see(page, r"camera: k1 [+-]\d")  # distortion coefficients shown
+            see(page, r"fx px")
+            # the worst views by reprojection RMS, and every file written, listed
+            page.get_by_text("Worst views (reprojection RMS)", exact=True).click()
+            expect(page.get_by_role("cell", name=re.compile(r"^(p|mrv)\d{4}$")).first).to_be_visible()
+            page.get_by_text("Files written", exact=True).click()
+            see(page, r"calibration\.yaml \(\d+(\.\d)? (bytes|kB)\)")
+            see(page, r"images/: 16 files")
             click(page, "Verify")
             see(page, r"Verification PASSED", timeout=60_000)
-            # the live check of one pixel: its epipolar curve drawn, seen and measured
-            click(page, "Check pixel")
-            see(page, r"Check pixel: checking pixel \(640\.0, 400\.0\)")
-            page.get_by_role("tab", name="Log").click()
-            see(page, r"pixel check \(640\.0, 400\.0\): \d+\.\d+ camera px", timeout=60_000)
-            page.get_by_role("tab", name="Live camera").click()
+            # every verified pixel is drawn on the live image with its distance and verdict
+            see(page, r"Verified pixels")
+            see(page, r"\(\d+\.\d, \d+\.\d\): \d+\.\d+ camera px = \d+\.\d+ projector px: pass")
+            time.sleep(1.0)
+            shot = page.locator("img[src^='blob:']").first.screenshot()
+            assert colour_pixels(shot, (30, 140, 255)) > 50  # orange detected strokes
+            assert colour_pixels(shot, (60, 210, 60), tol=30) > 20  # green (pass) pixel markers
+            # click on the camera image in the 3D view to check that pixel
+            click(page, "View from the camera")
+            time.sleep(1.5)
+            page.screenshot(path=str(tmp_path / "from-camera.png"))
+            canvas = page.locator("canvas").first
+            box = canvas.bounding_box()
+            live = page.locator("img[src^='blob:']").first.bounding_box()
+            panel_right = live["x"] + live["width"] + 20
+            x = (panel_right + box["x"] + box["width"] * 0.75) / 2
+            page.mouse.click(x, box["y"] + box["height"] / 2)
+            see(page, r"Check pixel: checking pixel \(\d+\.\d, \d+\.\d\) camera px")
+            see(page, r"Pixel check \(\d+\.\d, \d+\.\d\): \d+\.\d+ camera px.*: (pass|FAIL)", timeout=60_000)
+            print("clicked at", x, box["y"] + box["height"] / 2, "canvas", box)
+            time.sleep(1.5)
+            page.screenshot(path=str(tmp_path / "clicked.png"))
+            # the results leave the browser: a zip of exactly the result files the session has
+            with page.expect_download() as dl:
+                click(page, "Download results (zip)")
+            zpath = tmp_path / "results.zip"
+            dl.value.save_as(zpath)
+            page.screenshot(path=str(tmp_path / "panel-results.png"))
             click(page, "Finish")
             see(page, r"The session is complete")
             page.get_by_role("tab", name="Captures").click()
             see(page, r"16 captures")
+            expect(page.locator("img[alt^='p']")).to_have_count(13)  # every capture listed, with a thumbnail
+            expect(page.locator("img[alt^='mrv']")).to_have_count(3)
+            page.screenshot(path=str(tmp_path / "captures.png"))
             page.get_by_role("tab", name="Live camera").click()
             time.sleep(1.0)
             page.screenshot(path=str(tmp_path / "panel.png"))
@@ -112,8 +187,15 @@ def test_a_session_operated_from_the_browser(tmp_path):
     man = SessionStore.open(folder).manifest
     assert man.state["step"] == "done"
     assert len(man.captures_of("projector")) == 13 and len(man.captures_of("mirror-real-virtual")) == 3
+    retaken = [c for c in man.captures_of("projector") if c.meta.get("retake")]
+    assert len(retaken) == 1 and retaken[0].meta["operator_pose_index"] >= 100  # another pose than the deleted one
     assert json.loads((folder / "verification.json").read_text())["passed"] is True
-    assert (folder / "calibration.json").exists() and (tmp_path / "panel.png").stat().st_size > 50_000
+    with zipfile.ZipFile(zpath) as z:
+        expected = [n for n in RESULT_FILES if (folder / n).is_file()]
+        assert z.namelist() == expected and "calibration.yaml" in expected
+        assert z.read("calibration.json") == (folder / "calibration.json").read_bytes()
+        assert z.read("verification.json") == (folder / "verification.json").read_bytes()
+    assert (tmp_path / "panel.png").stat().st_size > 50_000
 
 
 def test_network_panel_needs_the_access_code(tmp_path):

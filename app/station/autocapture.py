@@ -211,7 +211,20 @@ class AutoCapture:
         self._lock = threading.RLock()
         self._history: list[BoardObservation] = []
         self.taken: list[tuple[str, PoseFeatures]] = []
+        # poses a retake must differ from (the deleted capture's): kept over resets until a capture
+        # is decided or forget_avoided() is called
+        self.avoided: list[tuple[str, PoseFeatures]] = []
         self.last: Decision | None = None
+
+    def avoid(self, label: str, feats: PoseFeatures | None) -> None:
+        """After a retake: the next capture must not be this pose again (the operator was asked to move)."""
+        if feats is not None:
+            with self._lock:
+                self.avoided = [a for a in self.avoided if a[0] != label] + [(label, feats)]
+
+    def forget_avoided(self) -> None:
+        with self._lock:
+            self.avoided = []
 
     def reset(self, taken: list[tuple[str, PoseFeatures]] | None = None) -> None:
         """Start over (new target, projector moved, board asked to move)."""
@@ -236,7 +249,7 @@ class AutoCapture:
             return False, None, "the board pose cannot be measured"
         s = self.settings
         worst, worst_id = None, None
-        for cid, other in self.taken:
+        for cid, other in list(self.taken) + list(self.avoided):
             d = pose_distance(feats, other)
             score = max(d["centre"] / s.novelty_centre, d["size"] / s.novelty_size,
                         d["rotation_deg"] / s.novelty_rotation_deg)
@@ -275,35 +288,49 @@ class AutoCapture:
             self.last = Decision(False, True, False, why, motion, similar)
         else:
             self.last = Decision(True, True, True, "capturing", motion)
+            self.avoided = []
         return self.last
 
 
 # ---- diversity bars -------------------------------------------------------------------------------
+#: The range each bar asks for (it is full, and its target met, when the captured poses span this much):
+#: (name, the range that fills the bar, that range in words)
+BAR_TARGETS = (("position x", 0.45, "45% of the width"), ("position y", 0.45, "45% of the height"),
+               ("size", 0.25, "25% of the image"), ("tilt", 25.0, "25 deg"))
+
+
 @dataclass(frozen=True)
 class Bar:
     name: str
     fraction: float  # 0..1, how well the range is covered
     detail: str
+    target: str = ""  # the range that fills the bar, in words
+
+    @property
+    def met(self) -> bool:
+        return self.fraction >= 0.999
 
 
 def diversity_bars(features: list[PoseFeatures]) -> list[Bar]:
     """Board pose diversity as bars that fill up: horizontal and vertical position, size and tilt.
-    Each is the range covered by the captured poses relative to a good range (camera_calibration's X,
-    Y, Size and Skew bars are the model)."""
+    Each is the range covered by the captured poses relative to a good range (BAR_TARGETS;
+    camera_calibration's X, Y, Size and Skew bars are the model)."""
+    targets = {name: (good, words) for name, good, words in BAR_TARGETS}
     if not features:
-        return [Bar(n, 0.0, "no poses yet") for n in ("position x", "position y", "size", "tilt")]
+        return [Bar(n, 0.0, "no poses yet", targets[n][1]) for n, _, _ in BAR_TARGETS]
     cx = np.array([f.centre[0] for f in features])
     cy = np.array([f.centre[1] for f in features])
     sz = np.array([f.size for f in features])
     tl = np.array([f.tilt_deg for f in features])
 
-    def bar(name, values, good, fmt):
+    def bar(name, values, fmt):
+        good, words = targets[name]
         rng = float(values.max() - values.min())
-        return Bar(name, float(min(1.0, rng / good)), fmt(values.min(), values.max()))
+        return Bar(name, float(min(1.0, rng / good)), fmt(values.min(), values.max()), words)
 
     return [
-        bar("position x", cx, 0.45, lambda a, b: f"{a * 100:.0f}-{b * 100:.0f}% of the width"),
-        bar("position y", cy, 0.45, lambda a, b: f"{a * 100:.0f}-{b * 100:.0f}% of the height"),
-        bar("size", sz, 0.25, lambda a, b: f"{a * 100:.0f}-{b * 100:.0f}% of the image"),
-        bar("tilt", tl, 25.0, lambda a, b: f"{a:.0f}-{b:.0f} deg"),
+        bar("position x", cx, lambda a, b: f"{a * 100:.0f}-{b * 100:.0f}% of the width"),
+        bar("position y", cy, lambda a, b: f"{a * 100:.0f}-{b * 100:.0f}% of the height"),
+        bar("size", sz, lambda a, b: f"{a * 100:.0f}-{b * 100:.0f}% of the image"),
+        bar("tilt", tl, lambda a, b: f"{a:.0f}-{b:.0f} deg"),
     ]

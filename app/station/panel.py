@@ -1,20 +1,24 @@
 """The station's browser panel (viser): status for everyone, controls for whoever may operate the rig.
 
-Shared by every browser (server.gui): what to do next, the checklist with counts, the live camera image
-with detections drawn over it, the projector's coverage by the pattern positions captured, the board
-pose diversity bars, results (RMS errors, uncertainties, verification verdict), the captures and a log;
-and the 3D view of the rig (server.scene).
+Shared by every browser (server.gui), top to bottom: what to do next (the current step, its progress
+and instruction), the results once calibrated (summary, Download button, parameters with distortion,
+worst views, the session's files), the checklist; in a window docked on the left the live camera image
+with detections, verified pixels and where to hold the board next, the coverage maps and the diversity
+bars with their targets, all captures with thumbnails, and a log; and the 3D view of the rig
+(server.scene), where the camera image can be clicked to check a pixel once calibrated.
 
-Per browser (client.gui): the operator's buttons. Who may connect at all is decided before the
-websocket opens (app/station/access.py, hooked into viser by app/station/_origin.py): only pages the
-panel served itself (their Origin), and served on a network only browsers that gave the access code; a
-browser without it gets a page asking for the code and nothing of the session.
+Per browser (client.gui): the operator's controls, organised by step (app/station/panel_controls.py).
+Who may connect at all is decided before the websocket opens (app/station/access.py, hooked into viser
+by app/station/_origin.py): only pages the panel served itself (their Origin), and served on a network
+only browsers that gave the access code; a browser without it gets a page asking for the code.
 
 A heartbeat element makes the page say so when the station process is gone (`DISCONNECT_TEXT`), and a
 banner shows when the capture loop failed (restarted) or stopped.
 
-Detection runs in the station's own threads; the panel only draws: the live image is redrawn from the
-newest frame and the newest detection about 12 times a second.
+Detection runs in the station's own threads; the panel only draws (app/station/panel_live.py): the live
+image is redrawn from each new frame with the newest detection, up to IMAGE_RATE_HZ times a second.
+Guidance: app/station/panel_guidance.py; results and downloads: app/station/panel_results.py; the 3D
+view: app/station/panel_scene.py.
 """
 
 from __future__ import annotations
@@ -23,7 +27,6 @@ import html
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -42,14 +45,41 @@ from app.station.machine import (
     STATE_TITLES,
     STATES,
     VERIFICATION,
-    ActionRefused,
 )
-from app.station.rigview import rig_scene
-from calib.errors import ProcamError
+from app.station.panel_controls import ClientControls, ControlsMixin  # noqa: F401
+from app.station.panel_guidance import (
+    camera_coverage_image,
+    capture_corners_px,
+    coverage_grid,
+    coverage_summary,
+    projector_coverage_image,
+    side_by_side,
+    suggest_next,
+)
+from app.station.panel_live import (
+    LEGEND,
+    draw_banner,
+    draw_checks,
+    draw_detection,
+    draw_suggestion,
+    flash,
+    predicted_curves,
+)
+from app.station.panel_results import (
+    REPORT_MISSING,
+    captures_html,
+    check_passes,
+    files_text,
+    parameters_text,
+    worst_views_text,
+    write_report_if_available,
+)
+from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane, update_rig, view_whole_rig
 from calib.observations import STEP_PROJECTOR
 
 LIVE_WIDTH = 640
-COVERAGE_WIDTH = 384
+IMAGE_RATE_HZ = 25.0  # most live-image updates per second (one per new camera frame)
+PLANE_RATE_HZ = 4.0  # updates per second of the clickable camera image in the 3D view
 
 
 def rate_of(times, window_s: float = 2.0) -> float:
@@ -73,22 +103,15 @@ DISCONNECT_TEXT = ("The station is not answering: its process stopped or the net
 def heartbeat_html(beat: int) -> str:
     """A banner hidden by a CSS animation that shows it after SILENT_S seconds; every heartbeat replaces
     the element (new markup, so the animation starts over). When the station process is gone the
-    heartbeats stop and the banner appears: no script needed in the page."""
-    return (f"<style>@keyframes procam-silent{{from{{visibility:hidden}}to{{visibility:visible}}}}</style>"
-            f"<div data-beat='{beat}' role='alert' style='visibility:hidden;animation:procam-silent 0s linear "
-            f"{SILENT_S:g}s forwards;background:#a51111;color:#fff;font-weight:bold;padding:0.6em 0.8em;"
-            f"border-radius:4px;opacity:1'>{html.escape(DISCONNECT_TEXT)}</div>")
+    heartbeats stop and the banner appears: no script needed in the page. Hidden, it takes no room."""
+    return (f"<style>@keyframes procam-silent{{from{{visibility:hidden;max-height:0;padding:0}}"
+            f"to{{visibility:visible;max-height:none;padding:0.6em 0.8em}}}}</style>"
+            f"<div data-beat='{beat}' role='alert' style='visibility:hidden;max-height:0;overflow:hidden;padding:0;"
+            f"animation:procam-silent 0s linear {SILENT_S:g}s forwards;background:#a51111;color:#fff;"
+            f"font-weight:bold;border-radius:4px;opacity:1'>{html.escape(DISCONNECT_TEXT)}</div>")
 
 
-@dataclass
-class ClientControls:
-    client: object
-    unlocked: bool
-    handles: dict = field(default_factory=dict)
-    cache: dict = field(default_factory=dict)
-
-
-class StationPanel:
+class StationPanel(ControlsMixin):
     def __init__(self, station, host: str = "127.0.0.1", port: int = 8080, access_code: str | None = None,
                  rig_note: str = "", verbose: bool = False, gate: AccessGate | None = None):
         self.station = station
@@ -108,10 +131,19 @@ class StationPanel:
         self._scene_key = None
         self._global_cache: dict = {}
         self.image_updates = 0  # live images sent (the test and the caption read the rate)
+        self.frames_shown = 0  # of which showed a camera frame not shown before (the rest: a new detection)
         self._image_times: list[float] = []
         self._last_image_key = None
         self._beat = 0
         self._loop_errors_seen = 0
+        self._thumbs: dict = {}  # capture id -> thumbnail data URL
+        self._predicted: dict = {}  # id(report or pixel check) -> {check index: predicted curve}
+        self.suggestion = None  # where to hold the board next (panel_guidance.Suggestion)
+        self._plane_key = None
+        self.h_plane = None  # the clickable camera image in the 3D view (once calibrated)
+        self._plane_s = 0.0
+        self._report_key = None
+        self.report_lock = threading.Lock()  # one report.html written at a time (auto and Download)
         self.server.gui.configure_theme(control_width="large", control_layout="fixed", show_share_button=False)
         self.server.scene.set_up_direction("-y")
         ic = self.server.initial_camera  # behind and above the camera, looking at the rig (metres)
@@ -153,24 +185,38 @@ class StationPanel:
         self.h_alert = g.add_markdown("", order=-0.5, visible=False)
         self.h_title = g.add_markdown(self._title(), order=0)
         self.h_next = g.add_markdown("", order=1)
-        self.h_check = g.add_markdown("", order=2)
-        with g.add_folder("Results", order=6):
+        # results at the top once calibrated (the Download button, per browser, sits just above)
+        self.h_results_folder = g.add_folder("Results", order=2, visible=False)
+        with self.h_results_folder:
             self.h_progress = g.add_progress_bar(0.0, animated=True, visible=False)
             self.h_results = g.add_markdown("No calibration yet.")
+            with g.add_folder("Parameters and distortion"):
+                self.h_params = g.add_markdown("")
+            with g.add_folder("Worst views (reprojection RMS)", expand_by_default=False):
+                self.h_worst = g.add_markdown("")
+            with g.add_folder("Files written", expand_by_default=False):
+                self.h_files = g.add_markdown("")
+        self.h_check = g.add_markdown("", order=5)
+        with g.add_folder("3D view", order=7, expand_by_default=False):
+            g.add_markdown(SCENE_LEGEND)
+            self.h_view_rig = g.add_button("View the whole rig")
+        self.h_view_rig.on_click(lambda event: view_whole_rig(self.server, event.client))
         # a second window, docked on the left of the 3D view: what the camera sees and what is covered
         self.live_panel = g.add_panel()
         with self.live_panel.add_tab("Live camera"):
-            self.h_image = g.add_image(np.zeros((400, LIVE_WIDTH, 3), np.uint8), format="jpeg", jpeg_quality=75)
+            self.h_image = g.add_image(np.zeros((400, LIVE_WIDTH, 3), np.uint8), format="jpeg", jpeg_quality=70)
             self.h_live = g.add_markdown("")
+            self.h_checks = g.add_markdown("")
             self.h_cov_text = g.add_markdown("")
-            self.h_cov = g.add_image(self._coverage_image(), format="png")
+            self.h_cov = g.add_image(np.zeros((8, 8, 3), np.uint8), format="png")
+            self.h_bars_title = g.add_markdown("")
             self.h_bars = []
             for name in ("position x", "position y", "size", "tilt"):
                 label = g.add_markdown(f"{name}")
-                bar = g.add_progress_bar(0.0, color="teal")
+                bar = g.add_progress_bar(0.0, color="orange")
                 self.h_bars.append((label, bar))
         with self.live_panel.add_tab("Captures"):
-            self.h_caps = g.add_markdown("")
+            self.h_caps = g.add_html("")
         with self.live_panel.add_tab("Log"):
             self.h_log = g.add_markdown("")
         self.live_panel.dock_left()
@@ -181,7 +227,7 @@ class StationPanel:
         lock = ""
         if self.access_code is not None:
             lock = " Served on the network: only browsers that gave the access code see this panel."
-        return f"### procam station\n{self.rig_note}\n\nSession: `{folder}`.{lock}"
+        return f"{self.rig_note} Session: `{folder}`.{lock}"
 
     def _set(self, handle, attr: str, value, key=None) -> None:
         """Set a handle's property only when it changed (every change is a message to every browser)."""
@@ -234,7 +280,9 @@ class StationPanel:
         lines.append(f"- {mark(DONE)} **Done**")
         return "\n".join(lines)
 
-    def results_text(self) -> str:
+    def results_summary(self) -> str:
+        """The top of the results: the calibration's RMS (px), the pose of the projector and the mirror
+        with their 1-sigma, and the verification's verdict."""
         m = self.machine
         r = m.result
         if r is None:
@@ -242,29 +290,17 @@ class StationPanel:
                 return f"**Calibration failed:** {m.calibration_error}"
             return "No calibration yet."
         u = r.uncertainty or {}
-
-        def pm(group, key, digits=2):
-            v = (u.get(group) or {}).get(key) if isinstance(u.get(group), dict) else None
-            return f" ± {v:.{digits}f}" if isinstance(v, (int, float)) else ""
-
         lines = []
         if m.result_stale:
             lines.append("**Out of date:** the captures or the camera model changed; re-run the calibration.\n")
         rms = ", ".join(f"{k} {v:.3f} px" for k, v in r.rms.items() if isinstance(v, (int, float)))
-        lines.append(f"**Calibration** ({r.method}, units {r.units}). RMS: {rms}")
-        lines.append("")
-        lines.append("| device | fx | fy | cx | cy |")
-        lines.append("|---|---|---|---|---|")
-        for name, cam, grp in (("camera", r.camera, "camera"), ("projector", r.projector, "projector")):
-            lines.append(f"| {name} | {cam.fx:.2f}{pm(grp, 'fx')} | {cam.fy:.2f}{pm(grp, 'fy')} | "
-                         f"{cam.cx:.2f}{pm(grp, 'cx')} | {cam.cy:.2f}{pm(grp, 'cy')} |")
-        lines.append("")
+        lines.append(f"**Calibration** ({r.method}, lengths in {r.units}). RMS reprojection error: {rms}")
         t = r.T_cam_proj[:3, 3]
         ang = float(np.degrees(np.arccos(np.clip((np.trace(r.T_cam_proj[:3, :3]) - 1) / 2, -1, 1))))
         tu = (u.get("T_cam_proj") or {}) if isinstance(u.get("T_cam_proj"), dict) else {}
-        t_pm = f" (± {tu['t_total']:.2f})" if isinstance(tu.get("t_total"), (int, float)) else ""
+        t_pm = f" (± {tu['t_total']:.2f} {r.units})" if isinstance(tu.get("t_total"), (int, float)) else ""
         r_pm = f" (± {tu['rot_total_deg']:.3f} deg)" if isinstance(tu.get("rot_total_deg"), (int, float)) else ""
-        lines.append(f"Projector in the camera frame: [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}] {r.units}{t_pm}, "
+        lines.append(f"\nProjector in the camera frame: [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}] {r.units}{t_pm}, "
                      f"rotated {ang:.2f} deg{r_pm}")
         if r.mirror is not None:
             n = r.mirror.normal
@@ -272,7 +308,8 @@ class StationPanel:
             extra = ""
             if isinstance(mu.get("d"), (int, float)) and isinstance(mu.get("normal_deg"), (int, float)):
                 extra = f" (± {mu['d']:.2f} {r.units}, normal ± {mu['normal_deg']:.3f} deg)"
-            lines.append(f"\nMirror: normal [{n[0]:.4f}, {n[1]:.4f}, {n[2]:.4f}], d {r.mirror.d:.2f} {r.units}{extra}")
+            lines.append(f"\nMirror: normal [{n[0]:.4f}, {n[1]:.4f}, {n[2]:.4f}] (unit vector), "
+                         f"d {r.mirror.d:.2f} {r.units}{extra}")
         if r.skipped:
             lines.append(f"\nSkipped {len(r.skipped)} capture(s): " + "; ".join(
                 f"{s.get('capture_id', '?')}: {s.get('reason', '')}" for s in list(r.skipped)[:5]))
@@ -284,26 +321,63 @@ class StationPanel:
                          f"projector px): {summary}")
         elif m.verification_error:
             lines.append(f"\n**Verification could not run:** {m.verification_error}")
+        pc = self.station.pixel_check
+        if pc is not None:
+            lines.append(f"\nLast pixel check: {self.pixel_check_verdict(pc)}")
         return "\n".join(lines)
 
-    def captures_text(self, limit: int = 12) -> str:
+    def results_text(self) -> str:
+        """Everything the results show, as one text (the summary, parameters, worst views)."""
+        r = self.machine.result
+        if r is None:
+            return self.results_summary()
+        return "\n\n".join([self.results_summary(), parameters_text(r, bool(self.machine.camera_intrinsics)),
+                            worst_views_text(r)])
+
+    def pixel_check_verdict(self, pc) -> str:
+        thr, factor = self.verdict_threshold()
+        ok = check_passes(pc, thr, factor)
+        if not pc.ok:
+            return f"{pc.label()} (no verdict)"
+        return f"{pc.label()}: **{'pass' if ok else 'FAIL'}** (limit {factor * thr:.2f} projector px)"
+
+    def checks_text(self) -> str:
+        """The verified pixels drawn on the live image, in words: distance and verdict of each."""
+        m, st = self.machine, self.station
+        if m.state not in (CALIBRATION, VERIFICATION, DONE):
+            return ""
+        thr, factor = self.verdict_threshold()
+        lines = []
+        checks = list(getattr(m.report, "checks", None) or []) if m.report is not None else []
+        if checks:
+            lines.append(f"**Verified pixels** (each passes within {factor * thr:.2f} projector px):")
+            lines.append("")
+            for c in checks:
+                ok = check_passes(c, thr, factor)
+                lines.append(f"- {c.label()}: **{'pass' if ok else 'FAIL'}**" if c.ok else f"- {c.label()}")
+        if st.pixel_check is not None:
+            lines.append("")
+            lines.append(f"**Pixel check** {self.pixel_check_verdict(st.pixel_check)}")
+        return "\n".join(lines)
+
+    def verdict_threshold(self) -> tuple[float, float]:
+        """(threshold, worst factor) of the verdict: the report's, else the verification's defaults."""
+        rep = self.machine.report
+        try:
+            from app.verification import DEFAULT_THRESHOLD_PX, WORST_FACTOR
+        except ImportError:
+            DEFAULT_THRESHOLD_PX, WORST_FACTOR = 1.5, 2.0
+        thr = getattr(rep, "threshold_px", None) if rep is not None else None
+        return float(thr if isinstance(thr, (int, float)) else DEFAULT_THRESHOLD_PX), float(WORST_FACTOR)
+
+    def captures_html(self) -> str:
         m = self.machine
-        caps = list(m.manifest.captures)
-        if not caps:
-            return "No captures yet."
         per_view = {}
         if m.result is not None:
             for pv in m.result.per_view:
                 if isinstance(pv, dict) and "capture_id" in pv:
                     per_view[pv["capture_id"]] = pv.get("rms_px")
-        lines = [f"{len(caps)} captures (newest first):", "", "| id | step | position | pose | how | RMS px |",
-                 "|---|---|---|---|---|---|"]
-        for c in reversed(caps[-limit:]):
-            pos = "" if c.pattern_position is None else str(c.pattern_position + 1)
-            rms = per_view.get(c.id)
-            lines.append(f"| {c.id} | {c.step} | {pos} | {c.meta.get('pose_index', 0) + 1} | {c.meta.get('how', '')} | "
-                         f"{'' if rms is None else f'{rms:.3f}'} |")
-        return "\n".join(lines)
+        return captures_html(m.manifest.captures, m.store.folder, per_view, self._thumbs)
 
     def log_text(self, n: int = 10) -> str:
         evs = self.machine.events[-n:]
@@ -333,41 +407,49 @@ class StationPanel:
                     "tab; if it keeps failing, restart the station with --resume.")
         return ""
 
-    # ---- images -----------------------------------------------------------------------------------
-    def _coverage_image(self) -> np.ndarray:
-        """The projector image with the pattern positions: green complete, orange started, grey not yet,
-        the one shown now outlined in white."""
+    # ---- guidance ---------------------------------------------------------------------------------
+    def step_features(self) -> list:
         m = self.machine
-        W, H = m.manifest.rig.projector_size
-        s = COVERAGE_WIDTH / W
-        h = int(round(H * s))
-        img = np.full((h, COVERAGE_WIDTH, 3), 40, np.uint8)
-        pat = m.manifest.pattern
-        counts = m.position_counts()
-        ppp = m.plan.poses_per_position
+        step_caps = m.mirror_captures() if m.state == MIRROR_CAPTURE else m.captures_of(STEP_PROJECTOR)
+        return [f for c in step_caps if isinstance(c.meta.get("pose"), dict)
+                for f in [PoseFeatures.from_dict(c.meta["pose"])] if f is not None]
+
+    def bars_now(self) -> list:
+        return diversity_bars(self.step_features())
+
+    def _update_guidance(self) -> None:
+        """Coverage maps, bars with their targets and the next-pose suggestion (when the captures changed)."""
+        m = self.machine
+        key = (tuple(c.id for c in m.manifest.captures), m.state, m.target)
+        if self._global_cache.get("guidance") == key:
+            return
+        self._global_cache["guidance"] = key
+        caps = m.manifest.captures
+        cam_size = tuple(m.manifest.rig.camera_size)
+        corners = capture_corners_px(caps)
+        counts = coverage_grid(corners, cam_size)
+        feats = self.step_features()
+        bars = diversity_bars(feats)
+        sugg = suggest_next(counts, feats, bars) if m.state in CAPTURE_STATES and m.target is not None else None
+        self.suggestion = sugg
         tgt = m.target if m.state == PROJECTOR_CAPTURE else None
-        pad = pat.radius_px if pat.kind == "circles" else pat.spacing_px
-        for p in range(pat.positions):
-            pts = pat.points_px(W, H, p)
-            x0, y0 = (pts.min(axis=0) - pad) * s
-            x1, y1 = (pts.max(axis=0) + pad) * s
-            p0, p1 = (int(x0), int(y0)), (int(x1), int(y1))
-            if counts[p] >= ppp:
-                colour = (90, 190, 60)
-            elif counts[p] > 0:
-                colour = (40, 150, 240)
-            else:
-                colour = None
-            if colour is not None:
-                over = img.copy()
-                cv2.rectangle(over, p0, p1, colour, -1)
-                img = cv2.addWeighted(over, 0.55, img, 0.45, 0)
-            cv2.rectangle(img, p0, p1, (150, 150, 150), 1)
-            cv2.putText(img, str(p + 1), (p0[0] + 3, p0[1] + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (230, 230, 230), 1,
-                        cv2.LINE_AA)
-            if tgt is not None and tgt.pattern_position == p:
-                cv2.rectangle(img, p0, p1, (255, 255, 255), 2)
-        return img[:, :, ::-1].copy()  # RGB
+        cam_img = camera_coverage_image(corners, cam_size, counts, sugg)
+        proj_img = projector_coverage_image(m.manifest.pattern, tuple(m.manifest.rig.projector_size),
+                                            m.position_counts(), m.plan.poses_per_position,
+                                            None if tgt is None else tgt.pattern_position)
+        self.h_cov.image = side_by_side(cam_img, proj_img)
+        step = "mirror" if m.state == MIRROR_CAPTURE else "projector"
+        self._set(self.h_cov_text, "content",
+                  f"**Coverage.** Camera: {coverage_summary(counts)}. Projector: the pattern positions captured cover "
+                  f"**{self.coverage_fraction() * 100:.0f}%** of its image ({m.counts()['positions_done']} of "
+                  f"{m.positions} positions complete)." + (f"\n\n**Next:** {sugg.text}" if sugg else ""))
+        self._set(self.h_bars_title, "content", f"**Board pose diversity** of the {step} captures (a full bar "
+                                                "meets its target):")
+        for (label, bar), b in zip(self.h_bars, bars):
+            mark = "✔ target met" if b.met else f"target: a range of {b.target}"
+            self._set(label, "content", f"{b.name}: {b.fraction * 100:.0f}% ({b.detail}; {mark})")
+            self._set(bar, "value", float(round(b.fraction * 100.0, 1)))
+            self._set(bar, "color", "green" if b.met else "orange")
 
     def coverage_fraction(self) -> float:
         m = self.machine
@@ -384,8 +466,11 @@ class StationPanel:
                 mask[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1] = 1
         return float(mask.mean())
 
-    def live_image(self) -> tuple[np.ndarray, tuple] | None:
-        """The newest frame, downscaled, with the newest detection drawn over it (RGB)."""
+    # ---- the live image -----------------------------------------------------------------------------
+    def live_image(self, unless_key=None) -> tuple[np.ndarray, tuple] | None:
+        """The newest frame, downscaled, with the newest detection, the verified pixels and the next-pose
+        box drawn over it (RGB), and a key that changes when any of them does; None when there is no
+        frame yet or the key is `unless_key` (nothing new to draw)."""
         st = self.station
         frame = st.preview
         live = st.live
@@ -395,50 +480,54 @@ class StationPanel:
             image, number = live.image, live.frame_number
         else:
             image, number = frame.image, frame.frame_number
+        m = self.machine
+        verifying = m.state in (CALIBRATION, VERIFICATION, DONE)
+        rep = m.report if verifying and getattr(m.report, "checks", None) else None
+        pc = st.pixel_check if verifying else None
+        key = (number, None if live is None else live.frame_number, m.state, id(self.suggestion),
+               id(rep), len(self._predicted.get(id(rep), {})), id(pc), len(self._predicted.get(id(pc), {})))
+        if key == unless_key:
+            return None
         det = live.detection if live is not None else None
         dec = live.decision if live is not None else None
-        key = (number, None if live is None else live.frame_number)
         H, W = image.shape[:2]
         s = LIVE_WIDTH / W
         small = cv2.resize(image, (LIVE_WIDTH, int(round(H * s))), interpolation=cv2.INTER_AREA)
         if small.ndim == 2:
             small = cv2.cvtColor(small, cv2.COLOR_GRAY2BGR)
-        if det is not None:
-            if det.board is not None:
-                for x, y in det.board.corners_px * s:
-                    cv2.circle(small, (int(round(x)), int(round(y))), 2, (60, 220, 60), -1, cv2.LINE_AA)
-            if det.virtual is not None:
-                for x, y in det.virtual.corners_px * s:
-                    cv2.circle(small, (int(round(x)), int(round(y))), 2, (230, 200, 40), -1, cv2.LINE_AA)
-            if det.pattern_px is not None:
-                pts = np.round(det.pattern_px * s).astype(np.int32)
-                cv2.polylines(small, [pts.reshape(-1, 1, 2)], False, (200, 60, 220), 1, cv2.LINE_AA)
-                for x, y in pts:
-                    cv2.circle(small, (int(x), int(y)), 3, (220, 80, 240), 1, cv2.LINE_AA)
-        pc = st.pixel_check
-        if pc is not None and self.machine.state in (CALIBRATION, VERIFICATION, DONE):
-            ov = pc.overlay()
-            if ov.get("predicted") is not None and len(ov["predicted"]) > 1:
-                pts = np.round(np.asarray(ov["predicted"]) * s).astype(np.int32)
-                cv2.polylines(small, [pts.reshape(-1, 1, 2)], False, (40, 200, 240), 1, cv2.LINE_AA)
-            if ov.get("detected") is not None and len(ov["detected"]) > 1:
-                pts = np.round(np.asarray(ov["detected"]) * s).astype(np.int32)
-                cv2.polylines(small, [pts.reshape(-1, 1, 2)], False, (240, 220, 60), 2, cv2.LINE_AA)
-            px, py = (int(round(v * s)) for v in ov["pixel"])
-            cv2.drawMarker(small, (px, py), (40, 40, 240), cv2.MARKER_CROSS, 14, 2)
-            hh = small.shape[0]
-            cv2.rectangle(small, (0, hh - 22), (LIVE_WIDTH, hh), (0, 0, 0), -1)
-            cv2.putText(small, str(ov.get("label", ""))[:95], (6, hh - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
-                        (240, 240, 240), 1, cv2.LINE_AA)
-            key = key + (id(pc),)
-        banner = self._banner(det, dec)
-        if banner:
-            cv2.rectangle(small, (0, 0), (LIVE_WIDTH, 22), (0, 0, 0), -1)
-            colour = (80, 230, 80) if dec is not None and dec.capture else (240, 240, 240)
-            cv2.putText(small, banner[:90], (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
-        if time.monotonic() - self.station.last_capture_s < 0.8:  # flash green: captured
-            cv2.rectangle(small, (0, 0), (small.shape[1] - 1, small.shape[0] - 1), (60, 230, 60), 4)
+        draw_detection(small, det, s)
+        if m.state in CAPTURE_STATES:
+            draw_suggestion(small, self.suggestion)
+        footer = ""
+        if rep is not None or pc is not None:
+            thr, factor = self.verdict_threshold()
+            if rep is not None:
+                draw_checks(small, rep.checks, s, thr, factor, self._predicted.get(id(rep)))
+            if pc is not None:
+                draw_checks(small, [pc], s, thr, factor, self._predicted.get(id(pc)))
+                footer = "pixel check " + self.pixel_check_verdict(pc).replace("**", "")
+        draw_banner(small, self._banner(det, dec), (80, 230, 80) if dec is not None and dec.capture else (240, 240, 240))
+        draw_banner(small, footer, (240, 240, 240), top=False)
+        if time.monotonic() - st.last_capture_s < 0.8:  # flash green: captured
+            flash(small)
         return small[:, :, ::-1].copy(), key
+
+    def _update_predicted(self) -> None:
+        """Predicted curves for the verified pixels that carry none (from the calibration and the board's
+        pose in the newest frame), once per report or pixel check."""
+        m, st = self.machine, self.station
+        if m.result is None or m.busy:
+            return
+        frame = st.preview
+        for obj, checks in ((m.report, getattr(m.report, "checks", None)), (st.pixel_check, None)):
+            if obj is None or id(obj) in self._predicted:
+                continue
+            checks = list(checks) if checks is not None else [obj]
+            self._predicted[id(obj)] = predicted_curves(m.result, checks, None if frame is None else frame.image,
+                                                        m.manifest.projector_board)
+        live_ids = {id(m.report), id(st.pixel_check)}
+        for k in [k for k in self._predicted if k not in live_ids]:
+            del self._predicted[k]
 
     def _banner(self, det, dec) -> str:
         m = self.machine
@@ -460,343 +549,67 @@ class StationPanel:
         return " | ".join(parts + [dec.message])
 
     # ---- 3D view -----------------------------------------------------------------------------------
+    def click_camera(self):
+        """The camera model the clickable image plane uses: the calibrated one, else the approximate one."""
+        r = self.machine.result
+        return r.camera if r is not None else self.station.camera_model
+
     def update_scene(self, force: bool = False) -> None:
         m = self.machine
         key = (tuple(c.id for c in m.manifest.captures), id(m.result))
         if key == self._scene_key and not force:
             return
         self._scene_key = key
-        sc = rig_scene(m.manifest, m.result, self.station.camera_model)
-        k = sc.to_m
-        scene = self.server.scene
-        from viser import transforms as vtf
-
-        def pose(T):
-            return vtf.SO3.from_matrix(np.asarray(T[:3, :3])).wxyz, np.asarray(T[:3, 3]) * k
-
-        scene.add_frame("/rig", show_axes=False)
-        q, p = pose(sc.camera.T_cam_dev)
-        scene.add_camera_frustum("/rig/camera", sc.camera.fov_v_rad, sc.camera.aspect, scale=0.08,
-                                 color=(40, 110, 230), wxyz=q, position=p)
-        scene.add_label("/rig/camera/label", "camera", position=(0, -0.08, 0))
-        if sc.virtual_camera is not None:
-            q, p = pose(sc.virtual_camera.T_cam_dev)
-            scene.add_camera_frustum("/rig/virtual_camera", sc.virtual_camera.fov_v_rad, sc.virtual_camera.aspect,
-                                     scale=0.08, color=(150, 150, 150), wxyz=q, position=p)
-            scene.add_label("/rig/virtual_camera/label", "virtual camera", position=(0, -0.08, 0))
-        if sc.mirror_quad is not None:
-            v = sc.mirror_quad * k
-            scene.add_mesh_simple("/rig/mirror", v.astype(np.float32), np.array([[0, 1, 2], [0, 2, 3]], np.uint32),
-                                  color=(150, 200, 240), opacity=0.45, side="double")
-        if sc.projector is not None:
-            q, p = pose(sc.projector.T_cam_dev)
-            scene.add_camera_frustum("/rig/projector", sc.projector.fov_v_rad, sc.projector.aspect, scale=0.1,
-                                     color=(240, 140, 30), wxyz=q, position=p)
-            scene.add_label("/rig/projector/label", "projector", position=(0, -0.1, 0))
-        if len(sc.rays):
-            scene.add_line_segments("/rig/rays", (sc.rays * k).astype(np.float32), (250, 170, 60), thickness=0.002)
-        else:
-            try:
-                scene.remove_by_name("/rig/rays")
-            except Exception:
-                pass
-        groups = {"mirror step": ((60, 200, 90), []), "projector step": ((240, 150, 40), []),
-                  "seen in the mirror": ((170, 170, 170), [])}
-        for b in sc.boards:
-            key = "mirror step" if b.step != STEP_PROJECTOR else ("seen in the mirror" if b.virtual else "projector step")
-            groups[key][1].append(b.outline * k)
-        for key, (col, quads) in groups.items():
-            name = "/rig/boards/" + key.replace(" ", "_")
-            if not quads:
+        update_rig(self.server, m.manifest, m.result, self.station.camera_model)
+        if m.result is not None and self._plane_key != id(m.result):
+            self._plane_key = id(m.result)
+            for ctl in list(self._clients.values()):  # calibrated: show every browser the rig as it is now
                 try:
-                    scene.remove_by_name(name)
-                except Exception:
+                    view_whole_rig(self.server, ctl.client)
+                except Exception:  # a browser that went away
                     pass
-                continue
-            v = np.concatenate(quads).astype(np.float32)
-            f = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]) + 4 * i for i in range(len(quads))]).astype(np.uint32)
-            scene.add_mesh_simple(name, v, f, color=col, opacity=0.35, side="double")
-            segs = np.array([[q[i], q[(i + 1) % 4]] for q in quads for i in range(4)], np.float32)
-            scene.add_line_segments(name + "_edges", segs, col, thickness=0.002)
-        # frame the rig for browsers that connect from now on
-        pts = [np.zeros(3)] + [b.outline.mean(axis=0) * k for b in sc.boards]
-        if sc.mirror_quad is not None:
-            pts.append(sc.mirror_quad.mean(axis=0) * k)
-        if sc.projector is not None:
-            pts.append(sc.projector.T_cam_dev[:3, 3] * k)
-        pts = np.array(pts)
-        centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
-        extent = float(max(np.ptp(pts, axis=0).max(), 0.6))
-        ic = self.server.initial_camera
-        ic.look_at = tuple(centre)
-        ic.position = tuple(centre + extent * np.array([-0.9, -1.1, -1.0]))
-
-    # ---- per-browser controls ------------------------------------------------------------------------
-    def _on_connect(self, client) -> None:
-        # every websocket reaching here passed the gate: the panel's own Origin (or the secret), and the
-        # access code when one is needed; a browser without the code never gets this far
-        ctl = ClientControls(client, unlocked=True)
-        with self._lock:
-            self._clients[client.client_id] = ctl
-        self._build_controls(ctl)
-
-    def _on_disconnect(self, client) -> None:
-        with self._lock:
-            self._clients.pop(client.client_id, None)
-
-    def _build_controls(self, ctl: ClientControls) -> None:
-        g = ctl.client.gui
-        h = ctl.handles
-        sim = self.station.is_sim
-        with g.add_folder("Operate the rig", order=3):
-            h["message"] = g.add_markdown("")
-            with g.add_folder("Session", expand_by_default=True):
-                h["check"] = g.add_button("Check rig")
-                h["start"] = g.add_button("Start")
-                h["next"] = g.add_button("Next step")
-                h["back"] = g.add_button("Back")
-            with g.add_folder("Mirror method"):
-                h["real-virtual"] = g.add_button("Mirror: real-virtual")
-                h["real-mirror"] = g.add_button("Mirror: real-mirror")
-                h["thickness"] = g.add_number(f"Board thickness ({self.machine.manifest.units})",
-                                              float(self.machine.manifest.board_thickness), min=0.0, step=0.1,
-                                              hint="real-mirror: height of the printed face above the mirror")
-                h["set_thickness"] = g.add_button("Set thickness")
-            with g.add_folder("Capture"):
-                h["capture"] = g.add_button("Capture")
-                if sim:
-                    h["move"] = g.add_button("Move board", hint="asks the simulated operator for the pose the station needs")
-                h["retake_last"] = g.add_button("Retake last")
-                h["auto_capture"] = g.add_checkbox("Auto-capture", self.station.options.auto_capture,
-                                                   hint="capture when the board is still and in a new pose")
-                if sim:
-                    h["follow"] = g.add_checkbox("Simulated operator moves the board by itself",
-                                                 bool(self.station.options.follow_operator))
-                ids = self._capture_ids()
-                h["which"] = g.add_dropdown("Capture to change", ids or ["(none)"], initial_value=(ids or ["(none)"])[0])
-                h["retake"] = g.add_button("Retake selected")
-                h["delete"] = g.add_button("Delete selected")
-            with g.add_folder("Calibration"):
-                h["calibrate"] = g.add_button("Calibrate")
-                h["intrinsics"] = g.add_text("Intrinsics file", "", hint="calibration.json or OpenCV YAML of a "
-                                                                        "pre-calibrated camera")
-                h["skip_camera"] = g.add_button("Skip camera step")
-                h["use_camera"] = g.add_button("Calibrate camera from captures")
-                h["verify"] = g.add_button("Verify")
-                h["finish"] = g.add_button("Finish")
-            with g.add_folder("Check one pixel"):
-                W, H = self.machine.manifest.rig.camera_size
-                h["pixel_x"] = g.add_number("Pixel x", float(W // 2), min=0.0, max=float(W - 1), step=0.5)
-                h["pixel_y"] = g.add_number("Pixel y", float(H // 2), min=0.0, max=float(H - 1), step=0.5)
-                h["check_pixel"] = g.add_button("Check pixel", hint="the projector draws this camera pixel's "
-                                                                    "epipolar curve; the camera measures how far it passes")
-        st, m = self.station, self.machine
-        actions = {
-            "check": lambda: self._check(),
-            "start": lambda: m.start_session(),
-            "next": lambda: m.proceed(),
-            "back": lambda: m.go_back(),
-            "real-virtual": lambda: m.choose_mirror_method("real-virtual"),
-            "real-mirror": lambda: m.choose_mirror_method("real-mirror"),
-            "capture": lambda: st.capture_now(),
-            "move": lambda: st.request_pose(),
-            "retake_last": lambda: self._retake(None, ctl),
-            "retake": lambda: self._retake(h["which"].value, ctl),
-            "delete": lambda: m.delete_capture(self._selected(h["which"].value)),
-            "calibrate": lambda: st.run_long("calibrate", st.calibrate),
-            "skip_camera": lambda: m.skip_camera(h["intrinsics"].value.strip()),
-            "use_camera": lambda: m.use_camera_calibration(),
-            "set_thickness": lambda: m.set_board_thickness(h["thickness"].value),
-            "verify": lambda: st.run_long("verify", st.verify),
-            "finish": lambda: m.finish(),
-            "check_pixel": lambda: self._check_pixel(h),
-        }
-        for name, fn in actions.items():
-            if name in h:
-                h[name].on_click(self._handler(ctl, name, fn))
-
-        @h["auto_capture"].on_update
-        def _(event):
-            if self._allowed(ctl, event):
-                st.options.auto_capture = bool(h["auto_capture"].value)
-
-        if "follow" in h:
-            @h["follow"].on_update
-            def _(event):
-                if self._allowed(ctl, event):
-                    st.options.follow_operator = bool(h["follow"].value)
-                    st._requested = None
-
-        self._refresh_controls(ctl)
-
-    def _allowed(self, ctl: ClientControls, event) -> bool:
-        return ctl.unlocked and event.client_id == ctl.client.client_id
-
-    def _selected(self, value):
-        if not value or value == "(none)":
-            raise ActionRefused("change a capture", "there are no captures yet")
-        return value
-
-    def _retake(self, capture_id, ctl):
-        tgt = self.machine.retake(None if capture_id is None else self._selected(capture_id))
-        if self.station.is_sim and not self.station.options.follow_operator:
-            return f"asked for the same pose again: press Move board to put the board back (pose {tgt.pose_index + 1})"
-        return tgt
-
-    def _check_pixel(self, h):
-        if self.machine.result is None:
-            raise ActionRefused("check a pixel", "calibrate first")
-        x, y = float(h["pixel_x"].value), float(h["pixel_y"].value)
-        self.station.run_long("check pixel", lambda: self.station.check_pixel(x, y))
-        return f"checking pixel ({x:.1f}, {y:.1f}); the result appears on the live image and in the log"
-
-    def _check(self):
-        checks = self.station.check_rig()
-        bad = [c for c in checks if not c.ok]
-        if bad:
-            raise ActionRefused("check the rig", "; ".join(f"{c.name}: {c.detail}" for c in bad))
-        return "the rig is ready"
-
-    def _handler(self, ctl: ClientControls, name: str, fn):
-        def on_click(event):
-            if not self._allowed(ctl, event):
-                return
-            label = ctl.handles[name].label
-            try:
-                out = fn()
-            except ActionRefused as e:
-                self._message(ctl, f"**Refused: {label}.** {e.reason[:1].upper() + e.reason[1:]}.", error=True)
-            except ProcamError as e:
-                self._message(ctl, f"**{label} failed:** {e}", error=True)
-            else:
-                text = self._describe_outcome(name, out)
-                self._message(ctl, f"**{label}:** {text}")
-            self.refresh()
-
-        return on_click
-
-    def _describe_outcome(self, name, out) -> str:
-        if name == "capture" and out is not None:
-            return f"{out.id} written to the session"
-        if name in ("calibrate", "verify"):
-            return "running; the results appear below when it is done"
-        if name == "move" and isinstance(out, str):
-            return out
-        if isinstance(out, str):
-            return out.replace("_", " ")
-        return "done"
-
-    def _message(self, ctl: ClientControls, text: str, error: bool = False) -> None:
-        h = ctl.handles.get("message")
-        if h is not None:
-            h.content = text
-        if error:
-            try:
-                ctl.client.add_notification("Not possible now", text.replace("**", ""), auto_close_seconds=6.0,
-                                            color="red")
-            except Exception:  # a notification is a nicety; the message above says the same
-                pass
-
-    def _capture_ids(self) -> list[str]:
-        return [c.id for c in reversed(self.machine.manifest.captures)]
-
-    def _recommended(self) -> set[str]:
-        m, st = self.machine, self.station
-        s = m.state
-        if m.busy:
-            return set()
-        if s == CHECK_RIG:
-            return {"start"} if m.rig_checks and m.why_not("start") is None else {"check"}
-        if s == MIRROR_CAPTURE:
-            if m.mirror_method is None:
-                return {"real-virtual"}
-            if m.target is None:
-                return {"next"}
-            return {"capture", "move"} if st.is_sim and not st.options.follow_operator else {"capture"}
-        if s == PROJECTOR_CAPTURE:
-            if m.target is None:
-                return {"calibrate"}
-            return {"capture", "move"} if st.is_sim and not st.options.follow_operator else {"capture"}
-        if s == CALIBRATION:
-            if m.result is None or m.result_stale:
-                return {"calibrate"}
-            return {"verify"} if m.why_not("verify") is None else {"finish"}
-        if s == VERIFICATION:
-            return {"finish"} if m.report is not None else {"verify"}
-        return set()
-
-    def _refusals(self) -> dict[str, str | None]:
-        m, st = self.machine, self.station
-        last = m.last_capture.id if m.last_capture is not None else (m.manifest.captures[-1].id if m.manifest.captures else None)
-        r = {
-            "check": None if m.state == CHECK_RIG and not m.busy else "the rig is checked in the first step; go back to it",
-            "start": m.why_not("start"),
-            "next": m.why_not("proceed"),
-            "back": m.why_not("back"),
-            "real-virtual": m.why_not("choose_mirror_method", "real-virtual"),
-            "real-mirror": m.why_not("choose_mirror_method", "real-mirror"),
-            "capture": m.why_not("capture"),
-            "move": None if m.target is not None else "no capture is asked for now",
-            "retake_last": m.why_not("retake", last),
-            "retake": m.why_not("retake", last) if last else "there are no captures yet",
-            "delete": m.why_not("delete", last) if last else "there are no captures yet",
-            "calibrate": m.why_not("calibrate"),
-            "skip_camera": (m.why_not("back") if m.busy else None) or (
-                "the camera model cannot change now; go back to the calibration step first"
-                if m.state in (VERIFICATION, DONE) else None),
-            "use_camera": m.why_not("use_camera_calibration"),
-            "set_thickness": m.why_not("set_board_thickness"),
-            "verify": m.why_not("verify"),
-            "finish": m.why_not("finish"),
-            "check_pixel": ("calibrate first" if m.result is None else
-                            f"the station is busy ({m.busy})" if m.busy else
-                            None if m.state in (CALIBRATION, VERIFICATION, DONE) else
-                            "pixels are checked after calibration"),
-        }
-        return r
-
-    def _refresh_controls(self, ctl: ClientControls) -> None:
-        h = ctl.handles
-        if not h:
-            return
-        refusals = self._refusals()
-        rec = self._recommended()
-        m = self.machine
-        for name, reason in refusals.items():
-            b = h.get(name)
-            if b is None:
-                continue
-            colour = "green" if name in rec and reason is None else ("gray" if reason else "blue")
-            hint = reason[:1].upper() + reason[1:] if reason else None
-            if ctl.cache.get((name, "color")) != colour:
-                ctl.cache[(name, "color")] = colour
-                b.color = colour
-            if ctl.cache.get((name, "hint")) != hint:
-                ctl.cache[(name, "hint")] = hint
-                b.hint = hint
-        label = "Re-run calibration" if m.result is not None else "Calibrate"
-        if ctl.cache.get("cal_label") != label:
-            ctl.cache["cal_label"] = label
-            h["calibrate"].label = label
-        ids = self._capture_ids() or ["(none)"]
-        if ctl.cache.get("ids") != ids:
-            ctl.cache["ids"] = ids
-            cur = h["which"].value
-            h["which"].options = ids
-            h["which"].value = cur if cur in ids else ids[0]
-        if "follow" in h and ctl.cache.get("follow") != bool(self.station.options.follow_operator):
-            ctl.cache["follow"] = bool(self.station.options.follow_operator)
-            h["follow"].value = ctl.cache["follow"]
+            centre, w, h, wxyz = camera_plane(m.result.camera)
+            self.h_plane = self.server.scene.add_image(IMAGE_PLANE_NAME, np.zeros((8, 8, 3), np.uint8), w, h,
+                                                       format="jpeg", jpeg_quality=70, position=tuple(centre),
+                                                       wxyz=wxyz, cast_shadow=False)
+            self.h_plane.on_click(self.on_image_click)
 
     # ---- refresh loops --------------------------------------------------------------------------------
+    def step_line(self) -> str:
+        """The current step, its progress and what to do: the first thing an operator reads."""
+        m = self.machine
+        steps = [x for x in STATES if not (m.direct and x == MIRROR_CAPTURE)]
+        k = steps.index(m.state) + 1 if m.state in steps else 0
+        c = m.counts()
+        progress = ""
+        if m.state == MIRROR_CAPTURE and m.mirror_method:
+            progress = f": {c['mirror']} of {c['mirror_total']} captures"
+        elif m.state == PROJECTOR_CAPTURE:
+            progress = (f": {c['projector']} of {c['projector_total']} captures, {c['positions_done']} of "
+                        f"{c['positions']} pattern positions complete")
+        return (f"#### Step {k} of {len(steps)}: {STATE_TITLES[m.state]}{progress}\n\n"
+                f"**Next:** {self.station.instruction()}")
+
     def refresh(self) -> None:
         """Bring every status element (and every browser's controls) up to date."""
         with self._lock:
             m, st = self.machine, self.station
-            self._set(self.h_next, "content", "**Next:** " + st.instruction())
+            self._set(self.h_next, "content", self.step_line())
             self._set(self.h_check, "content", self.checklist())
-            self._set(self.h_results, "content", self.results_text())
-            self._set(self.h_caps, "content", self.captures_text())
+            r = m.result
+            self._set(self.h_results_folder, "visible", r is not None or bool(m.calibration_error)
+                      or m.busy == "calibrating")
+            self._set(self.h_results, "content", self.results_summary())
+            self._set(self.h_params, "content", parameters_text(r, bool(m.camera_intrinsics)) if r else "")
+            self._set(self.h_worst, "content", worst_views_text(r) if r else "")
+            files_key = (tuple(c.id for c in m.manifest.captures), id(r), id(m.report), m.state, m.busy)
+            if self._global_cache.get("files") != files_key:
+                self._global_cache["files"] = files_key
+                self._set(self.h_files, "content", files_text(m.store.folder))
+            caps_key = (tuple(c.id for c in m.manifest.captures), id(r))
+            if self._global_cache.get("caps") != caps_key:
+                self._global_cache["caps"] = caps_key
+                self._set(self.h_caps, "content", self.captures_html())
             self._set(self.h_log, "content", self.log_text())
             alert = self.alert_text()
             self._set(self.h_alert, "content", alert or " ")
@@ -806,20 +619,12 @@ class StationPanel:
             self._set(self.h_progress, "visible", prog is not None)
             if prog is not None and prog[1] > 0:
                 self._set(self.h_progress, "value", float(min(100.0, 100.0 * prog[0] / prog[1])))
-            cov_key = (tuple(m.position_counts()), m.target, m.state)
-            if self._global_cache.get("cov") != cov_key:
-                self._global_cache["cov"] = cov_key
-                self.h_cov.image = self._coverage_image()
-            self._set(self.h_cov_text, "content",
-                      f"Projector image covered by the pattern positions captured: **{self.coverage_fraction() * 100:.0f}%** "
-                      f"({m.counts()['positions_done']} of {m.positions} positions complete). Board pose diversity of "
-                      f"the {'mirror' if m.state == MIRROR_CAPTURE else 'projector'} captures:")
-            step_caps = m.mirror_captures() if m.state == MIRROR_CAPTURE else m.captures_of(STEP_PROJECTOR)
-            feats = [f for c in step_caps if isinstance(c.meta.get("pose"), dict)
-                     for f in [PoseFeatures.from_dict(c.meta["pose"])] if f is not None]
-            for (label, bar), b in zip(self.h_bars, diversity_bars(feats)):
-                self._set(label, "content", f"{b.name}: {b.fraction * 100:.0f}% ({b.detail})")
-                self._set(bar, "value", float(round(b.fraction * 100.0, 1)))
+            self._update_guidance()
+            self._update_predicted()
+            self._auto_report()
+            if m.retake_target is None and st.autocap.avoided:  # the retaken slot is filled: the rule is spent
+                st.autocap.forget_avoided()
+            self._set(self.h_checks, "content", self.checks_text())
             for ctl in list(self._clients.values()):
                 if ctl.unlocked:
                     try:
@@ -827,6 +632,25 @@ class StationPanel:
                     except Exception:  # a browser that went away mid-update
                         pass
             self.update_scene()
+
+    def _auto_report(self) -> None:
+        """After each calibration and each verification: report.html in the session (app.report, when
+        installed), written in the background; the log says where, or why not."""
+        m = self.machine
+        key = (id(m.result), id(m.report))
+        if m.result is None or m.result_stale or m.busy or key == self._report_key:
+            return
+        self._report_key = key
+
+        def work():
+            with self.report_lock:
+                path, why = write_report_if_available(m.store.folder)
+            if path is not None:
+                m.log(f"report written: {path}")
+            elif why != REPORT_MISSING:
+                m.log(f"report.html not written: {why}")
+
+        threading.Thread(target=work, name="panel-report", daemon=True).start()
 
     def _notify_loop_errors(self) -> None:
         """A toast in every browser for each unexpected error of the capture loop."""
@@ -859,25 +683,28 @@ class StationPanel:
                 self.machine.log(f"panel refresh failed: {e!r}")
             self._stop.wait(0.25)
 
-    def _image_loop(self, rate_hz: float = 12.0) -> None:
+    def _image_loop(self, rate_hz: float = IMAGE_RATE_HZ) -> None:
         period = 1.0 / rate_hz
         while not self._stop.is_set():
             t0 = time.monotonic()
             try:
-                out = self.live_image()
+                out = self.live_image(unless_key=self._last_image_key)
                 if out is not None:
                     img, key = out
                     if key != self._last_image_key:
+                        if self._last_image_key is None or key[0] != self._last_image_key[0]:
+                            self.frames_shown += 1
                         self._last_image_key = key
                         self.h_image.image = img
                         self.image_updates += 1
                         self._image_times.append(time.monotonic())
                         del self._image_times[:-60]
-                        rate = self.image_rate
                         self._set(self.h_live, "content",
-                                  f"Live: {rate:.0f} updates/s, camera {self.station.preview_fps:.0f} fps, "
-                                  f"detection {self.station.detection_fps:.0f}/s. Green: board "
-                                  "corners; yellow: board in the mirror; violet: projected pattern.")
+                                  f"Live: {self.image_rate:.0f} updates/s, camera {self.station.preview_fps:.0f} "
+                                  f"frames/s, detection {self.station.detection_fps:.0f}/s. {LEGEND}")
+                        if self.h_plane is not None and t0 - self._plane_s >= 1.0 / PLANE_RATE_HZ:
+                            self._plane_s = t0
+                            self.h_plane.image = img
             except Exception as e:  # keep drawing; the log shows what went wrong
                 self.machine.log(f"live image failed: {e!r}")
                 time.sleep(0.5)

@@ -335,6 +335,20 @@ class Station:
         self._changed()
         return self.operator_says
 
+    def retake_pose(self, target: Target, avoid: PoseFeatures | None, label: str) -> str | None:
+        """After a retake: auto-capture must see a pose other than the deleted one (`avoid`); a simulated
+        operator is asked for another pose for the same slot (a variant), as a person would move."""
+        self.autocap.avoid(label, avoid)
+        if not self.is_sim:
+            return None
+        self._requested = target
+        self._variant += 1
+        index = target.pose_index + 100 * self._variant
+        self.operator_says = self.rig.operator.request_pose(target.step, target.pattern_position, index) or ""
+        self._operator_index = index
+        self._changed()
+        return self.operator_says
+
     def _camera_lost(self, e: DeviceError) -> None:
         """A camera error: say so in the panel; a disconnected device is reopened when it comes back."""
         self.device_problem = f"camera: {e}; waiting for it to come back"

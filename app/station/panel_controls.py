@@ -1,0 +1,413 @@
+"""The operator's controls, per browser (client.gui), organised by step: the current step's folder is
+shown and the others are out of the way (hidden until "Show every step's controls" is ticked). Every
+action goes through the session machine, so a refusal carries its reason; refusals and successes both
+show in the message line under "Next:" and as a notification that stays in view while scrolling.
+
+Also the Download button (a zip of the results) and the click on the camera image in the 3D view that
+checks a pixel. Mixed into StationPanel (app/station/panel.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from app.station.machine import (
+    CALIBRATION,
+    CHECK_RIG,
+    DONE,
+    MIRROR_CAPTURE,
+    PROJECTOR_CAPTURE,
+    VERIFICATION,
+    ActionRefused,
+)
+from app.station.panel_guidance import unmet_targets
+from app.station.panel_results import results_zip, write_report_if_available
+from app.station.panel_scene import click_to_pixel, view_from_camera
+from calib.errors import ProcamError
+
+# which folder of controls each step shows (the rest stay hidden unless all are asked for)
+STEP_FOLDERS = {
+    CHECK_RIG: ("rig", "camera_model"),
+    MIRROR_CAPTURE: ("mirror", "capture", "change"),
+    PROJECTOR_CAPTURE: ("capture", "calibration", "change"),
+    CALIBRATION: ("calibration", "verification", "camera_model", "change"),
+    VERIFICATION: ("verification", "calibration"),
+    DONE: ("verification",),
+}
+FOLDER_TITLES = {"rig": "Check the rig", "mirror": "Mirror method", "capture": "Capture",
+                 "calibration": "Calibration", "verification": "Verification", "camera_model": "Camera model",
+                 "change": "Change captures"}
+
+
+@dataclass
+class ClientControls:
+    client: object
+    unlocked: bool
+    handles: dict = field(default_factory=dict)
+    folders: dict = field(default_factory=dict)
+    cache: dict = field(default_factory=dict)
+
+
+class ControlsMixin:
+    """The per-browser half of StationPanel (needs self.machine, self.station, self.server, self._lock,
+    self._clients, self.refresh, self.bars_now)."""
+
+    def _on_connect(self, client) -> None:
+        # every websocket reaching here passed the gate: the panel's own Origin (or the secret), and the
+        # access code when one is needed; a browser without the code never gets this far
+        ctl = ClientControls(client, unlocked=True)
+        with self._lock:
+            self._clients[client.client_id] = ctl
+        self._build_controls(ctl)
+
+    def _on_disconnect(self, client) -> None:
+        with self._lock:
+            self._clients.pop(client.client_id, None)
+
+    def _build_controls(self, ctl: ClientControls) -> None:
+        g = ctl.client.gui
+        h, f = ctl.handles, ctl.folders
+        sim = self.station.is_sim
+        m = self.machine
+        h["message"] = g.add_markdown("", order=1.2)
+        h["download"] = g.add_button("Download results (zip)", order=1.5, color="teal", visible=False,
+                                     hint="calibration.json, calibration.yaml, verification.json and report.html, "
+                                          "those that exist")
+        with g.add_folder("Step controls", order=3):
+            with g.add_folder(FOLDER_TITLES["rig"]) as f["rig"]:
+                h["check"] = g.add_button("Check rig")
+                h["start"] = g.add_button("Start")
+            with g.add_folder(FOLDER_TITLES["mirror"]) as f["mirror"]:
+                h["real-virtual"] = g.add_button("Mirror: real-virtual")
+                h["real-mirror"] = g.add_button("Mirror: real-mirror")
+                h["thickness"] = g.add_number(f"Board thickness ({m.manifest.units})", float(m.manifest.board_thickness),
+                                              min=0.0, step=0.1,
+                                              hint="real-mirror: height of the printed face above the mirror")
+                h["set_thickness"] = g.add_button("Set thickness")
+            with g.add_folder(FOLDER_TITLES["capture"]) as f["capture"]:
+                h["capture"] = g.add_button("Capture")
+                if sim:
+                    h["move"] = g.add_button("Move board", hint="asks the simulated operator for the pose the station needs")
+                h["retake_last"] = g.add_button("Retake last", hint="deletes the last capture; the next one must be "
+                                                                    "a new pose (move the board)")
+                h["auto_capture"] = g.add_checkbox("Auto-capture", self.station.options.auto_capture,
+                                                   hint="capture when the board is still and in a new pose")
+                if sim:
+                    h["follow"] = g.add_checkbox("Simulated operator moves the board by itself",
+                                                 bool(self.station.options.follow_operator))
+            with g.add_folder(FOLDER_TITLES["calibration"]) as f["calibration"]:
+                h["calibrate"] = g.add_button("Calibrate")
+                # viser 1.1 shows no tooltip on buttons: what Calibrate would say is written under it
+                h["calibrate_note"] = g.add_markdown("")
+            with g.add_folder(FOLDER_TITLES["verification"]) as f["verification"]:
+                h["verify"] = g.add_button("Verify")
+                h["pick_hint"] = g.add_markdown("Check one pixel: **click on the camera image in the 3D view** "
+                                                "(or type it here).")
+                h["view_camera"] = g.add_button("View from the camera",
+                                                hint="puts the 3D view at the camera: the live image fills it")
+                W, H = m.manifest.rig.camera_size
+                h["pixel_x"] = g.add_number("Pixel x (camera px)", float(W // 2), min=0.0, max=float(W - 1), step=0.5)
+                h["pixel_y"] = g.add_number("Pixel y (camera px)", float(H // 2), min=0.0, max=float(H - 1), step=0.5)
+                h["check_pixel"] = g.add_button("Check pixel", hint="the projector draws this camera pixel's "
+                                                                    "epipolar curve; the camera measures how far it passes")
+                h["finish"] = g.add_button("Finish")
+            with g.add_folder(FOLDER_TITLES["camera_model"]) as f["camera_model"]:
+                h["intrinsics"] = g.add_text("Intrinsics file", "", hint="calibration.json or OpenCV YAML of a "
+                                                                        "pre-calibrated camera")
+                h["skip_camera"] = g.add_button("Skip camera step")
+                h["use_camera"] = g.add_button("Calibrate camera from captures")
+            with g.add_folder(FOLDER_TITLES["change"], expand_by_default=False) as f["change"]:
+                ids = self._capture_ids()
+                h["which"] = g.add_dropdown("Capture to change", ids or ["(none)"], initial_value=(ids or ["(none)"])[0])
+                h["retake"] = g.add_button("Retake selected")
+                h["delete"] = g.add_button("Delete selected")
+            h["next"] = g.add_button("Next step")
+            h["back"] = g.add_button("Back")
+            h["show_all"] = g.add_checkbox("Show every step's controls", False)
+        st = self.station
+        actions = {
+            "check": lambda: self._check(),
+            "start": lambda: m.start_session(),
+            "next": lambda: m.proceed(),
+            "back": lambda: m.go_back(),
+            "real-virtual": lambda: m.choose_mirror_method("real-virtual"),
+            "real-mirror": lambda: m.choose_mirror_method("real-mirror"),
+            "capture": lambda: st.capture_now(),
+            "move": lambda: st.request_pose(),
+            "retake_last": lambda: self._retake(None),
+            "retake": lambda: self._retake(h["which"].value),
+            "delete": lambda: m.delete_capture(self._selected(h["which"].value)),
+            "calibrate": lambda: st.run_long("calibrate", st.calibrate),
+            "skip_camera": lambda: m.skip_camera(h["intrinsics"].value.strip()),
+            "use_camera": lambda: m.use_camera_calibration(),
+            "set_thickness": lambda: m.set_board_thickness(h["thickness"].value),
+            "verify": lambda: st.run_long("verify", st.verify),
+            "finish": lambda: m.finish(),
+            "check_pixel": lambda: self._check_pixel(float(h["pixel_x"].value), float(h["pixel_y"].value)),
+            "download": lambda: self._download(ctl),
+            "view_camera": lambda: self._view(ctl, True),
+        }
+        for name, fn in actions.items():
+            if name in h:
+                h[name].on_click(self._handler(ctl, name, fn))
+
+        @h["auto_capture"].on_update
+        def _(event):
+            if self._allowed(ctl, event):
+                st.options.auto_capture = bool(h["auto_capture"].value)
+
+        @h["show_all"].on_update
+        def _(event):
+            if self._allowed(ctl, event):
+                self._refresh_controls(ctl)
+
+        if "follow" in h:
+            @h["follow"].on_update
+            def _(event):
+                if self._allowed(ctl, event):
+                    st.options.follow_operator = bool(h["follow"].value)
+                    st._requested = None
+
+        self._refresh_controls(ctl)
+
+    def _allowed(self, ctl: ClientControls, event) -> bool:
+        return ctl.unlocked and event.client_id == ctl.client.client_id
+
+    def _selected(self, value):
+        if not value or value == "(none)":
+            raise ActionRefused("change a capture", "there are no captures yet")
+        return value
+
+    def _retake(self, capture_id):
+        """Delete a capture and ask for its slot again; the next capture must be a new pose, so a board
+        left where it was is not captured again at once."""
+        m = self.machine
+        cid = capture_id if capture_id is None else self._selected(capture_id)
+        if cid is None:
+            cid = m.last_capture.id if m.last_capture is not None else (
+                m.manifest.captures[-1].id if m.manifest.captures else None)
+        old = next((c for c in m.manifest.captures if c.id == cid), None)
+        tgt = m.retake(cid)
+        from app.station.autocapture import PoseFeatures
+
+        feats = PoseFeatures.from_dict(old.meta.get("pose")) if old is not None and isinstance(
+            old.meta.get("pose"), dict) else None
+        said = self.station.retake_pose(tgt, feats, f"{cid} (deleted)")
+        if said:
+            return f"{cid} deleted; the simulated operator holds the board in another pose for the same slot"
+        return f"{cid} deleted; move the board to a new pose: the same pose is not captured again"
+
+    def _check_pixel(self, x: float, y: float):
+        if self.machine.result is None:
+            raise ActionRefused("check a pixel", "calibrate first")
+        self.station.run_long("check pixel", lambda: self.station.check_pixel(x, y))
+        return f"checking pixel ({x:.1f}, {y:.1f}) camera px; its curve and verdict appear on the live image"
+
+    def _check(self):
+        checks = self.station.check_rig()
+        bad = [c for c in checks if not c.ok]
+        if bad:
+            raise ActionRefused("check the rig", "; ".join(f"{c.name}: {c.detail}" for c in bad))
+        return "the rig is ready"
+
+    def _download(self, ctl: ClientControls) -> str:
+        m = self.machine
+        if m.result is None:
+            raise ActionRefused("download the results", "there is no calibration yet; calibrate first")
+        if m.busy:
+            raise ActionRefused("download the results", f"the station is busy ({m.busy}); wait until it finishes")
+        folder = Path(m.store.folder)
+        note = ""
+        with self.report_lock:
+            _, why = write_report_if_available(folder)
+        if why:
+            note = f" (no report.html: {why})"
+        data, names = results_zip(folder)
+        name = f"{folder.name}-results.zip"
+        ctl.client.send_file_download(name, data, save_immediately=True)
+        m.log(f"results sent to a browser as {name}: {', '.join(names)}")
+        return f"{name} sent ({len(data) / 1024:.0f} kB): {', '.join(names)}{note}"
+
+    def _view(self, ctl: ClientControls, camera: bool) -> str:
+        view_from_camera(ctl.client, self.click_camera())
+        return "the 3D view looks from the camera; click on the image to check a pixel"
+
+    def on_image_click(self, event) -> None:
+        """A click on the camera image in the 3D view: check that pixel (operators only)."""
+        ctl = self._clients.get(event.client_id)
+        if ctl is None or not ctl.unlocked:
+            return
+        px = click_to_pixel(self.click_camera(), event)
+        if px is None:
+            self._message(ctl, "**Check pixel:** the click is outside the camera image", error=True)
+            return
+        h = ctl.handles
+        try:
+            h["pixel_x"].value, h["pixel_y"].value = round(px[0], 1), round(px[1], 1)
+            out = self._check_pixel(*px)
+        except ActionRefused as e:
+            self._message(ctl, f"**Refused: Check pixel.** {e.reason[:1].upper() + e.reason[1:]}.", error=True)
+        except ProcamError as e:
+            self._message(ctl, f"**Check pixel failed:** {e}", error=True)
+        else:
+            self._message(ctl, f"**Check pixel:** {out}")
+        self.refresh()
+
+    def _handler(self, ctl: ClientControls, name: str, fn):
+        def on_click(event):
+            if not self._allowed(ctl, event):
+                return
+            label = ctl.handles[name].label
+            try:
+                out = fn()
+            except ActionRefused as e:
+                self._message(ctl, f"**Refused: {label}.** {e.reason[:1].upper() + e.reason[1:]}.", error=True)
+            except ProcamError as e:
+                self._message(ctl, f"**{label} failed:** {e}", error=True)
+            else:
+                text = self._describe_outcome(name, out)
+                self._message(ctl, f"**{label}:** {text}")
+            self.refresh()
+
+        return on_click
+
+    def _describe_outcome(self, name, out) -> str:
+        if name == "capture" and out is not None:
+            return f"{out.id} written to the session"
+        if name == "calibrate":
+            unmet = [b for b in self.bars_now() if not b.met]
+            extra = (" Diversity targets not met yet: " + ", ".join(f"{b.name} ({b.fraction * 100:.0f}%)" for b in unmet)
+                     + " (the note under the button says more).") if unmet else ""
+            return "running; the results appear at the top when it is done." + extra
+        if name == "verify":
+            return "running; the verified pixels appear on the live image and the verdict at the top"
+        if isinstance(out, str):
+            return out.replace("_", " ") if name not in ("download", "move") else out
+        return "done"
+
+    def _message(self, ctl: ClientControls, text: str, error: bool = False) -> None:
+        """The message line under "Next:" and a notification (refusals red, successes green)."""
+        h = ctl.handles.get("message")
+        if h is not None:
+            h.content = text
+        try:
+            ctl.client.add_notification("Not possible now" if error else "Done", text.replace("**", ""),
+                                        auto_close_seconds=6.0 if error else 3.5, color="red" if error else "green")
+        except Exception:  # a notification is a nicety; the message line says the same
+            pass
+
+    def _capture_ids(self) -> list[str]:
+        return [c.id for c in reversed(self.machine.manifest.captures)]
+
+    def _recommended(self) -> set[str]:
+        m, st = self.machine, self.station
+        s = m.state
+        if m.busy:
+            return set()
+        if s == CHECK_RIG:
+            return {"start"} if m.rig_checks and m.why_not("start") is None else {"check"}
+        if s == MIRROR_CAPTURE:
+            if m.mirror_method is None:
+                return {"real-virtual"}
+            if m.target is None:
+                return {"next"}
+            return {"capture", "move"} if st.is_sim and not st.options.follow_operator else {"capture"}
+        if s == PROJECTOR_CAPTURE:
+            if m.target is None:
+                return {"calibrate"}
+            return {"capture", "move"} if st.is_sim and not st.options.follow_operator else {"capture"}
+        if s == CALIBRATION:
+            if m.result is None or m.result_stale:
+                return {"calibrate"}
+            return {"verify"} if m.why_not("verify") is None else {"finish", "download"}
+        if s == VERIFICATION:
+            return {"finish", "download"} if m.report is not None else {"verify"}
+        return {"download"}
+
+    def _refusals(self) -> dict[str, str | None]:
+        m = self.machine
+        last = m.last_capture.id if m.last_capture is not None else (m.manifest.captures[-1].id if m.manifest.captures else None)
+        pixel = ("calibrate first" if m.result is None else
+                 f"the station is busy ({m.busy})" if m.busy else
+                 None if m.state in (CALIBRATION, VERIFICATION, DONE) else "pixels are checked after calibration")
+        return {
+            "check": None if m.state == CHECK_RIG and not m.busy else "the rig is checked in the first step; go back to it",
+            "start": m.why_not("start"),
+            "next": m.why_not("proceed"),
+            "back": m.why_not("back"),
+            "real-virtual": m.why_not("choose_mirror_method", "real-virtual"),
+            "real-mirror": m.why_not("choose_mirror_method", "real-mirror"),
+            "capture": m.why_not("capture"),
+            "move": None if m.target is not None else "no capture is asked for now",
+            "retake_last": m.why_not("retake", last),
+            "retake": m.why_not("retake", last) if last else "there are no captures yet",
+            "delete": m.why_not("delete", last) if last else "there are no captures yet",
+            "calibrate": m.why_not("calibrate"),
+            "skip_camera": (m.why_not("back") if m.busy else None) or (
+                "the camera model cannot change now; go back to the calibration step first"
+                if m.state in (VERIFICATION, DONE) else None),
+            "use_camera": m.why_not("use_camera_calibration"),
+            "set_thickness": m.why_not("set_board_thickness"),
+            "verify": m.why_not("verify"),
+            "finish": m.why_not("finish"),
+            "check_pixel": pixel,
+            "download": ("there is no calibration yet" if m.result is None else
+                         f"the station is busy ({m.busy})" if m.busy else None),
+            "view_camera": None if m.result is not None else "the camera image is clickable once calibrated",
+        }
+
+    def _cached(self, ctl: ClientControls, key, value) -> bool:
+        """True when `value` differs from the last one sent to this browser under `key` (and remember it)."""
+        if ctl.cache.get(key) == value:
+            return False
+        ctl.cache[key] = value
+        return True
+
+    def _refresh_controls(self, ctl: ClientControls) -> None:
+        h = ctl.handles
+        if not h:
+            return
+        m = self.machine
+        refusals = self._refusals()
+        rec = self._recommended()
+        unmet = unmet_targets(self.bars_now()) if m.state in (PROJECTOR_CAPTURE, CALIBRATION) else []
+        for name, reason in refusals.items():
+            b = h.get(name)
+            if b is None:
+                continue
+            colour = "green" if name in rec and reason is None else ("gray" if reason else "blue")
+            if name == "download" and reason is None:
+                colour = "teal" if name not in rec else "green"
+            hint = reason[:1].upper() + reason[1:] if reason else None
+            if name == "calibrate" and unmet:
+                hint = ((hint + ". ") if hint else "Possible now. ") + "Targets not met yet: " + "; ".join(unmet)
+            if self._cached(ctl, (name, "color"), colour):
+                b.color = colour
+            if self._cached(ctl, (name, "hint"), hint):
+                b.hint = hint
+        note = ""
+        if refusals["calibrate"]:
+            note = f"Not possible now: {refusals['calibrate']}."
+        elif unmet:
+            note = "Possible now. Diversity targets not met yet: " + "; ".join(unmet) + "."
+        if self._cached(ctl, "calibrate_note", note):
+            h["calibrate_note"].content = note
+        if self._cached(ctl, "download_visible", m.result is not None):
+            h["download"].visible = m.result is not None
+        if self._cached(ctl, "cal_label", "Re-run calibration" if m.result is not None else "Calibrate"):
+            h["calibrate"].label = ctl.cache["cal_label"]
+        shown = set(STEP_FOLDERS.get(m.state, ())) if not h["show_all"].value else set(ctl.folders)
+        for key, folder in ctl.folders.items():
+            if self._cached(ctl, ("folder", key), key in shown):
+                folder.visible = key in shown
+        ids = self._capture_ids() or ["(none)"]
+        old = ctl.cache.get("ids")
+        if self._cached(ctl, "ids", ids):
+            cur = h["which"].value
+            h["which"].options = ids
+            # the newest capture unless the operator picked another one that still exists
+            keep = cur in ids and old is not None and cur != old[0]
+            h["which"].value = cur if keep else ids[0]
+        if "follow" in h and self._cached(ctl, "follow", bool(self.station.options.follow_operator)):
+            h["follow"].value = ctl.cache["follow"]

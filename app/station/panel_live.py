@@ -1,0 +1,196 @@
+"""The live camera image as the panel draws it: detections, the verified pixels with their predicted
+curve, detected stroke, distance and verdict, where to hold the board next, and a banner that wraps
+instead of being cut. Also the geometry of clicking a pixel on the camera image shown in the 3D view.
+
+Colours (BGR here; the legend under the image names them): board corners green, the board seen in the
+mirror yellow, the projected pattern violet; verification: predicted curve cyan, detected stroke
+orange, the pixel green when it passes and red when it fails.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from app.station.panel_guidance import dashed_rect
+from app.station.panel_results import check_passes
+
+GREEN = (60, 220, 60)
+YELLOW = (40, 220, 240)
+VIOLET = (220, 80, 240)
+CYAN = (240, 220, 40)
+ORANGE = (30, 140, 255)
+RED = (50, 50, 235)
+PASS = (60, 210, 60)
+
+LEGEND = ("Green: board corners; yellow: the board in the mirror; violet: projected pattern; dashed box: where "
+          "to hold the board next. Verification: cyan predicted curve, orange detected stroke, pixel green "
+          "(pass) or red (fail) with its distance in projector px (n/m: not measured).")
+
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def wrap(text: str, width_px: int, scale: float = 0.45, max_lines: int = 3) -> list[str]:
+    """Words of `text` in lines no wider than `width_px` at `scale` (the last line ends with ... when cut)."""
+    lines, cur = [], ""
+    for word in text.split():
+        trial = f"{cur} {word}".strip()
+        if cv2.getTextSize(trial, FONT, scale, 1)[0][0] <= width_px or not cur:
+            cur = trial
+        else:
+            lines.append(cur)
+            cur = word
+    if cur:
+        lines.append(cur)
+    if len(lines) > max_lines:
+        lines = lines[:max_lines]
+        lines[-1] = lines[-1] + " ..."
+    return lines
+
+
+def draw_banner(img: np.ndarray, text: str, colour, top: bool = True, scale: float = 0.45) -> None:
+    """A dark band with `text` wrapped over up to three lines, at the top (or bottom) of `img`."""
+    if not text:
+        return
+    w = img.shape[1]
+    lines = wrap(text, w - 12, scale)
+    line_h = 17
+    band = 6 + line_h * len(lines)
+    y0 = 0 if top else img.shape[0] - band
+    cv2.rectangle(img, (0, y0), (w, y0 + band), (0, 0, 0), -1)
+    for i, ln in enumerate(lines):
+        cv2.putText(img, ln, (6, y0 + 15 + i * line_h), FONT, scale, colour, 1, cv2.LINE_AA)
+
+
+def draw_detection(img: np.ndarray, det, s: float) -> None:
+    if det is None:
+        return
+    if det.board is not None:
+        for x, y in det.board.corners_px * s:
+            cv2.circle(img, (int(round(x)), int(round(y))), 2, GREEN, -1, cv2.LINE_AA)
+    if det.virtual is not None:
+        for x, y in det.virtual.corners_px * s:
+            cv2.circle(img, (int(round(x)), int(round(y))), 2, YELLOW, -1, cv2.LINE_AA)
+    if det.pattern_px is not None:
+        pts = np.round(det.pattern_px * s).astype(np.int32)
+        cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, VIOLET, 1, cv2.LINE_AA)
+        for x, y in pts:
+            cv2.circle(img, (int(x), int(y)), 3, VIOLET, 1, cv2.LINE_AA)
+
+
+def _poly(img, pts, s, colour, thickness) -> None:
+    if pts is None:
+        return
+    a = np.asarray(pts, float).reshape(-1, 2)
+    a = a[np.all(np.isfinite(a), axis=1)]
+    if len(a) > 1:
+        cv2.polylines(img, [np.round(a * s).astype(np.int32).reshape(-1, 1, 2)], False, colour, thickness, cv2.LINE_AA)
+
+
+def check_label(check, passed: bool) -> str:
+    """Short: the distance in projector px (camera px when the scale is unknown, marked "c"), and a
+    FAIL; the colour of the marker says pass too."""
+    if not check.ok:
+        return "n/m"
+    d = f"{check.distance_proj_px:.2f}" if check.distance_proj_px is not None else f"{check.distance_px:.2f}c"
+    return d if passed else f"{d} FAIL"
+
+
+def draw_checks(img: np.ndarray, checks, s: float, threshold_px: float, worst_factor: float,
+                predicted: dict | None = None) -> None:
+    """Every verified pixel: predicted curve (from the check, else `predicted[i]`), detected stroke, the
+    pixel coloured by its verdict and its distance written next to it."""
+    for i, c in enumerate(checks):
+        pred = c.predicted_curve if c.predicted_curve is not None and len(c.predicted_curve) > 1 else (
+            (predicted or {}).get(i))
+        _poly(img, pred, s, CYAN, 1)
+        _poly(img, c.detected_curve, s, ORANGE, 2)
+        ok = check_passes(c, threshold_px, worst_factor)
+        px, py = (int(round(v * s)) for v in c.pixel)
+        colour = PASS if ok else RED
+        cv2.drawMarker(img, (px, py), colour, cv2.MARKER_CROSS, 14, 2)
+        label = check_label(c, ok)
+        (tw, th), _ = cv2.getTextSize(label, FONT, 0.35, 1)
+        x = min(max(px + 8, 0), img.shape[1] - tw - 2)
+        y = min(max(py - 6, th + 2), img.shape[0] - 2)
+        cv2.rectangle(img, (x - 2, y - th - 3), (x + tw + 2, y + 3), (0, 0, 0), -1)
+        cv2.putText(img, label, (x, y), FONT, 0.35, colour, 1, cv2.LINE_AA)
+
+
+def draw_suggestion(img: np.ndarray, suggestion) -> None:
+    """The dashed box where to hold the board next, labelled on a dark band just below it (above it when
+    the box reaches the bottom of the image)."""
+    if suggestion is None:
+        return
+    dashed_rect(img, suggestion.rect, (255, 255, 255))
+    h, w = img.shape[:2]
+    label = "hold the board here next" + (f", tilted {suggestion.tilt_deg:.0f} deg" if suggestion.tilt_deg else "")
+    (tw, th), _ = cv2.getTextSize(label, FONT, 0.4, 1)
+    x = min(max(int(suggestion.rect[0] * (w - 1)), 0), w - tw - 6)
+    y = int(suggestion.rect[3] * (h - 1)) + th + 8
+    if y > h - 4:
+        y = int(suggestion.rect[1] * (h - 1)) - 8
+    cv2.rectangle(img, (x, y - th - 4), (x + tw + 6, y + 4), (0, 0, 0), -1)
+    cv2.putText(img, label, (x + 3, y), FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def flash(img: np.ndarray) -> None:
+    cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), GREEN, 4)
+
+
+# ---- clicking on the camera image in the 3D view ---------------------------------------------------------
+def image_plane(camera, depth_m: float):
+    """Where the camera image is laid in the 3D view (camera frame, metres): a plane at `depth_m` in front
+    of the camera that its pixels map onto. Returns (centre (3,), width_m, height_m, wxyz)."""
+    W, H = camera.size
+    cx, cy, fx, fy = camera.cx, camera.cy, camera.fx, camera.fy
+    centre = np.array([((W - 1) / 2 - cx) / fx * depth_m, ((H - 1) / 2 - cy) / fy * depth_m, depth_m])
+    # a scene image lies in its local x-y plane, its first row towards local -y and first column towards
+    # -x: unrotated in the camera frame (y down) it reads as the camera sees it (checked in Chromium)
+    return centre, W / fx * depth_m, H / fy * depth_m, (1.0, 0.0, 0.0, 0.0)
+
+
+def pixel_of_click(camera, depth_m: float, ray_origin, ray_direction) -> tuple[float, float] | None:
+    """The camera pixel a click on the image plane points at (None when the ray misses the plane or the
+    pixel is outside the image)."""
+    o = np.asarray(ray_origin, float)
+    d = np.asarray(ray_direction, float)
+    if not (np.all(np.isfinite(o)) and np.all(np.isfinite(d))) or abs(d[2]) < 1e-9:
+        return None
+    t = (depth_m - o[2]) / d[2]
+    if t <= 0:
+        return None
+    p = o + t * d
+    u = camera.fx * p[0] / depth_m + camera.cx
+    v = camera.fy * p[1] / depth_m + camera.cy
+    W, H = camera.size
+    if not (-0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5):
+        return None
+    return float(u), float(v)
+
+
+def predicted_curves(result, checks, image, board) -> dict:
+    """Predicted camera curves of checks that carry none, from the calibration and the board's pose in
+    `image` (found with the session's board): {check index: (M, 2) camera px}. Empty when the board is not
+    found in the image."""
+    missing = [i for i, c in enumerate(checks) if c.predicted_curve is None or len(c.predicted_curve) < 2]
+    if not missing or image is None or board is None:
+        return {}
+    from app.verification import estimate_board_pose
+    from calib.epipolar import predicted_camera_curve
+
+    try:
+        T = estimate_board_pose(image, board, result)
+    except Exception:  # a frame the board detection cannot use: no predicted curves, the rest is drawn
+        return {}
+    if T is None:
+        return {}
+    out = {}
+    for i in missing:
+        try:
+            curve = predicted_camera_curve(result, checks[i].pixel, T)
+        except Exception:
+            continue
+        if len(curve) > 1:
+            out[i] = curve
+    return out

@@ -1,0 +1,215 @@
+"""What the panel shows of the results, and what leaves the browser: the calibration's parameters with
+their 1-sigma (or "fixed" for a given camera), distortion, the worst views, the session's files, the
+results zip the Download button sends, and the captures table with thumbnails.
+
+Pure functions of the session folder and its machine (no viser): the panel puts their text in place.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calib.errors import ProcamError
+
+#: The files the results zip carries, in this order, when they exist in the session folder.
+RESULT_FILES = ("calibration.json", "calibration.yaml", "verification.json", "report.html")
+REPORT_FILE = "report.html"
+REPORT_MISSING = "the report module is not installed"
+THUMB_WIDTH = 112
+
+
+def _pm(u: dict, group: str, key: str, digits: int = 2) -> str:
+    g = u.get(group) if isinstance(u, dict) else None
+    if not isinstance(g, dict):
+        return ""
+    if g.get("fixed"):
+        return " (fixed)"
+    v = g.get(key)
+    return f" ± {v:.{digits}f}" if isinstance(v, (int, float)) else ""
+
+
+def _dist_names(n: int) -> list[str]:
+    return ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][:n]
+
+
+def parameters_text(result, given_camera: bool = False) -> str:
+    """Intrinsics (px) with their 1-sigma, or "fixed" for a camera given by the operator, and the
+    distortion coefficients of both devices."""
+    u = result.uncertainty or {}
+    lines = ["| device | fx px | fy px | cx px | cy px |", "|---|---|---|---|---|"]
+    for name, cam in (("camera", result.camera), ("projector", result.projector)):
+        fixed = name == "camera" and given_camera
+        cells = []
+        for key, v in (("fx", cam.fx), ("fy", cam.fy), ("cx", cam.cx), ("cy", cam.cy)):
+            cells.append(f"{v:.2f} (fixed)" if fixed else f"{v:.2f}{_pm(u, name, key)}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append("**Distortion** (OpenCV order, unitless):")
+    lines.append("")
+    for name, cam in (("camera", result.camera), ("projector", result.projector)):
+        d = np.asarray(cam.dist, float).reshape(-1)
+        if d.size == 0:
+            lines.append(f"- {name}: none (pinhole)")
+            continue
+        g = u.get(name) if isinstance(u.get(name), dict) else {}
+        sd = g.get("dist") if isinstance(g.get("dist"), list) else None
+        fixed = (name == "camera" and given_camera) or bool(g.get("fixed"))
+        parts = []
+        for i, (k, v) in enumerate(zip(_dist_names(d.size), d)):
+            s = f"{k} {v:+.5f}"
+            if fixed:
+                pass
+            elif sd is not None and i < len(sd) and isinstance(sd[i], (int, float)) and sd[i] > 0:
+                s += f" ± {sd[i]:.5f}"
+            parts.append(s)
+        lines.append(f"- {name}{' (fixed)' if fixed else ''}: " + ", ".join(parts))
+    return "\n".join(lines)
+
+
+def worst_views_text(result, n: int = 5) -> str:
+    """The views with the largest reprojection RMS (diagnostics.worst_views, else per_view)."""
+    worst = (result.diagnostics or {}).get("worst_views")
+    if not isinstance(worst, list) or not worst:
+        pv = [p for p in result.per_view if isinstance(p, dict) and isinstance(p.get("rms_px"), (int, float))]
+        worst = sorted(pv, key=lambda p: -p["rms_px"])[:n]
+    rows = [w for w in worst if isinstance(w, dict) and isinstance(w.get("rms_px"), (int, float))][:n]
+    if not rows:
+        return "No per-view residuals in this calibration."
+    lines = ["| capture | step | RMS px |", "|---|---|---|"]
+    for w in rows:
+        lines.append(f"| {html.escape(str(w.get('capture_id', '?')))} | {html.escape(str(w.get('step', '')))} | "
+                     f"{w['rms_px']:.3f} |")
+    return "\n".join(lines)
+
+
+def check_passes(check, threshold_px: float, worst_factor: float) -> bool:
+    """One verified pixel passes when it was measured and its distance (projector px when the scale is
+    known, else camera px) is within the largest distance any single check may have (worst_factor x
+    the threshold, the report's rule for its worst check)."""
+    if not getattr(check, "ok", False):
+        return False
+    d = check.distance_proj_px if check.distance_proj_px is not None else check.distance_px
+    return d is not None and d <= worst_factor * threshold_px
+
+
+@dataclass(frozen=True)
+class FileEntry:
+    name: str
+    size_bytes: int
+
+
+def session_files(folder) -> list[FileEntry]:
+    """Every file of the session folder (captures summarised as one line by the caller)."""
+    folder = Path(folder)
+    out = []
+    try:
+        for p in sorted(folder.rglob("*")):
+            if p.is_file() and not p.is_symlink() and not p.name.startswith("."):  # not the folder's lock
+                out.append(FileEntry(str(p.relative_to(folder)), p.stat().st_size))
+    except OSError:
+        pass
+    return out
+
+
+def _size(n: int) -> str:
+    for unit in ("bytes", "kB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024.0
+    return str(n)
+
+
+def files_text(folder) -> str:
+    """The session folder and the files written in it (each capture folder as one line)."""
+    folder = Path(folder)
+    files = session_files(folder)
+    top = [f for f in files if "/" not in f.name]
+    groups: dict[str, list[FileEntry]] = {}
+    for f in files:
+        if "/" in f.name:
+            groups.setdefault(f.name.split("/", 1)[0], []).append(f)
+    lines = [f"Session folder: `{folder}`", ""]
+    for f in top:
+        lines.append(f"- `{f.name}` ({_size(f.size_bytes)})")
+    for g, fs in sorted(groups.items()):
+        lines.append(f"- `{g}/`: {len(fs)} files ({_size(sum(f.size_bytes for f in fs))})")
+    return "\n".join(lines)
+
+
+def write_report_if_available(folder) -> tuple[Path | None, str | None]:
+    """report.html through app.report.write_report when that module is installed: (path, None), or
+    (None, why not)."""
+    try:
+        from app.report import write_report
+    except ImportError:
+        return None, REPORT_MISSING
+    try:
+        return Path(write_report(Path(folder), Path(folder) / REPORT_FILE)), None
+    except ProcamError as e:
+        return None, str(e)
+    except OSError as e:
+        return None, f"cannot write the report: {e.strerror or e}"
+    except Exception as e:  # a bug in the report must not keep the results from leaving: said, not hidden
+        return None, f"the report failed ({type(e).__name__}: {e})"
+
+
+def results_zip(folder) -> tuple[bytes, list[str]]:
+    """A zip of the result files that exist in `folder` (RESULT_FILES): (bytes, names in it)."""
+    folder = Path(folder)
+    names = [n for n in RESULT_FILES if (folder / n).is_file()]
+    if "calibration.json" not in names:
+        raise ProcamError("there is no calibration.json in the session yet; calibrate first")
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for n in names:
+            z.write(folder / n, arcname=n)
+    return buf.getvalue(), names
+
+
+def thumbnail_data_url(path, width: int = THUMB_WIDTH) -> str | None:
+    """A small JPEG of a capture image as a data: URL (None when the file does not read)."""
+    img = cv2.imread(str(path), cv2.IMREAD_REDUCED_COLOR_4)
+    if img is None:
+        return None
+    h, w = img.shape[:2]
+    small = cv2.resize(img, (width, max(1, int(round(h * width / w)))), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 70])
+    return "data:image/jpeg;base64," + base64.b64encode(buf.tobytes()).decode() if ok else None
+
+
+def _pose_number(meta) -> str:
+    """The pose number a capture's metadata gives (1-based), or "?" for a malformed one (untrusted file)."""
+    k = meta.get("pose_index", 0) if isinstance(meta, dict) else None
+    return str(k + 1) if isinstance(k, int) and not isinstance(k, bool) else "?"
+
+
+def captures_html(captures, folder, per_view_rms: dict, thumbs: dict) -> str:
+    """Every capture, newest first, in a scrollable table with thumbnails (`thumbs`: capture id ->
+    data URL, filled here for the ones missing; the caller keeps the dict between calls)."""
+    caps = list(captures)
+    if not caps:
+        return "<p>No captures yet.</p>"
+    rows = []
+    for c in reversed(caps):
+        if c.id not in thumbs:
+            thumbs[c.id] = thumbnail_data_url(Path(folder) / c.image) if getattr(c, "image", None) else None
+        t = thumbs[c.id]
+        img = f"<img src='{t}' alt='{html.escape(c.id)}' style='width:{THUMB_WIDTH}px;display:block'>" if t else ""
+        pos = "" if c.pattern_position is None else str(c.pattern_position + 1)
+        rms = per_view_rms.get(c.id)
+        rms_s = f"{rms:.3f}" if isinstance(rms, (int, float)) else ""
+        rows.append(f"<tr><td>{img}</td><td>{html.escape(c.id)}<br><small>{html.escape(c.step)}</small></td>"
+                    f"<td>{pos}</td><td>{_pose_number(c.meta)}</td>"
+                    f"<td>{html.escape(str(c.meta.get('how', '')))}</td><td>{rms_s}</td></tr>")
+    head = ("<tr><th></th><th>capture</th><th>position</th><th>pose</th><th>how</th><th>RMS px</th></tr>")
+    return (f"<p>{len(caps)} captures (newest first)</p><div style='max-height:70vh;overflow-y:auto'>"
+            f"<table style='font-size:0.85em;border-collapse:collapse' cellpadding='3'>{head}{''.join(rows)}"
+            "</table></div>")
