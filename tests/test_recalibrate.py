@@ -47,3 +47,141 @@ def test_open_sim_rig_renders_the_bumped_rig_and_says_so():
         assert rig.camera.settings()["bump"] == "mirror"
     finally:
         rig.close()
+
+
+# ---- the check, the re-estimate, the comparison (exact geometry + Gaussian noise, no rendering) ----
+from functools import lru_cache  # noqa: E402
+
+from calib.recalib import (  # noqa: E402
+    check_rig, compare_calibrations, merge_observations, previous_covariance, projection_difference, reestimate, targets_from,
+)
+from calib.synthetic import SyntheticSession, observe  # noqa: E402
+
+NOISE_PX = 0.1
+
+
+def _session(sc, n_projector: int, n_mirror: int, seed: int) -> SyntheticSession:
+    pp = sc.projector_poses[::max(1, len(sc.projector_poses) // max(n_projector, 1))][:n_projector]
+    mp = sc.mirror_poses_for("real-virtual", n_mirror, seed=sc.seed + 50 + seed) if n_mirror else []
+    return SyntheticSession(sc.rig, sc.layout, sc.mirror_board, sc.pattern, pp, mp, "real-virtual")
+
+
+@lru_cache(maxsize=1)
+def previous():
+    """A full joint calibration of the unbumped rig (52 + 14 captures, 0.1 px noise), with its uncertainty."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _joint_helpers import perturbed
+
+    from calib.joint import JointOptions, refine_joint
+
+    sc = get_scenario("nonoverlap-136", 0)
+    obs = observe(_session(sc, 52, 14, 0), NOISE_PX, 1)
+    return refine_joint(obs, perturbed(sc.ground_truth()), JointOptions(camera_model="5coef", projector_model="5coef",
+                                                                                 pattern_model="point"))
+
+
+@lru_cache(maxsize=8)
+def check(part: str):
+    """The check on the rig bumped at `part`: 2 real-virtual mirror captures + 2 projector captures."""
+    b = bump_scenario(get_scenario("nonoverlap-136", 0), part, 0)
+    return b, check_rig(previous(), observe(_session(b, 2, 2, 0), NOISE_PX, 7))
+
+
+def test_previous_calibration_uncertainty_is_read_as_covariances():
+    prev = previous()
+    for part, k in (("camera", 4), ("mirror", 3), ("projector", 6)):
+        C = previous_covariance(prev, part)
+        assert C.shape == (k, k) and np.all(np.diag(C) > 0)
+    # the stored translation sigma is the projector block's translation part
+    C = previous_covariance(prev, "projector")
+    assert np.sqrt(np.trace(C[3:, 3:])) == pytest.approx(prev.uncertainty["T_cam_proj"]["t_total"], rel=1e-9)
+    assert targets_from(prev)["projector_t"] == pytest.approx(prev.uncertainty["T_cam_proj"]["t_total"])
+
+
+@pytest.mark.parametrize("part,moved", [("none", ()), ("projector", ("projector",)), ("mirror", ("mirror",)),
+                                        ("camera", ("camera",))])
+def test_check_names_the_part_that_moved_and_only_it(part, moved):
+    _, rep = check(part)
+    assert rep.moved == moved, {p: (c.status, c.mahalanobis2) for p, c in rep.parts.items()}
+    assert rep.verdict == ("unchanged" if not moved else "moved: " + ", ".join(moved))
+    for p, c in rep.parts.items():
+        assert c.captures >= 2 and c.threshold > 0
+        assert (c.mahalanobis2 > c.threshold) == (p in moved)
+
+
+def test_check_without_mirror_captures_says_the_mirror_was_not_checked():
+    b = bump_scenario(get_scenario("nonoverlap-136", 0), "none", 0)
+    rep = check_rig(previous(), observe(_session(b, 2, 0, 0), NOISE_PX, 7))
+    assert rep.parts["mirror"].status == "not checked" and rep.verdict == "incomplete"
+    assert "between camera and mirror" in rep.parts["mirror"].reason
+
+
+def _reestimated(part: str, n_projector: int, n_mirror: int):
+    """The check's captures and `n_projector` + `n_mirror` more, re-estimating what the check found moved."""
+    b, rep = check(part)
+    o1 = observe(_session(b, 2, 2, 0), NOISE_PX, 7)
+    o2 = observe(_session(b, n_projector, n_mirror, 1), NOISE_PX, 8)
+    re = reestimate(rep.current, merge_observations(o1, o2), rep.moved)
+    return b, rep, re
+
+
+def test_projector_reestimate_with_exact_held_parts_is_within_05mm_005deg():
+    """With the held parts exact (the unbumped truth carrying the previous calibration's uncertainty),
+    the re-estimated pose alone reaches the bumped truth; error from held parts is the next test's."""
+    b = bump_scenario(get_scenario("nonoverlap-136", 0), "projector", 0)
+    exact = get_scenario().ground_truth().with_(uncertainty=previous().uncertainty)
+    obs = merge_observations(observe(_session(b, 2, 2, 0), NOISE_PX, 7), observe(_session(b, 8, 0, 1), NOISE_PX, 8))
+    re = reestimate(exact, obs, ("projector",))
+    m = compare(re.result, b.ground_truth())
+    assert m.distance < 0.5 and m.angle_deg < 0.05, (m.distance, m.angle_deg)
+    assert m.cam_k_px == 0 and m.mirror_angle_deg == 0
+
+
+def test_projector_reestimate_holds_the_rest_and_reports_the_change():
+    b, rep, re = _reestimated("projector", 8, 0)
+    m0 = compare(previous(), get_scenario().ground_truth())  # the previous calibration's own error
+    m = compare(re.result, b.ground_truth())
+    assert m.distance < m0.distance + 0.5 and m.angle_deg < m0.angle_deg + 0.05
+    assert re.parts == ("projector",) and re.reached, re.missing
+    # held parts are the previous calibration's, bit for bit
+    assert np.array_equal(re.result.camera.K, previous().camera.K)
+    assert np.array_equal(re.result.mirror.normal, previous().mirror.normal)
+    cmp = compare_calibrations(previous(), re.result, re.sigma)
+    true_shift = np.linalg.norm(b.rig.T_cam_proj[:3, 3] - get_scenario().rig.T_cam_proj[:3, 3])
+    assert cmp["projector"]["position_change_mm"] == pytest.approx(true_shift, abs=1.0)
+    assert cmp["projector"]["rotation_change_deg"] == pytest.approx(1.0, abs=0.1)
+    assert cmp["projector"]["position_sigma_mm"] > 0
+    assert cmp["mirror"]["normal_change_deg"] == 0 and cmp["camera"]["projection_difference"]["max_px"] < 1e-9
+
+
+def test_mirror_reestimate_normal_within_005_deg():
+    b, rep, re = _reestimated("mirror", 0, 4)
+    m = compare(re.result, b.ground_truth())
+    assert m.mirror_angle_deg < 0.05 and re.parts == ("mirror",)
+    cmp = compare_calibrations(previous(), re.result, re.sigma)
+    assert cmp["mirror"]["normal_change_deg"] == pytest.approx(0.5, abs=0.06)
+
+
+def test_camera_reestimate_recovers_the_focal_length():
+    b, rep, re = _reestimated("camera", 4, 4)
+    true_fx = b.ground_truth().camera.fx
+    assert abs(re.result.camera.fx - true_fx) < 0.5 < abs(previous().camera.fx - true_fx)
+    cmp = compare_calibrations(previous(), re.result, re.sigma)
+    assert cmp["camera"]["fx_change_px"] == pytest.approx(true_fx - previous().camera.fx, abs=0.5)
+    assert cmp["camera"]["projection_difference"]["max_px"] > 2.0
+
+
+def test_projection_difference_of_a_focal_change_is_its_radial_scale():
+    cam = get_scenario().rig.camera
+    K = np.array(cam.K)
+    K[0, 0] *= 1.005
+    K[1, 1] *= 1.005
+    pd = projection_difference(cam, cam.with_params(K=K), grid=(5, 4))
+    w, h = cam.size
+    xs, ys = np.linspace(0.05 * w, 0.95 * w, 5), np.linspace(0.05 * h, 0.95 * h, 4)
+    expect = np.array([[0.005 * np.hypot(x - cam.cx, y - cam.cy) for x in xs] for y in ys])
+    assert np.allclose(pd["px"], expect, atol=1e-3)
+    assert pd["max_px"] == pytest.approx(expect.max(), abs=1e-3)
