@@ -216,7 +216,10 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         result.save_json(folder / "calibration.json")
         machine.result = result
     atomic_write_text(folder / RECALIBRATION_FILE, json.dumps(_jsonable(rec), indent=2) + "\n")
-    machine.extra_state["recalibration"] = {"verdict": report.verdict, "ok": ok}
+    machine.extra_state["recalibration"] = {"verdict": report.verdict, "ok": ok, "previous_sha256": digest}
+    settings = getattr(man.rig, "camera_settings", None) or {}
+    if settings.get("bump"):
+        machine.extra_state["recalibration"]["sim_bump"] = settings["bump"]
     machine._persist()
     return Outcome(rec, result, ok, message)
 

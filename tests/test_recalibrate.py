@@ -185,3 +185,77 @@ def test_projection_difference_of_a_focal_change_is_its_radial_scale():
     expect = np.array([[0.005 * np.hypot(x - cam.cx, y - cam.cy) for x in xs] for y in ys])
     assert np.allclose(pd["px"], expect, atol=1e-3)
     assert pd["max_px"] == pytest.approx(expect.max(), abs=1e-3)
+
+
+# ---- the archive and the command -----------------------------------------------------------------
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from calib.errors import SessionError  # noqa: E402
+
+
+def test_archive_copies_with_its_hash_and_never_overwrites(tmp_path):
+    from app.recalibration import archive_previous, find_previous
+    from calib.recalib import sha256_file
+
+    src_dir = tmp_path / "old"
+    src_dir.mkdir()
+    get_scenario().ground_truth().save_json(src_dir / "calibration.json")
+    src = find_previous(src_dir)  # a session folder is accepted
+    assert src == src_dir / "calibration.json" and find_previous(src) == src
+    out = tmp_path / "new"
+    dest, digest = archive_previous(src, out)
+    assert dest == out / "previous" / "calibration.json"
+    assert dest.read_bytes() == src.read_bytes() and digest == sha256_file(src)
+    before = dest.read_bytes()
+    other = tmp_path / "other.json"
+    bump_scenario(get_scenario(), "projector", 0).ground_truth().save_json(other)
+    with pytest.raises(SessionError, match="never overwrites"):
+        archive_previous(other, out)
+    assert dest.read_bytes() == before
+    with pytest.raises(SessionError, match="no previous calibration"):
+        find_previous(tmp_path / "missing")
+
+
+def _procam(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "app", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_recalibrate_refuses_a_missing_previous_and_a_used_folder(tmp_path):
+    r = _procam("recalibrate", str(tmp_path / "nope"), "--rig", "sim", "--auto", "--out", str(tmp_path / "d"))
+    assert r.returncode == 2 and "no previous calibration" in r.stderr and not (tmp_path / "d").exists()
+    get_scenario().ground_truth().save_json(tmp_path / "c.json")
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "keep.txt").write_text("x")
+    r = _procam("recalibrate", str(tmp_path / "c.json"), "--rig", "sim", "--auto", "--out", str(used))
+    assert r.returncode == 2 and "not empty" in r.stderr and sorted(p.name for p in used.iterdir()) == ["keep.txt"]
+
+
+@pytest.mark.slow
+def test_recalibrate_after_a_projector_bump_end_to_end(tmp_path):
+    """A full simulated session, then `procam recalibrate --sim-bump projector` on it."""
+    from calib.result import CalibrationResult
+    from calib.recalib import sha256_file
+
+    full = tmp_path / "full"
+    r = _procam("session", "--rig", "sim", "--auto", "--out", str(full))
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    prev_bytes = (full / "calibration.json").read_bytes()
+    d = tmp_path / "recal"
+    r = _procam("recalibrate", str(full), "--rig", "sim", "--auto", "--sim-bump", "projector", "--out", str(d))
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    rec = json.loads((d / "recalibration.json").read_text())
+    parts = rec["check"]["parts"]
+    assert parts["projector"]["status"] == "moved"
+    assert parts["mirror"]["status"] == "unchanged" and parts["camera"]["status"] == "unchanged"
+    assert rec["captures"]["total"] <= 12
+    assert rec["previous"]["sha256"] == sha256_file(full / "calibration.json")
+    assert (d / "previous" / "calibration.json").read_bytes() == prev_bytes == (full / "calibration.json").read_bytes()
+    res, gt = CalibrationResult.load_json(d / "calibration.json"), CalibrationResult.load_json(d / "ground_truth.json")
+    m = compare(res, gt)
+    assert m.distance < 0.5 and m.angle_deg < 0.05
+    assert json.loads((d / "session.json").read_text())["state"]["recalibration"]["sim_bump"] == "projector"
+    assert rec["comparison"]["projector"]["rotation_change_deg"] == pytest.approx(1.0, abs=0.05)
