@@ -212,7 +212,7 @@ class Fit:
     result: CalibrationResult
     variance_factor: float
     n_views: int
-    rms_px: float
+    rms_whitened: float  # RMS of the whitened residuals (~1 when the noise model fits)
 
 
 def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tuple[str, ...], use: str) -> Fit:
@@ -270,8 +270,7 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
         cov[p] = cov_all[i:i + k, i:i + k]
         i += k
     result = model.apply(blocks)
-    # rms in pixels (unwhitened), for the record
-    rms = float(np.sqrt(np.mean(r**2))) * sig["board"]
+    rms = float(np.sqrt(np.mean(r**2)))
     return Fit(model.free, {p: np.asarray(blocks[p]) for p in model.free}, cov, result, s2, len(views), rms)
 
 

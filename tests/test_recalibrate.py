@@ -174,6 +174,14 @@ def test_camera_reestimate_recovers_the_focal_length():
     assert cmp["camera"]["projection_difference"]["max_px"] > 2.0
 
 
+def test_reestimate_says_which_target_is_not_reached_yet():
+    b, rep = check("camera")
+    re = reestimate(rep.current, observe(_session(b, 2, 2, 0), NOISE_PX, 7), rep.moved)
+    target = targets_from(previous())["camera_f_px"]
+    assert max(re.sigma["camera"]["fx_px"], re.sigma["camera"]["fy_px"]) > target
+    assert not re.reached and len(re.missing) == 1 and "camera focal length 1-sigma" in re.missing[0]
+
+
 def test_projection_difference_of_a_focal_change_is_its_radial_scale():
     cam = get_scenario().rig.camera
     K = np.array(cam.K)
