@@ -125,9 +125,18 @@ class Outcome:
     message: str
 
 
+def _verification_summary(report) -> dict:
+    return {"passed": bool(report.passed), "mean_proj_px": report.mean_proj_px, "mean_px": report.mean_px,
+            "threshold_px": report.threshold_px, "measured": report.n_measured}
+
+
 def run_recalibration(previous_path, station: Station, machine: RecalibrationMachine, log=print,
-                      max_captures: int = DEFAULT_MAX_CAPTURES, workers: int = 2) -> Outcome:
-    """Check, re-measure what moved, compare. The station and machine are those of a new session."""
+                      max_captures: int = DEFAULT_MAX_CAPTURES, workers: int = 2, verify=None) -> Outcome:
+    """Check, re-measure what moved, compare. The station and machine are those of a new session.
+    `verify(result, final)` (optional): the epipolar verification of a calibration on the rig; the
+    previous calibration is verified during the check (evidence recorded; a failure with an
+    "unchanged" verdict is an inconsistency, not a sign-off), the recalibrated one at the end
+    (final=True: its report is the session's verification.json; a failure fails the recalibration)."""
     from calib.detect import detect_session
     from calib.recalib import (
         RecalibrationRecord, check_rig, compare_calibrations, reestimate,
@@ -175,7 +184,16 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     comparison = None
     ok, message = True, report.verdict
     result = previous
-    if report.verdict == "incomplete":
+    verification = {}
+    if verify is not None:
+        v = verify(previous, False)
+        verification["previous"] = _verification_summary(v)
+        log(f"epipolar verification of the previous calibration: {'passed' if v.passed else 'FAILED'} "
+            f"(mean {v.mean_proj_px if v.mean_proj_px is not None else float('nan'):.2f} projector px)")
+    if report.verdict == "unchanged" and verification.get("previous", {}).get("passed") is False:
+        ok, message = False, ("the captures say nothing moved but the epipolar verification of the previous "
+                              "calibration fails: something the check does not model changed; run a full session")
+    elif report.verdict == "incomplete":
         ok, message = False, "the check could not test every part: " + "; ".join(
             f"{p}: {c.reason}" for p, c in report.parts.items() if c.status == "not checked")
     elif report.moved:
@@ -203,6 +221,15 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     diag = dict(result.diagnostics) if isinstance(result.diagnostics, dict) else {}
     diag["recalibration"] = {"verdict": report.verdict, "previous_sha256": digest}
     result = result.with_(diagnostics=diag, method=result.method if not report.moved else "recalibration")
+    if ok:
+        result.save_json(folder / "calibration.json")  # before verifying: the report records its hash
+        machine.result = result
+        if verify is not None and report.moved:
+            v = verify(result, True)
+            verification["recalibrated"] = _verification_summary(v)
+            log(f"epipolar verification of the recalibration: {'passed' if v.passed else 'FAILED'}")
+            if not v.passed:
+                ok, message = False, f"{message}; but the epipolar verification of the result fails"
     n_caps = len(machine.manifest.captures)
     counts = machine.counts()
     rec = RecalibrationRecord(str(src.resolve()), digest, str(archived.relative_to(folder)), report, re, comparison,
@@ -210,11 +237,9 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
                                "check": n_check, "elapsed_s": round(time.monotonic() - t0, 2)}).to_dict()
     rec["ok"] = ok
     rec["message"] = message
+    rec["verification"] = verification or None
     from calib.result import _jsonable
 
-    if ok:
-        result.save_json(folder / "calibration.json")
-        machine.result = result
     atomic_write_text(folder / RECALIBRATION_FILE, json.dumps(_jsonable(rec), indent=2) + "\n")
     machine.extra_state["recalibration"] = {"verdict": report.verdict, "ok": ok, "previous_sha256": digest}
     settings = getattr(man.rig, "camera_settings", None) or {}

@@ -267,3 +267,7 @@ def test_recalibrate_after_a_projector_bump_end_to_end(tmp_path):
     assert m.distance < 0.5 and m.angle_deg < 0.05
     assert json.loads((d / "session.json").read_text())["state"]["recalibration"]["sim_bump"] == "projector"
     assert rec["comparison"]["projector"]["rotation_change_deg"] == pytest.approx(1.0, abs=0.05)
+    # the epipolar verification: the previous calibration fails on the bumped rig, the recalibrated one passes
+    assert rec["verification"]["previous"]["passed"] is False
+    assert rec["verification"]["recalibrated"]["passed"] is True
+    assert json.loads((d / "verification.json").read_text())["passed"] is True

@@ -81,8 +81,19 @@ def run(args) -> int:
             nonlocal outcome
             from app.recalibration import run_recalibration
 
+            from app.station.setup import make_verify_fn
+
+            final_fn = make_verify_fn(rig, folder)
+
+            def verify(result, final):
+                if final:
+                    return final_fn(result)
+                from app.verification import verify as check
+
+                return check(rig.camera, rig.projector, rig.operator, result)
+
             outcome = run_recalibration(args.previous, station, machine, log=log, max_captures=max_caps,
-                                        workers=args.workers)
+                                        workers=args.workers, verify=verify if final_fn is not None else None)
 
         run_on_rig(rig, work)
     finally:
@@ -101,6 +112,8 @@ def summary(rec: dict, folder, elapsed_s: float) -> str:
              f"{rec['captures']['mirror']}, projector {rec['captures']['projector']})"]
     for p, c in rec["check"]["parts"].items():
         lines.append(f"  check {p}: {c['status']}")
+    for k, v in (rec.get("verification") or {}).items():
+        lines.append(f"  epipolar verification of the {k} calibration: {'passed' if v['passed'] else 'FAILED'}")
     cmp = rec.get("comparison")
     if cmp:
         u = cmp["units"]
