@@ -7,7 +7,7 @@ One least-squares adjustment over everything the images constrain (docs/JOINT.md
 * every board pose in the REAL camera frame (T_cam_board; a board lying on the mirror has 3 DOF),
 * T_cam_proj.
 
-Observations, all in camera pixels (where the noise is), with the exact models of GEOMETRY.md:
+Observations, all in camera pixels (where the noise is), with the exact models of docs/GEOMETRY.md:
 
 * ChArUco corners through the mirror: u = project_cam(S T_cam_board X);
 * projected pattern points through the mirror: projector pixel q -> undistorted ray -> T_cam_proj ->

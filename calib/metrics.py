@@ -21,7 +21,7 @@ from calib.result import CalibrationResult
 from calib.transforms import rotation_angle_deg
 
 #: The paper's headline numbers on its synthetic scenes (circle grid, non-overlapping fields of view,
-#: estimated camera, real-virtual mirror calibration), from GEOMETRY.md. Lengths in millimetres.
+#: estimated camera, real-virtual mirror calibration), from docs/GEOMETRY.md. Lengths in millimetres.
 PAPER_HEADLINE = {
     "distance": 3.2,  # mm
     "angle_deg": 0.18,
