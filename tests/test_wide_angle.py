@@ -77,7 +77,7 @@ def test_coverage_criterion_drops_the_unconstrained_k3(seed):
     assert "coverage criterion" in ms["reason"]
     cands = {c["model"]: c for c in ms["coverage"]["candidates"]}
     assert cands["5coef"]["var_px2"] > 1.2 * cands["4coef"]["var_px2"]  # k3 is not constrained over the image
-    assert cands["k1k2"]["mse_px2"] > 10 * cands["4coef"]["mse_px2"]  # the tangential terms are
+    assert set(cands) == {"4coef", "5coef"}  # only the highest radial order is weighed
     without = calibrate_observations(obs, "joint", method_options={"coverage": False})
     assert without.diagnostics["model_selection"]["camera"]["chosen"] == "5coef"
     err = distortion_error_over_image(r.camera, true)
