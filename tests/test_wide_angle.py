@@ -92,3 +92,16 @@ def test_a_constrained_k3_is_kept():
     assert ms["chosen"] == "5coef"
     cands = {c["model"]: c for c in ms["coverage"]["candidates"]}
     assert cands["4coef"]["mse_px2"] > 10 * cands["5coef"]["mse_px2"]
+
+
+def test_accuracy_table_has_the_distortion_error_over_the_image():
+    from app.commands.bench import accuracy_table
+
+    metrics = {k: 0.0 for k in ("distance", "angle_deg", "proj_k_px", "proj_d", "cam_k_px", "cam_d", "mirror_offset",
+                                "mirror_angle_deg", "proj_rms_px")}
+    metrics.update(cam_dist_img_px=0.123, proj_dist_img_px=0.045)
+    run = {"scenario": NAME, "seed": 0, "method": "joint", "skipped": 0, "metrics": metrics, "timing_s": {"total": 1.0}}
+    table = accuracy_table([run], 1)
+    head, row = table.splitlines()[0], next(line for line in table.splitlines() if line.startswith(NAME))
+    assert "CamDimg px" in head and "ProjDimg px" in head
+    assert "0.123" in row and "0.045" in row
