@@ -2,9 +2,11 @@
 the image and the coverage of the reported projection uncertainty, per seed.
 
     python benchmarks/wide_angle.py [--seeds 10] [--noise 0.05] [--scenario wideangle-realmirror]
+    python benchmarks/wide_angle.py --sessions DIR    # rendered sessions (procam bench accuracy --keep DIR)
 
 Observations are exact-geometry synthetic ones (calib.synthetic.observe: circle centroids, Gaussian noise
-of --noise px), not rendered images. Columns (px): the distortion error over the image (mean distance between
+of --noise px), or, with --sessions, detected in every rendered session folder under DIR (its
+ground_truth.json is the truth). Columns (px): the distortion error over the image (mean distance between
 where the estimated and the true distortion put the same ray, both with the true K) of the joint method
 with the coverage criterion (joint), without it (joint-bic), the paper method, and OpenCV's calibrateCamera
 of the same board views with 5 coefficients (cv-5) and with k3 fixed at 0 (cv-k3fix); the camera model
@@ -69,15 +71,32 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--noise", type=float, default=0.05)
     ap.add_argument("--scenario", default="wideangle-realmirror")
+    ap.add_argument("--sessions", default=None, help="calibrate the rendered session folders under this folder")
     args = ap.parse_args()
     cols = ["seed", "joint", "joint-bic", "paper", "cv-5", "cv-k3fix", "model", "proj<=1s", "proj<=2.15s",
             "dist<=1s", "dist<=2.15s"]
-    print(f"{args.scenario}, synthetic observations, noise {args.noise} px; distortion error over the image (px)")
+    if args.sessions:
+        from calib.detect import detect_session
+        from calib.result import CalibrationResult
+        from calib.session import SessionStore
+
+        folders = sorted(f for f in Path(args.sessions).iterdir() if (f / "session.json").exists())
+        print(f"rendered sessions under {args.sessions}; distortion error over the image (px)")
+
+        def sessions():
+            for f in folders:
+                gt = CalibrationResult.load_json(f / "ground_truth.json")
+                yield f.name, gt.camera, detect_session(SessionStore.open(f), 1, cache="use")
+    else:
+        print(f"{args.scenario}, synthetic observations, noise {args.noise} px; distortion error over the image (px)")
+
+        def sessions():
+            for seed in range(args.seeds):
+                sc, obs = scenario_observations(args.scenario, seed, args.noise)
+                yield str(seed), sc.rig.camera, obs
     print(" | ".join(cols))
     rows = []
-    for seed in range(args.seeds):
-        sc, obs = scenario_observations(args.scenario, seed, args.noise)
-        true = sc.rig.camera
+    for seed, true, obs in sessions():
         vals = []
         for method, opts in (("joint", {}), ("joint", {"coverage": False}), ("paper", None)):
             try:
