@@ -82,8 +82,8 @@ class Plan:
     min_real_virtual: int = 3
     # real-mirror: at least 3 placements of the board on the mirror (each capture a new place and angle).
     # One placement leaves the mirror normal to a single board's tilt: on the simulator (10 seeds,
-    # benchmarks/real_mirror_placements.py) the joint's mirror normal error is 0.067 deg with 1 placement,
-    # 0.043 with 3, 0.042 with 5, 0.033 with 14 (its 1-sigma 0.041, 0.025, 0.022, 0.018 deg).
+    # benchmarks/real_mirror_placements.py) the joint's mirror normal error is 0.043 deg with 1 placement,
+    # 0.032 with 3, 0.030 with 5, 0.022 with 14 (its 1-sigma 0.043, 0.026, 0.024, 0.019 deg).
     min_real_mirror: int = 3
     min_projector_captures: int = 6
 
