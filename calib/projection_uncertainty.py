@@ -168,23 +168,37 @@ def projection_uncertainty(result, grid=GRID) -> dict | None:
             "projector": device_grid(result.projector, cov, names, "proj", grid)}
 
 
-def large_regions(dev: dict) -> list[str]:
-    """Where a device grid's sigma exceeds the threshold, in words: the image corners and edges that do
-    (e.g. ["top-left corner", "right edge"]), or ["centre"]."""
-    s = dev.get("sigma_px")
-    if s is None:
-        return []
-    s = np.asarray(s, float)
-    ny, nx = s.shape
-    big = s > LARGE_SIGMA_PX
-    if not big.any():
-        return []
+def _parts(big: np.ndarray) -> dict:
+    ny, nx = big.shape
     tx, ty = max(nx // 4, 1), max(ny // 4, 1)
     parts = {"top-left corner": big[:ty, :tx], "top-right corner": big[:ty, -tx:],
              "bottom-left corner": big[-ty:, :tx], "bottom-right corner": big[-ty:, -tx:],
              "top edge": big[:ty, tx:-tx], "bottom edge": big[-ty:, tx:-tx],
              "left edge": big[ty:-ty, :tx], "right edge": big[ty:-ty, -tx:], "centre": big[ty:-ty, tx:-tx]}
-    return [name for name, m in parts.items() if m.size and m.any()]
+    return parts
+
+
+def large_regions(dev: dict, threshold_px: float = LARGE_SIGMA_PX) -> list[str]:
+    """Where a device grid's sigma exceeds the threshold, in words: the image corners and edges that do
+    (e.g. ["top-left corner", "right edge"]), or ["centre"]."""
+    s = dev.get("sigma_px")
+    if s is None:
+        return []
+    big = np.asarray(s, float) > threshold_px
+    if not big.any():
+        return []
+    return [name for name, m in _parts(big).items() if m.size and m.any()]
+
+
+def where_max(dev: dict) -> str | None:
+    """The part of the image (corner, edge or centre) where a device grid's sigma is largest."""
+    s = dev.get("sigma_px")
+    if s is None:
+        return None
+    s = np.asarray(s, float)
+    at = np.zeros(s.shape, bool)
+    at[np.unravel_index(int(np.argmax(s)), s.shape)] = True
+    return next((name for name, m in _parts(at).items() if m.size and m.any()), None)
 
 
 def summary_line(pu: dict | None, device: str) -> str | None:
@@ -195,7 +209,7 @@ def summary_line(pu: dict | None, device: str) -> str | None:
     if dev.get("fixed") or dev.get("sigma_px") is None:
         return f"{device} projection uncertainty: held fixed (given intrinsics)"
     line = (f"{device} projection uncertainty (1 sigma over the image): median {dev['median_px']:.3f} px, "
-            f"max {dev['max_px']:.3f} px")
+            f"max {dev['max_px']:.3f} px ({where_max(dev)})")
     where = large_regions(dev)
     if where:
         line += (f"; LARGE (> {LARGE_SIGMA_PX:g} px) over {100 * dev['large_fraction']:.0f}% of the image: "

@@ -80,7 +80,9 @@ def test_large_in_the_corners_without_data_and_said_so():
     assert np.all(corners > 4 * centre), (corners, centre)
     assert corners.max() > PU.LARGE_SIGMA_PX and g["large_fraction"] > 0
     line = PU.summary_line(r.projection_uncertainty, "camera")
-    assert "LARGE" in line and "corner" in line
+    assert "LARGE" in line and "corner" in line and PU.where_max(g).endswith("corner")
+    # a grid large only at its centre says "centre"
+    assert PU.large_regions({"sigma_px": [[0, 0, 0, 0], [0, 0.9, 0.9, 0], [0, 0.9, 0.9, 0], [0, 0, 0, 0]]}) == ["centre"]
     from app.commands.calibrate import format_summary
 
     assert line in format_summary(r)
