@@ -9,7 +9,7 @@ The default session is the paper's protocol on the nonoverlap-136 scenario (driv
 the published ProcamCalib recordings (52 + 14). It is rendered into --work (default
 /tmp/procam_bench_detect) on first use. When the folder has the simulator's scene.json, detected points
 are compared with the exact projections (board corners; pattern centres include the circle-centre bias
-of GEOMETRY.md, so that column is not a detection error alone).
+of docs/GEOMETRY.md, so that column is not a detection error alone).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Board poses from ChArUco corners, for direct views and views through the mirror.
 
 A board seen through the mirror is imaged exactly like a rigid view of the MIRRORED board
-(GEOMETRY.md): u = project(K, S T X) = project(K, (S T F_b)(F_b X)) with F_b = diag(-1, 1, 1), and
+(docs/GEOMETRY.md): u = project(K, S T X) = project(K, (S T F_b)(F_b X)) with F_b = diag(-1, 1, 1), and
 S T F_b is a proper rigid transform. So a mirrored observation is solved like a direct one with object
 points (-x, y, 0) and the original pixel coordinates; the pose found is that of the *virtual* board,
 `T_cam_vboard = S @ T_cam_board @ F_b`, in the frame of the mirrored board. With a known mirror the

@@ -81,7 +81,7 @@ class CameraModel:
 
     # ---- mirrored views ---------------------------------------------------------------------------
     def flipped(self) -> "CameraModel":
-        """The model of the horizontally flipped image (GEOMETRY.md): cx' = (W-1) - cx, p2' = -p2.
+        """The model of the horizontally flipped image (docs/GEOMETRY.md): cx' = (W-1) - cx, p2' = -p2.
 
         Radial terms are unchanged. Flipping twice gives the original model back."""
         K = np.array(self.K)

@@ -2,7 +2,7 @@
 
 A circle drawn in the projector image lands on the board as an ellipse and is imaged (through the
 mirror) as another ellipse. Its area centroid, which is what a blob detector measures, is not the
-image of the circle's centre (GEOMETRY.md, "Circles are not points"). Two ways to model it:
+image of the circle's centre (docs/GEOMETRY.md, "Circles are not points"). Two ways to model it:
 
 * `ellipse_image_centre`: the exact centre of the image of an ellipse under a 3x3 projective map,
   through the dual conic (C* -> M C* M^T, centre = C* e3). With no lens distortion between the

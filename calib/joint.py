@@ -7,7 +7,7 @@ One least-squares adjustment over everything the images constrain (docs/JOINT.md
 * every board pose in the REAL camera frame (T_cam_board; a board lying on the mirror has 3 DOF),
 * T_cam_proj.
 
-Observations, all in camera pixels (where the noise is), with the exact models of GEOMETRY.md:
+Observations, all in camera pixels (where the noise is), with the exact models of docs/GEOMETRY.md:
 
 * ChArUco corners through the mirror: u = project_cam(S T_cam_board X);
 * projected pattern points through the mirror: projector pixel q -> undistorted ray -> T_cam_proj ->
@@ -42,6 +42,7 @@ from calib.errors import CalibrationError, UntrustedCalibration
 from calib.joint_solver import DIST_MODELS, MODEL_NAMES, _RowSums, solve
 from calib.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
 from calib.paper import calibrate_paper
+from calib.projection_uncertainty import projection_uncertainty
 from calib.result import CalibrationResult, MirrorPlane
 from calib.transforms import FLIP_X, make_T
 from calib.trust import TrustReason, check_calibration
@@ -69,7 +70,9 @@ class JointOptions:
     correction for the lenses' curvature across a blob. tol: a solve stops when a step lowers the
     cost by less than this fraction (1e-7 of a whitened cost ~N moves the parameters by a few
     hundredths of a sigma, and the Gauss-Newton step after it by far less: results agree with
-    tol=1e-9 to 1e-7 sigma, one Jacobian fewer per solve)."""
+    tol=1e-9 to 1e-7 sigma, one Jacobian fewer per solve). coverage: after the BIC / LRT choice, step a
+    device's model down when the coefficients it drops are not constrained where the image is used
+    (calib.model_select: the mean squared projection error over the image, bias + variance)."""
 
     camera_model: str = "auto"
     projector_model: str = "auto"
@@ -87,6 +90,7 @@ class JointOptions:
     solver: str = "lm"
     fix_camera: bool = False
     weighting: str = "class"
+    coverage: bool = True
 
 
 # ==================================================================================================
@@ -868,6 +872,8 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     tick("joint.uncertainty", t0)
 
     result = _make_result(obs, init, prob, x, rejected, left_out, selection, unc, solves, timing)
+    if unc is not None:  # the 1-sigma pixel motion over each device's image (calib.projection_uncertainty)
+        result = result.with_(projection_uncertainty=projection_uncertainty(result))
     timing["joint.total"] = round(time.perf_counter() - t_start, 4)
     return result
 

@@ -21,10 +21,14 @@ DIST_MODELS = {
     "none": (),
     "k1": (0,),
     "k1k2": (0, 1),
+    "4coef": (0, 1, 2, 3),
     "5coef": (0, 1, 2, 3, 4),
     "rational": (0, 1, 2, 3, 4, 5, 6, 7),
 }
 MODEL_NAMES = tuple(DIST_MODELS)
+#: the candidates of the BIC / LRT selection (calib.model_select); "4coef" (k1, k2, p1, p2: OpenCV's
+#: CALIB_FIX_K3) is reached only by the coverage criterion, which steps down from a model with k3
+SELECTION_MODELS = ("none", "k1", "k1k2", "5coef", "rational")
 
 
 def _loss_cost_weights(r: np.ndarray, loss: str, f: float) -> tuple[float, np.ndarray]:

@@ -17,11 +17,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from calib.camera import CameraModel
 from calib.result import CalibrationResult
 from calib.transforms import rotation_angle_deg
 
 #: The paper's headline numbers on its synthetic scenes (circle grid, non-overlapping fields of view,
-#: estimated camera, real-virtual mirror calibration), from GEOMETRY.md. Lengths in millimetres.
+#: estimated camera, real-virtual mirror calibration), from docs/GEOMETRY.md. Lengths in millimetres.
 PAPER_HEADLINE = {
     "distance": 3.2,  # mm
     "angle_deg": 0.18,
@@ -86,6 +87,22 @@ def dist_diff(a: np.ndarray, b: np.ndarray) -> float:
     b = np.asarray(b, float).reshape(-1)
     n = max(a.size, b.size)
     return float(np.linalg.norm(np.pad(a, (0, n - a.size)) - np.pad(b, (0, n - b.size))))
+
+
+def distortion_error_over_image(estimated: CameraModel, true: CameraModel, grid=(32, 18)) -> float:
+    """Mean distance (px) between where the estimated and the true distortion put the same ray, over a
+    grid of cell centres covering the image, both with the true K (so that only the distortion is
+    compared). The rays are the true model's rays through the grid pixels. A ray the estimated model
+    cannot project (beyond its valid radius) counts as the image diagonal."""
+    nx, ny = int(grid[0]), int(grid[1])
+    xs = (np.arange(nx) + 0.5) * true.width / nx - 0.5
+    ys = (np.arange(ny) + 0.5) * true.height / ny - 0.5
+    X, Y = np.meshgrid(xs, ys)
+    uv = np.column_stack([X.ravel(), Y.ravel()])
+    rays = true.rays(uv)
+    est = true.with_params(dist=np.asarray(estimated.dist, float))
+    e = np.linalg.norm(est.project(rays) - true.project(rays), axis=1)
+    return float(np.where(np.isfinite(e), e, float(np.hypot(true.width, true.height))).mean())
 
 
 def compare(result: CalibrationResult, ground_truth: CalibrationResult) -> PaperMetrics:

@@ -23,6 +23,13 @@ minimum of that quadratic model with the coefficients the candidate does not hav
 Wald test for simpler models, a score test for the rational one; exact for a linear problem). The
 chosen pair is then fitted for real (full nonlinear adjustment) and the test repeated on the actual
 RSS; if it no longer holds, the 5-coefficient model is kept. A model forced by the user is kept.
+
+Coverage (options.coverage, the default): the residuals only judge a coefficient where there are
+observations. After the BIC / LRT choice, a model with k3 is weighed again over the whole image
+(coverage_choice: estimated mean squared projection error, bias + variance, from the same quadratic
+model) against the same model without its highest radial orders ("4coef" = k1 k2 p1 p2, OpenCV's
+CALIB_FIX_K3); the simpler one replaces it when it is predicted at least 10% better. Such a choice is
+refitted for real and kept (the BIC confirmation would undo it). docs/JOINT.md has the measurements.
 """
 
 from __future__ import annotations
@@ -32,7 +39,9 @@ import math
 
 import numpy as np
 
-from calib.joint_solver import DIST_MODELS, MODEL_NAMES, normal_blocks, solve
+from calib.camera import CameraModel
+from calib.joint_solver import DIST_MODELS, SELECTION_MODELS, normal_blocks, solve
+from calib.projection_uncertainty import grid_pixels, motion_fields
 
 
 def chi2_sf(x: float, k: int) -> float:
@@ -78,8 +87,9 @@ def _reduced_system(prob, x):
     return S, g, float(r @ r), r.size
 
 
-def _quadratic_rss(S, g, rss0, theta0, constrained):
-    """Minimum of rss0 + 2 g.D + D^T S D with D_c = -theta0_c for the constrained indices c."""
+def _quadratic_solution(S, g, rss0, theta0, constrained):
+    """(minimum, minimiser D) of rss0 + 2 g.D + D^T S D with D_c = -theta0_c for the constrained
+    indices c."""
     n = len(g)
     c = np.asarray(sorted(constrained), int)
     f = np.setdiff1d(np.arange(n), c)
@@ -89,7 +99,101 @@ def _quadratic_rss(S, g, rss0, theta0, constrained):
     Sff = S[np.ix_(f, f)] / s[:, None] / s[None, :]
     df = -np.linalg.lstsq(Sff, gf / s, rcond=1e-13)[0] / s
     val = rss0 + 2 * g[c] @ dc + dc @ S[np.ix_(c, c)] @ dc + gf @ df
-    return float(max(val, 0.0))
+    D = np.zeros(n)
+    D[c], D[f] = dc, df
+    return float(max(val, 0.0)), D
+
+
+def _quadratic_rss(S, g, rss0, theta0, constrained):
+    """Minimum of rss0 + 2 g.D + D^T S D with D_c = -theta0_c for the constrained indices c."""
+    return _quadratic_solution(S, g, rss0, theta0, constrained)[0]
+
+
+#: grid over which the coverage criterion averages the projection error
+COVERAGE_GRID = (32, 18)
+#: the models the coverage criterion weighs, by the model the BIC / LRT chose
+COVERAGE_CANDIDATES = {"5coef": ("4coef", "5coef"), "rational": ("4coef", "5coef", "rational")}
+#: a simpler model replaces the chosen one only when its estimated error over the image is lower by this
+#: fraction: the bias estimate is itself noisy, and a smaller difference is a coin toss (measured: a true
+#: projector k3 of 0.08 seen over the whole image ties within 0.2%; the wide-angle corner-poor camera's k3
+#: costs 24-96%)
+COVERAGE_MARGIN = 0.10
+
+
+def _free_covariance(S, free: np.ndarray, sigma2: float) -> np.ndarray:
+    """sigma^2 (S_ff)^-1 of the free global parameters (Jacobi-scaled for conditioning)."""
+    s = np.sqrt(np.clip(np.diag(S)[free], 1e-300, None))
+    Sff = S[np.ix_(free, free)] / s[:, None] / s[None, :]
+    return sigma2 * np.linalg.pinv(Sff, hermitian=True) / s[:, None] / s[None, :]
+
+
+def coverage_choice(prob, S, g, rss0, theta0, sigma2, dev: str, chosen: tuple[str, str], idx: dict) -> dict | None:
+    """The coverage criterion for one device (dev "camera" / "projector"), the other device's model held at
+    its choice: among the chosen model and the ones without its highest radial orders
+    (COVERAGE_CANDIDATES), the one with the smallest estimated mean
+    squared projection error over the image (a focused information criterion, Mallows' Cp over the
+    image): MSE_m = max(B_m - (V_ref - V_m), 0) + V_m, where B_m is the mean squared pixel difference
+    over the image between model m's and the chosen model's solutions, V the mean over the image of the
+    projection variance (trace of the 2x2 covariance of a ray's pixel, the part a rotation of the device
+    would absorb removed: calib.projection_uncertainty), and V_ref - V_m the variance of that difference
+    for nested least-squares models. A coefficient the data do not constrain where the image is used
+    adds variance there (V) and is dropped unless the bias it removes (B) is larger.
+    The simpler model is taken only when its MSE is below (1 - COVERAGE_MARGIN) times the chosen one's.
+    Returns {"chosen", "reference", "margin", "candidates": [{"model", "bias2_px2", "var_px2", "mse_px2"}]} or None
+    when the chosen model has nothing below it to consider."""
+    prefix = "cam" if dev == "camera" else "proj"
+    ref = chosen[0] if dev == "camera" else chosen[1]
+    other = chosen[1] if dev == "camera" else chosen[0]
+    # only the highest radial orders are candidates to drop (k3, and k4..k6 of the rational model): they
+    # are what extrapolates into the places without data. Dropping lower orders too (k1k2: p1, p2 with
+    # k3) was measured to hurt: on one of 10 real-mirror sessions of the D455-like camera the criterion's
+    # noisy bias estimate dropped its real tangential terms, and the scenario's mean errors over the 10
+    # sessions grew by 30-60%.
+    cands = list(COVERAGE_CANDIDATES.get(ref, ()))
+    if len(cands) < 2:
+        return None
+    st = prob.state
+    K4 = st.cam_K if dev == "camera" else st.proj_K
+    d8 = st.cam_d if dev == "camera" else st.proj_d
+    size = prob.obs.camera_size if dev == "camera" else prob.obs.projector_size
+    model = CameraModel(size[0], size[1], [[K4[0], 0, K4[2]], [0, K4[1], K4[3]], [0, 0, 1]], d8)
+    pnames = [f"{prefix}.{p}" for p in ("fx", "fy", "cx", "cy")] + [f"{prefix}.dist{i}" for i in DIST_MODELS[ref]]
+    cols = [0, 1, 2, 3] + [4 + i for i in DIST_MODELS[ref]]
+    rows = [idx[n] for n in pnames]
+    xs, ys = grid_pixels(size[0], size[1], COVERAGE_GRID)
+    X, Y = np.meshgrid(xs, ys)
+    M = motion_fields(model, cols, np.column_stack([X.ravel(), Y.ravel()]))  # (N, 2, k)
+    M = M[np.all(np.isfinite(M.reshape(len(M), -1)), axis=1)]
+    Mf = M.reshape(-1, len(cols))
+    other_prefix = "proj" if dev == "camera" else "cam"
+
+    def constrained(m):
+        c = [idx[f"{prefix}.dist{i}"] for i in range(8) if f"{prefix}.dist{i}" in idx and i not in DIST_MODELS[m]]
+        c += [idx[f"{other_prefix}.dist{i}"] for i in range(8)
+              if f"{other_prefix}.dist{i}" in idx and i not in DIST_MODELS[other]]
+        return c
+
+    sol, var = {}, {}
+    n = len(g)
+    for m in cands:
+        c = constrained(m)
+        _, D = _quadratic_solution(S, g, rss0, theta0, c)
+        free = np.setdiff1d(np.arange(n), np.asarray(c, int))
+        cov = np.zeros((n, n))
+        cov[np.ix_(free, free)] = _free_covariance(S, free, sigma2)
+        C = cov[np.ix_(rows, rows)]
+        sol[m] = (theta0 + D)[rows]
+        var[m] = float(np.einsum("ik,kl,il->", Mf, C, Mf) / len(M))
+    out = []
+    for m in cands:
+        diff = Mf @ (sol[m] - sol[ref])
+        b2 = float(diff @ diff / len(M))
+        mse = max(b2 - (var[ref] - var[m]), 0.0) + var[m]
+        out.append({"model": m, "bias2_px2": b2, "var_px2": var[m], "mse_px2": mse})
+    best = min(out, key=lambda c: (c["mse_px2"], len(DIST_MODELS[c["model"]])))
+    ref_mse = next(c["mse_px2"] for c in out if c["model"] == ref)
+    chosen_m = best["model"] if best["mse_px2"] < (1.0 - COVERAGE_MARGIN) * ref_mse else ref
+    return {"chosen": chosen_m, "reference": ref, "margin": COVERAGE_MARGIN, "candidates": out}
 
 
 def select_models(prob, options) -> dict:
@@ -128,8 +232,8 @@ def select_models(prob, options) -> dict:
                     c.append(idx[f"{prefix}.dist{i}"])
         return c
 
-    cam_opts = MODEL_NAMES if auto["camera"] else (base.cam_model,)
-    proj_opts = MODEL_NAMES if auto["projector"] else (base.proj_model,)
+    cam_opts = SELECTION_MODELS if auto["camera"] else (base.cam_model,)
+    proj_opts = SELECTION_MODELS if auto["projector"] else (base.proj_model,)
     table = {}
     for cm, pm in itertools.product(cam_opts, proj_opts):
         c = constrained_for(cm, pm)
@@ -178,7 +282,7 @@ def select_models(prob, options) -> dict:
             return {"chosen": best[0] if dev == "camera" else best[1], "forced": True, "reason": why}
         other = best[1] if dev == "camera" else best[0]
         cands = []
-        for name in MODEL_NAMES:
+        for name in SELECTION_MODELS:
             key = (name, other) if dev == "camera" else (other, name)
             t = table[key]
             cands.append({"model": name, "n_coeffs": len(DIST_MODELS[name]), "rss_px2": t["rss_px2"],
@@ -225,6 +329,27 @@ def select_models(prob, options) -> dict:
 
     report["camera"] = device_report("camera")
     report["projector"] = device_report("projector")
+    coverage_changed = False
+    if getattr(options, "coverage", False):
+        sigma2_w = max(rss0 / max(n - prob.n_params, 1), RSS_FLOOR_PX2)
+        for dev in ("camera", "projector"):
+            if not auto[dev]:
+                continue
+            cov = coverage_choice(prob, S, g, rss0, x_rich[:prob.n_global], sigma2_w, dev, best, idx)
+            if cov is None:
+                continue
+            report[dev]["coverage"] = cov
+            if cov["chosen"] != cov["reference"]:
+                c = {x_["model"]: x_ for x_ in cov["candidates"]}
+                a, r_ = c[cov["chosen"]], c[cov["reference"]]
+                report[dev]["reason"] += (
+                    f"; coverage criterion: '{cov['chosen']}' instead, its estimated mean squared projection error "
+                    f"over the image is {a['mse_px2']:.3g} px^2 against {r_['mse_px2']:.3g} for '{cov['reference']}' "
+                    f"(whose extra coefficients are not constrained where the image is used: variance "
+                    f"{r_['var_px2']:.3g} px^2)")
+                report[dev]["chosen"] = cov["chosen"]
+                best = (cov["chosen"], best[1]) if dev == "camera" else (best[0], cov["chosen"])
+                coverage_changed = True
     # confirm by a real fit of the chosen pair
     base_key = (base.cam_model, base.proj_model)
     if best != base_key:
@@ -251,7 +376,10 @@ def select_models(prob, options) -> dict:
             k_drop += max(-diff, 0)
         refit = {"models": list(best), "rss_px2": rss_fit, "bic": bic_fit, "base_models": list(base_key),
                  "base_rss_px2": float(r0 @ r0), "base_bic": bic_base}
-        if options.selection == "bic" or (k_add and k_drop):
+        if coverage_changed:
+            keep = True
+            refit["test"] = "chosen by the coverage criterion (mean squared projection error over the image)"
+        elif options.selection == "bic" or (k_add and k_drop):
             keep = bic_fit <= bic_base
             refit["test"] = "BIC of the refit vs the 5-coefficient fit"
         elif k_drop:

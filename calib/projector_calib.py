@@ -12,7 +12,7 @@ then, over all views:
   4. its pose once over all views: cv2.stereoCalibrate with CALIB_FIX_INTRINSIC between the camera and
      the projector on the same board points. For mirrored views the first camera is the flipped virtual
      camera V' (CameraModel.flipped(), pixels x -> (W-1)-x), which gives T_proj_V', and
-     T_cam_proj = S @ FLIP_X @ T_V'_proj (GEOMETRY.md). Without a mirror (the paper's overlapping
+     T_cam_proj = S @ FLIP_X @ T_V'_proj (docs/GEOMETRY.md). Without a mirror (the paper's overlapping
      control) the first camera is the camera itself and T_cam_proj = inv(T_proj_cam).
 
 Entry point: `calibrate_projector(obs, camera, mirror) -> ProjectorCalibration`.

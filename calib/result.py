@@ -8,6 +8,8 @@ calibration.json keys (other tools read them; keep their meaning):
   units: length unit of the boards (and so of T_cam_proj's translation and mirror d)
   method, rms (per stage, pixels), per_view (residuals), skipped (images and why),
   uncertainty (1-sigma values, see README), diagnostics (free-form, per stage)
+  projection_uncertainty: per-device grids of the 1-sigma pixel motion of a ray over the image
+          (calib.projection_uncertainty; null when the method gives no covariance; absent in older files)
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ class CalibrationResult:
     skipped: tuple = ()
     uncertainty: dict | None = None
     diagnostics: dict = field(default_factory=dict)
+    projection_uncertainty: dict | None = None
 
     def __post_init__(self):
         T = np.array(self.T_cam_proj, float).reshape(4, 4)
@@ -98,6 +101,7 @@ class CalibrationResult:
             "skipped": list(self.skipped),
             "uncertainty": self.uncertainty,
             "diagnostics": self.diagnostics,
+            "projection_uncertainty": self.projection_uncertainty,
         }
 
     @classmethod
@@ -137,6 +141,7 @@ class CalibrationResult:
             method=d.get("method", "unknown"), rms=d.get("rms", {}) or {}, per_view=tuple(d.get("per_view", ())),
             skipped=tuple(d.get("skipped", ())), uncertainty=d.get("uncertainty"),
             diagnostics=d.get("diagnostics", {}) or {},
+            projection_uncertainty=_read_projection_uncertainty(d.get("projection_uncertainty"), path),
         )
 
     def save_json(self, path) -> None:
@@ -182,6 +187,39 @@ class CalibrationResult:
                 fs.write(f"rms_{k}", float(v))
         fs.release()
         os.replace(tmp, path)
+
+
+def _read_projection_uncertainty(pu, path):
+    """Check calibration.json's "projection_uncertainty" (untrusted input): null/absent -> None; else
+    each device's grid must be [nx, ny] with sigma_px ny rows of nx numbers (null = unbounded) or null."""
+    if pu is None:
+        return None
+    where = "projection_uncertainty"
+    if not isinstance(pu, dict):
+        raise FormatError(path, where, "must be null or an object")
+    out = dict(pu)
+    for dev in ("camera", "projector"):
+        g = pu.get(dev)
+        if g is None:
+            continue
+        if not isinstance(g, dict):
+            raise FormatError(path, f"{where}.{dev}", "must be an object")
+        grid = g.get("grid")
+        if (not isinstance(grid, list) or len(grid) != 2 or not all(isinstance(v, int) and 0 < v <= 1000 for v in grid)):
+            raise FormatError(path, f"{where}.{dev}.grid", "must be [nx, ny], two positive integers")
+        g = dict(g)
+        s = g.get("sigma_px")
+        if s is not None:
+            try:
+                a = np.array([[math.inf if v is None else float(v) for v in row] for row in s], float)
+            except (TypeError, ValueError):
+                raise FormatError(path, f"{where}.{dev}.sigma_px", "must be rows of numbers") from None
+            if a.shape != (grid[1], grid[0]) or np.any(a < 0) or np.any(np.isnan(a)):
+                raise FormatError(path, f"{where}.{dev}.sigma_px",
+                                  f"must be {grid[1]} rows of {grid[0]} non-negative numbers")
+            g["sigma_px"] = a.tolist()
+        out[dev] = g
+    return out
 
 
 def _jsonable(x):

@@ -362,7 +362,7 @@ def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0,
 
     circle_centroids: report each projected circle (of a circle pattern) where a blob detector sees it,
     at the area centroid of its image (its boundary mapped point by point through the exact model),
-    instead of at the image of its centre; the two differ by the perspective bias (GEOMETRY.md)."""
+    instead of at the image of its centre; the two differ by the perspective bias (docs/GEOMETRY.md)."""
     rng = np.random.default_rng(seed)
     rig, cam = ss.rig, ss.rig.camera
     S = rig.S()

@@ -8,7 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-#: The horizontal image flip as a transform of camera coordinates: x -> -x (GEOMETRY.md "F").
+#: The horizontal image flip as a transform of camera coordinates: x -> -x (docs/GEOMETRY.md "F").
 FLIP_X = np.diag([-1.0, 1.0, 1.0, 1.0])
 
 

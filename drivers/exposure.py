@@ -72,8 +72,11 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
     """Search the exposure as the module doc says; leaves the camera in manual mode at the choice.
     Raises DeviceError when the camera cannot be set or the image stays dark."""
     lim = camera.exposure_limits()
-    e_lo, e_hi, _ = lim["exposure_us"]
+    e_lo, e_hi, e_step = lim["exposure_us"]
     g_lo, g_hi, _ = lim["gain"]
+    fps = getattr(camera, "fps", None)  # an exposure longer than the frame period would lower the frame rate
+    if isinstance(fps, (int, float)) and fps > 0:
+        e_hi = min(e_hi, 1e6 / float(fps))
     if not refresh_hz or refresh_hz <= 0:
         raise DeviceError(f"the projector's refresh rate is unknown ({refresh_hz}): cannot choose an exposure")
     period_us = 1e6 / float(refresh_hz)
@@ -125,4 +128,8 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
             break
         exp, gain, lvl, sat = measure(exp, gain)
     periods = exp / period_us
-    return ExposureChoice(exp, gain, periods, bool(whole and abs(periods - round(periods)) < 1e-3), lvl, sat, frames)
+    # a device sets exposure in steps (the D455: 100 us), so a whole number of periods is met to within
+    # half a step (16700 us for 16667 us): the residue is at most that share of one period
+    tolerance = max(1e-3, 0.5 * float(e_step or 0.0) / period_us + 1e-9)
+    return ExposureChoice(exp, gain, periods, bool(whole and abs(periods - round(periods)) <= tolerance), lvl, sat,
+                          frames)

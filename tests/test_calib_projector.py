@@ -43,7 +43,7 @@ def test_noise_free_recovers_projector_and_pose(rig):
 
 
 def test_stereo_goes_through_the_flipped_virtual_camera():
-    """stereoCalibrate estimates T_proj_V' and T_cam_proj = S F T_V'_proj (GEOMETRY.md)."""
+    """stereoCalibrate estimates T_proj_V' and T_cam_proj = S F T_V'_proj (docs/GEOMETRY.md)."""
     gt = session("136").rig
     pc = calibrate_projector(observations("136"), gt.camera, gt.mirror)
     S = gt.mirror.reflection()

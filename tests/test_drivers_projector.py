@@ -259,4 +259,7 @@ def test_settle_time_measured_with_a_camera_filming_the_screen():
     assert m["changed_fraction"] > 0.99  # the whole screen turned white
     for s in m["samples_s"]:
         assert 0.0 < s <= 2 * out["grab_max_s"] + 0.15  # + scheduling slack on a busy machine
-    assert m["settle_s"] >= max(m["samples_s"])
+    # each sample bounds the latency from above, so the tightest is the smallest; the recommended
+    # settle time is that bound plus at least the 10 ms jitter margin (drivers/settle.py)
+    assert m["settle_s"] >= min(m["samples_s"]) + 0.010 - 1e-9
+    assert m["settle_s"] <= min(m["samples_s"]) + max(0.010, max(m["samples_s"]) - min(m["samples_s"])) + 1e-9

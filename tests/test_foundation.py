@@ -1,4 +1,4 @@
-"""Camera model, transforms, specs and the synthetic rig agree with OpenCV and with GEOMETRY.md."""
+"""Camera model, transforms, specs and the synthetic rig agree with OpenCV and with docs/GEOMETRY.md."""
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ def test_rays_invert_projection(rng):
 
 
 def test_flipped_model_images_the_flipped_scene(rng):
-    """GEOMETRY.md: the flipped image is seen by V' with cx' = W-1-cx, p2' = -p2, and points x -> -x."""
+    """docs/GEOMETRY.md: the flipped image is seen by V' with cx' = W-1-cx, p2' = -p2, and points x -> -x."""
     cam = CameraModel(1280, 800, [[640, 0, 600], [0, 645, 410], [0, 0, 1]], [0.1, -0.2, 0.003, -0.004, 0.05])
     X = rng.uniform([-1, -1, 1], [1, 1, 2], (200, 3))
     flipped = cam.flipped()

@@ -1,5 +1,5 @@
 """Projected circles are not points: the centroid of an imaged circle is not the image of its centre
-(GEOMETRY.md). The bias is shown (its size, growing with the radius squared and with obliqueness),
+(docs/GEOMETRY.md). The bias is shown (its size, growing with the radius squared and with obliqueness),
 and the joint refinement's conic model removes it where the point model does not."""
 
 import numpy as np

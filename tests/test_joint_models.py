@@ -63,7 +63,7 @@ def test_unknown_model_is_an_actionable_error():
     from calib.errors import CalibrationError
 
     kw = dict(per_position=1)
-    with pytest.raises(CalibrationError, match="one of auto, none, k1, k1k2, 5coef, rational"):
+    with pytest.raises(CalibrationError, match="one of auto, none, k1, k1k2, 4coef, 5coef, rational"):
         refine_joint(observations(**kw), ground_truth(**kw), JointOptions(camera_model="fisheye"))
 
 

@@ -92,6 +92,11 @@ def test_report_is_self_contained_and_shows_the_calibration(calibrated, report):
     assert float(raw) == cal["mirror"]["d"] and _shown_matches(text, cal["mirror"]["d"], unc["mirror"]["d"])
     assert float(cells["mirror.normal_deg"][0]) == unc["mirror"]["normal_deg"] and "deg" in cells["mirror.normal_deg"][1]
     assert float(cells["rms.joint"][0]) == cal["rms"]["joint"]
+    # the projection-uncertainty heat maps, with calibration.json's median and max per device
+    assert 'id="projection-uncertainty"' in html and 'alt="projection uncertainty over the camera' in html
+    for dev in ("camera", "projector"):
+        g = cal["projection_uncertainty"][dev]
+        assert f"{dev} projection uncertainty (1 sigma over the image): median {g['median_px']:.3f} px" in html
     # the recomputed residuals reproduce the calibration's RMS (same points, same model, same poses)
     shown = float(re.search(r'id="recomputed-rms">([\d.]+) px', html).group(1))
     assert abs(shown - cal["rms"]["joint"]) <= 6e-5

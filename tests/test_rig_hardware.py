@@ -408,3 +408,24 @@ def test_devices_messages_say_what_to_fix(tmp_path):
     r = run_procam("devices", env_extra=env, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "apt-get install libusb-1.0-0" in r.stdout and "libusb-1.0.so.0" in r.stdout
+
+
+def test_exposure_search_through_the_driver_fits_the_frame_and_whole_periods_within_a_step():
+    """Through the RealSense driver the exposure range reaches 1 s and is set in 100 us steps: the
+    search stays within one frame period (a longer exposure would lower the frame rate) and counts
+    16700 us as one refresh period of a 60 Hz projector (the nearest step to 16667 us)."""
+    from drivers.exposure import search_exposure
+    from drivers.projector_images import white
+
+    rig = open_rig("sim-realsense", scenario="nonoverlap-136", seed=0)
+    try:
+        rig.camera.start()
+        lo, hi, step = rig.camera.exposure_limits()["exposure_us"]
+        assert hi > 1e6 / rig.camera.fps and step == 100.0
+        rig.projector.wait_presented(rig.projector.show(white(tuple(rig.projector.size))))
+        c = search_exposure(rig.camera, rig.projector.refresh_hz)
+        assert c.exposure_us <= 1e6 / rig.camera.fps
+        assert c.exposure_us % step == 0 and c.whole_periods
+        assert abs(c.periods - round(c.periods)) <= 0.5 * step / (1e6 / rig.projector.refresh_hz) + 1e-9
+    finally:
+        rig.close()

@@ -1,4 +1,4 @@
-"""The simulator's renderer against analytic projections (GEOMETRY.md), with noise and blur off."""
+"""The simulator's renderer against analytic projections (docs/GEOMETRY.md), with noise and blur off."""
 
 import numpy as np
 import pytest
@@ -70,7 +70,7 @@ def test_reflected_dot_lands_where_geometry_predicts(sc136):
     on = r.render(SceneState((PlacedBoard(sc136.layout, T, marks),)))
     off = r.render(SceneState((PlacedBoard(sc136.layout, T, base),)))
     X = transform_points(T, np.column_stack([dots, np.zeros(3)]))
-    predicted = rig.camera.project(transform_points(rig.S(), X))  # GEOMETRY.md: u = project(S X)
+    predicted = rig.camera.project(transform_points(rig.S(), X))  # docs/GEOMETRY.md: u = project(S X)
     assert np.all(rig.camera.in_image(predicted))
     # the board is outside the direct view: only its reflection is imaged
     assert not np.any(rig.camera.in_image(rig.camera.project(X)))
@@ -132,7 +132,7 @@ def test_pattern_blobs_are_imaged_at_the_exact_circle_centroids(name):
 
 def test_circle_centroid_bias_is_rendered(sc_direct):
     """Big circles on a tilted board: the imaged blob's centroid follows the exact imaged circle, not
-    the projection of the circle's centre (GEOMETRY.md: conic centres are not preserved)."""
+    the projection of the circle's centre (docs/GEOMETRY.md: conic centres are not preserved)."""
     sc, rig = sc_direct, sc_direct.rig
     pattern = PatternSpec("circles", 3, 3, 90.0, 36.0, 13)
     r = _renderer(sc)

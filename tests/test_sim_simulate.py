@@ -74,7 +74,7 @@ def test_simulated_session_reads_like_a_live_one(tmp_path):
 def test_simulate_then_calibrate_reproduces_ground_truth(tmp_path):
     """The default scenario, full protocol (7 real-virtual + 13 x 4 captures, camera noise and blur on,
     session quality), calibrated by `procam calibrate` with the default and with the paper's method:
-    errors no worse than the paper's synthetic headline numbers (GEOMETRY.md)."""
+    errors no worse than the paper's synthetic headline numbers (docs/GEOMETRY.md)."""
     out = tmp_path / "s"
     assert main(["simulate", "nonoverlap-136", "--out", str(out), "--no-progress"]) == 0
     gt = CalibrationResult.load_json(out / "ground_truth.json")

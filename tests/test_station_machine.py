@@ -325,3 +325,19 @@ def test_rerun_calibration_and_verification_from_later_states(tmp_path):
     m.calibrate()  # and from the end of the session
     assert m.state == CALIBRATION and len(rec.calibrations) == 3
     assert saved_state(m)["verified"] is None
+
+
+def test_real_mirror_needs_three_placements(tmp_path):
+    """The default plan asks for at least 3 placements of the board on the mirror before going on (one
+    leaves the mirror's tilt to a single board: benchmarks/real_mirror_placements.py); a plan asking for
+    fewer captures in all needs only those."""
+    assert Plan().min_mirror("real-mirror") == 3 and Plan().min_mirror("real-virtual") == 3
+    assert Plan(real_mirror_captures=2).min_mirror("real-mirror") == 2
+    m, _ = machine(tmp_path, plan=Plan(poses_per_position=2, real_mirror_captures=5, min_projector_captures=6))
+    m.start_session(OK)
+    m.choose_mirror_method("real-mirror")
+    fill_mirror(m, 2)
+    refused(m.proceed, match="take at least 3 real-mirror captures first (2 so far)")
+    fill_mirror(m, 1)
+    m.proceed()
+    assert m.state == PROJECTOR_CAPTURE

@@ -31,6 +31,8 @@ COLUMNS = [
     ("proj_d", "ProjD", "{:.4f}", "proj_d"),
     ("cam_k_px", "CamK px", "{:.2f}", None),
     ("cam_d", "CamD", "{:.4f}", None),
+    ("cam_dist_img_px", "CamDimg px", "{:.3f}", None),  # distortion error over the image (issue 18)
+    ("proj_dist_img_px", "ProjDimg px", "{:.3f}", None),
     ("mirror_offset", "Mir mm", "{:.2f}", "mirror_offset"),
     ("mirror_angle_deg", "Mir deg", "{:.3f}", "mirror_angle_deg"),
     ("proj_rms_px", "ProjRMS", "{:.3f}", None),
@@ -65,7 +67,7 @@ def accuracy_runs(scenarios, seeds: int, methods, quality: str = "session", keep
     from app.commands.simulate import simulate_session
     from calib.detect import detect_session
     from calib.errors import ProcamError
-    from calib.metrics import compare
+    from calib.metrics import compare, distortion_error_over_image
     from calib.pipeline import calibrate_observations
     from calib.session import SessionStore
     from drivers.sim.scenarios import get_scenario
@@ -109,6 +111,10 @@ def accuracy_runs(scenarios, seeds: int, methods, quality: str = "session", keep
                         runs.append(row)
                         continue
                     row["metrics"] = compare(res, gt).to_dict()
+                    # mean distance over the image between where the estimated and the true distortion put
+                    # the same ray, both with the true K (calib.metrics.distortion_error_over_image)
+                    row["metrics"]["cam_dist_img_px"] = distortion_error_over_image(res.camera, gt.camera)
+                    row["metrics"]["proj_dist_img_px"] = distortion_error_over_image(res.projector, gt.projector)
                     row["timing_s"] = {k: v for k, v in (res.diagnostics or {}).get("timing_s", {}).items()
                                        if isinstance(v, (int, float))}
                     runs.append(row)

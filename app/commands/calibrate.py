@@ -16,7 +16,7 @@ DESCRIPTION = (
 )
 
 
-MODELS = ("auto", "none", "k1", "k1k2", "5coef", "rational")
+MODELS = ("auto", "none", "k1", "k1k2", "4coef", "5coef", "rational")
 DEFAULT_METHOD = "joint"
 RESULT_NAME = "calibration.json"
 VERIFICATION_NAME = "verification.json"
@@ -233,6 +233,15 @@ def _fmt_uncertainty(unc, units: str) -> list[str]:
     return lines if len(lines) > 1 else []
 
 
+def _fmt_projection_uncertainty(pu) -> list[str]:
+    """Projection-uncertainty lines (calib.projection_uncertainty): median and max per device, and where
+    it is large; none when the result has no grids."""
+    from calib.projection_uncertainty import summary_line
+
+    out = [summary_line(pu, dev) for dev in ("camera", "projector")] if isinstance(pu, dict) else []
+    return [line for line in out if line]
+
+
 #: units of the RMS values of the paper's stages (the joint method's are all camera pixels)
 RMS_UNITS = {"camera": "px", "projector": "projector px", "stereo": "px"}
 
@@ -285,6 +294,7 @@ def format_summary(result) -> str:
         lines.append("mirror: none (direct view)")
     lines.append(format_rms(result))
     lines += _fmt_uncertainty(result.uncertainty, u)
+    lines += _fmt_projection_uncertainty(result.projection_uncertainty)
     timing = result.diagnostics.get("timing_s", {}) if isinstance(result.diagnostics, dict) else {}
     if timing:
         lines.append("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in timing.items()))

@@ -85,6 +85,29 @@ def distortion_figure(devices: list[tuple[str, CameraModel]]) -> bytes:
     return png(fig)
 
 
+def projection_uncertainty_figure(devices: list[tuple[str, dict]], large_px: float) -> bytes:
+    """Heat maps of the projection-uncertainty grids (calib.projection_uncertainty), one per device, the
+    cells above `large_px` outlined by a contour."""
+    fig = Figure(figsize=(5.2 * len(devices), 3.6))
+    for i, (name, g) in enumerate(devices):
+        ax = fig.add_subplot(1, len(devices), i + 1)
+        s = np.asarray(g["sigma_px"], float)
+        xs, ys = np.asarray(g["x_px"], float), np.asarray(g["y_px"], float)
+        W, H = int(g["width"]), int(g["height"])
+        finite = s[np.isfinite(s)]
+        top = float(finite.max()) if finite.size else 1.0
+        im = ax.imshow(np.where(np.isfinite(s), s, top), extent=(-0.5, W - 0.5, H - 0.5, -0.5), cmap="magma",
+                       vmin=0, vmax=max(top, 1e-9), interpolation="nearest")
+        if np.nanmin(s) <= large_px < top:
+            ax.contour(xs, ys, s, levels=[large_px], colors="cyan", linewidths=1.2)
+        cb = fig.colorbar(im, ax=ax, shrink=0.85)
+        cb.set_label("1-sigma (px)", fontsize=8)
+        cb.ax.tick_params(labelsize=7)
+        _image_axes(ax, W, H, f"{name}: median {np.median(s):.3f}, max {top:.3f} px")
+    _margins(fig, left=0.08, right=0.97, bottom=0.13, top=0.9, wspace=0.3)
+    return png(fig)
+
+
 # ---- residuals ---------------------------------------------------------------------------------------
 def binned(uv: np.ndarray, res: np.ndarray, width: int, height: int, nx: int = 16):
     """Per grid cell: RMS of the residual norm, mean residual vector and point count."""

@@ -199,7 +199,28 @@ def _distortion(d: ReportData) -> str:
 The plot shows how far the model moves each pixel from where an ideal pinhole device would have it (pixels;
 +: principal point).</p>
 <div class="grid2"><div>{_table(["coefficient", "value"], cam_d)}</div><div>{_table(["coefficient", "value"], proj_d)}</div></div>
-{_img(fig, "distortion displacement over the camera and projector images")}"""
+{_img(fig, "distortion displacement over the camera and projector images")}{_projection_uncertainty(d)}"""
+
+
+def _projection_uncertainty(d: ReportData) -> str:
+    """The projection-uncertainty heat maps (calib.projection_uncertainty), when the result has them."""
+    from calib.projection_uncertainty import LARGE_SIGMA_PX, summary_line
+
+    pu = d.result.projection_uncertainty
+    if not isinstance(pu, dict):
+        return ""
+    devs = [(n, pu[n]) for n in ("camera", "projector") if isinstance(pu.get(n), dict) and pu[n].get("sigma_px")]
+    if not devs:
+        return ""
+    fig = figures.projection_uncertainty_figure(devs, LARGE_SIGMA_PX)
+    lines = "".join(f"<li>{_e(summary_line(pu, n))}</li>" for n, _ in devs)
+    return f"""
+<h3 id="projection-uncertainty">Projection uncertainty</h3>
+<p class="note">How far the pixel of a ray moves at 1 sigma (worst direction), at each place of the image, from the
+covariance of the intrinsics and distortion (the part a rotation of the device would absorb removed). Places
+above {LARGE_SIGMA_PX:g} px are outlined: few or no observations reached them.</p>
+<ul>{lines}</ul>
+{_img(fig, "projection uncertainty over the camera and projector images")}"""
 
 
 def _residuals(d: ReportData) -> str:

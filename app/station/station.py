@@ -799,7 +799,8 @@ class Station:
                 what = ("Hold the mirror board between the camera and the mirror so that the camera sees it "
                         "both directly and in the mirror; change its place and tilt from the last capture.")
             else:
-                what = "Lay the mirror board flat on the mirror, at a new place or angle."
+                what = (f"Lay the mirror board flat on the mirror, at a new place and angle (at least "
+                        f"{m.plan.min_mirror('real-mirror')} placements: one alone leaves the mirror's tilt uncertain).")
             head = f"Mirror capture {c['mirror'] + 1} of {c['mirror_total']}: {what}"
             return head + self._live_hint(live)
         if s == PROJECTOR_CAPTURE:

@@ -14,6 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from calib.boards import CharucoSpec
+from calib.camera import CameraModel
 from calib.errors import SpecError
 from calib.pattern import PatternSpec
 from calib.result import CalibrationResult
@@ -227,9 +228,17 @@ def _apart_in_image(rig: SyntheticRig, board: CharucoSpec, T: np.ndarray, gap_px
 
 
 # ---- the library ---------------------------------------------------------------------------------
+def wide_angle_camera() -> CameraModel:
+    """A wide-angle 1920x1080 camera: fx about 700 px (107 deg horizontal field of view), strong barrel
+    distortion (k1 -0.2) with a small k3. Through the mirror it sees the board only in the middle of its
+    image: the corners get no observations (issue 18's corner-poor case)."""
+    return CameraModel(1920, 1080, [[700.0, 0, 963.5], [0, 700.8, 536.0], [0, 0, 1]],
+                       [-0.2, 0.035, 0.0004, -0.0003, 0.0])
+
+
 def _mirrored(name, description, angle_deg=136.0, projector=None, kind="circles", method="real-virtual",
-              thickness_mm=0.0, seed=0) -> Scenario:
-    rig = make_rig(angle_deg, projector=projector)
+              thickness_mm=0.0, seed=0, camera=None, **rig_kw) -> Scenario:
+    rig = make_rig(angle_deg, camera=camera, projector=projector, **rig_kw)
     layout = BoardLayout(default_projector_board())
     pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height, kind=kind)
     return Scenario(name, description, rig, layout, default_mirror_board(), pattern, method, thickness_mm,
@@ -264,6 +273,10 @@ _BUILDERS = {
     "nonoverlap-136-chessboard": lambda seed=0: _mirrored(
         "nonoverlap-136-chessboard", "136 deg, projected chessboard pattern instead of circles, real-virtual",
         136.0, kind="chessboard", seed=seed),
+    "wideangle-realmirror": lambda seed=0: _mirrored(
+        "wideangle-realmirror", "136 deg, wide-angle 1920x1080 camera (fx 700 px, k1 -0.2), real-mirror: few views "
+        "reach the image corners", 136.0, method="real-mirror", thickness_mm=3.0, seed=seed,
+        camera=wide_angle_camera(), mirror_size_mm=(1000.0, 650.0), mirror_distance_mm=300.0),
 }
 
 

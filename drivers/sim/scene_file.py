@@ -21,7 +21,7 @@ from calib.transforms import transform_points
 class ExpectedPoints(NamedTuple):
     """Exact camera pixels (lens distortion included) of one capture. `board_px`: ChArUco corners by id
     (the projector board, or the real mirror board); `pattern_px`: images of the pattern's circle
-    centres (not the blob centroids: GEOMETRY.md's bias) or None; `virtual_px`: corners of the board's
+    centres (not the blob centroids: docs/GEOMETRY.md's bias) or None; `virtual_px`: corners of the board's
     reflection (real-virtual captures) or None."""
 
     board_px: np.ndarray
