@@ -10,6 +10,7 @@ def add_rig_options(p) -> None:
     p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
     add_sim_latency_option(p)
+    add_sim_bump_option(p)
     p.add_argument("--poses-per-position", type=int, default=None,
                    help="board poses per pattern position (default 4)")
     p.add_argument("--mirror-captures", type=int, default=None,
@@ -39,6 +40,14 @@ def add_sim_latency_option(p) -> None:
     p.add_argument("--sim-latency-ms", type=float, default=None, metavar="MS",
                    help="simulated rig: the projector's latency in ms, 0 allowed (default: 60-120 ms, drawn from "
                         "the seed, with a few ms of jitter, as real projectors)")
+
+
+def add_sim_bump_option(p) -> None:
+    """--sim-bump (the simulated rig after a part was bumped on site: drivers/sim/bump.py)."""
+    p.add_argument("--sim-bump", choices=("projector", "mirror", "camera", "none"), default=None, metavar="PART",
+                   help="simulated rig: the rig after PART (projector|mirror|camera|none) was bumped on site "
+                        "(projector turned 1 deg and shifted 10-20 mm, mirror tilted 0.5 deg, camera refocused "
+                        "+0.5%% focal length); ground_truth.json is the bumped rig")
 
 
 def sim_latency_ms(args) -> float | None:

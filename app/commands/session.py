@@ -56,7 +56,10 @@ def rig_options(args, kind: str) -> dict:
         from app.commands._rig_options import sim_latency_ms
 
         v = sim_latency_ms(args)
-        return {} if v is None else {"latency_ms": v}
+        out = {} if v is None else {"latency_ms": v}
+        if getattr(args, "sim_bump", None):
+            out["bump"] = args.sim_bump
+        return out
     opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
     return {k: v for k, v in opts.items() if v is not None}
 

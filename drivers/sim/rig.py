@@ -195,6 +195,8 @@ class SimCamera:
         st = self._rig.settings
         out = {"driver": "sim", "scenario": self._rig.scenario.name, "seed": self._rig.scenario.seed,
                "quality": self._rig.quality, **{k: v for k, v in st.to_dict().items()}}
+        if getattr(self._rig, "bump", None):
+            out["bump"] = self._rig.bump
         if not self._rig.hardware.ideal:
             cur = self.settings_timeline.current
             out.update({"auto_exposure": bool(cur["auto_exposure"]), "exposure_us": float(cur["exposure_us"]),
@@ -494,9 +496,18 @@ def _interpolate_pose(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
     return make_T(R, (1 - a) * T0[:3, 3] + a * T1[:3, 3])
 
 
-def open_sim_rig(scenario: str = DEFAULT_SCENARIO, seed: int = 0, quality: str = "live", **settings) -> SimRig:
+def open_sim_rig(scenario: str = DEFAULT_SCENARIO, seed: int = 0, quality: str = "live", bump: str | None = None,
+                 **settings) -> SimRig:
     """A simulated rig for a named scenario. Keyword settings: expose_intrinsics, settling_frames,
     motion_jitter_mm, ideal (no latency, no frame clock, no exposure model: the fast mode for unit tests),
     latency_ms (the projector's latency; default drawn in 60-120 ms from the seed), and any RenderSettings field (ambient, projector_gain, blur_sigma_px, read_noise_dn,
-    electrons_per_dn, ...)."""
-    return SimRig(get_scenario(scenario, seed), quality, **settings)
+    electrons_per_dn, ...). bump: 'projector' | 'mirror' | 'camera' | 'none' (drivers.sim.bump): the
+    rig as it is after that part was bumped on site; its ground truth is the bumped rig."""
+    sc = get_scenario(scenario, seed)
+    if bump is not None:
+        from drivers.sim.bump import bump_scenario
+
+        sc = bump_scenario(sc, bump)
+    rig = SimRig(sc, quality, **settings)
+    rig.bump = bump
+    return rig

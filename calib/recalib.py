@@ -1,0 +1,602 @@
+"""On-site recalibration: check what moved, re-measure only that, compare with before.
+
+Pure computation (docs/RECALIBRATION.md). One entry function per stage:
+
+  check_rig(previous, obs)            -> CheckReport: per part (camera intrinsics, mirror, projector
+                                         pose) whether the new observations say it moved
+  reestimate(previous, obs, parts)    -> Reestimate: the moved parts re-fitted, the rest held
+  compare_calibrations(prev, new)     -> dict: the change of each part with its uncertainty
+
+The model is the previous calibration with small corrections of three parameter blocks:
+  camera    4: fx, fy, cx, cy (px; distortion held: a refocus changes the focal length)
+  mirror    3: two tilts of the normal (rad, about tangent axes of the previous normal) and d (units)
+  projector 6: rotation vector (rad, camera axes, R = exp([w]) R_prev) and translation (units, camera
+               frame) of T_cam_proj
+and one free board pose per capture (a nuisance parameter). Residuals are whitened by the previous
+calibration's per-class noise sigma (uncertainty.class_sigma_px) and minimised with
+scipy.optimize.least_squares; the covariance of a fitted block is s^2 (J^T J)^-1 (s^2 the variance
+factor), marginal over the board poses.
+
+The rule of the check, per part p with correction delta_p fitted from the new captures (C_new its
+covariance) and C_prev the previous calibration's covariance of the same parameters:
+
+    m2 = delta_p^T (F^2 (C_prev + C_new))^-1 delta_p,   moved when m2 > chi2.ppf(1 - ALPHA, dim p)
+
+ALPHA = 1e-3, F = SYSTEMATIC_FACTOR = 2: docs/JOINT.md measures true errors of 1-2x the reported sigma
+on rendered sessions (detection biases no residual sees), so a change must exceed twice the combined
+sigma, at 99.9 % confidence, to be called a move. A change well inside the previous 1-sigma is
+"unchanged" by construction.
+
+Parts are tested in order, each with what was decided before held: the camera from every board view
+(the mirror free, so that a moved mirror cannot pass for a change of focal length), then the mirror
+from real-virtual captures (a board seen directly and in the mirror), then the projector from the
+projected pattern. The pattern alone cannot tell a moved mirror from a moved projector (it only sees
+the projector's mirror image), which is why the mirror is tested first on its own captures.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from calib.board_pose import solve_board_pose
+from calib.camera import CameraModel
+from calib.errors import CalibrationError
+from calib.observations import BoardObservation, SessionObservations
+from calib.result import CalibrationResult, MirrorPlane
+from calib.transforms import make_T, rotation_angle_deg, transform_points
+
+PARTS = ("camera", "mirror", "projector")
+BLOCK_SIZE = {"camera": 4, "mirror": 3, "projector": 6}
+ALPHA = 1e-3
+SYSTEMATIC_FACTOR = 2.0
+DEFAULT_CLASS_SIGMA_PX = 0.3
+#: 1-sigma targets of a re-estimate where the previous calibration reports none (see targets_from)
+DEFAULT_TARGETS = {"projector_t": 0.5, "projector_rot_deg": 0.05, "mirror_normal_deg": 0.05, "mirror_d": 0.5,
+                   "camera_f_px": 1.0}
+_F = np.diag([-1.0, 1.0, 1.0, 1.0])  # board frame x -> -x (a mirrored view's board frame)
+
+
+# ---- the model --------------------------------------------------------------------------------------
+def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
+    u1 = np.cross(n, a)
+    u1 /= np.linalg.norm(u1)
+    return u1, np.cross(n, u1)
+
+
+def _rotvec_R(w) -> np.ndarray:
+    R, _ = cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))
+    return R
+
+
+@dataclass(frozen=True, eq=False)
+class _Model:
+    """The previous calibration and which blocks are free."""
+
+    previous: CalibrationResult
+    free: tuple[str, ...]
+
+    def split(self, x: np.ndarray) -> tuple[dict, np.ndarray]:
+        out, i = {}, 0
+        for p in self.free:
+            out[p] = x[i:i + BLOCK_SIZE[p]]
+            i += BLOCK_SIZE[p]
+        return out, x[i:]
+
+    @property
+    def n_global(self) -> int:
+        return sum(BLOCK_SIZE[p] for p in self.free)
+
+    def apply(self, blocks: dict) -> CalibrationResult:
+        prev = self.previous
+        cam = prev.camera
+        if "camera" in blocks:
+            K = np.array(cam.K, float)
+            d = blocks["camera"]
+            K[0, 0] += d[0]
+            K[1, 1] += d[1]
+            K[0, 2] += d[2]
+            K[1, 2] += d[3]
+            cam = cam.with_params(K=K)
+        mirror = prev.mirror
+        if "mirror" in blocks and mirror is not None:
+            d = blocks["mirror"]
+            u1, u2 = _tangent_basis(mirror.normal)
+            n = mirror.normal + d[0] * u1 + d[1] * u2
+            mirror = MirrorPlane(n / np.linalg.norm(n), mirror.d + d[2])
+        T = prev.T_cam_proj
+        if "projector" in blocks:
+            d = blocks["projector"]
+            T = make_T(_rotvec_R(d[:3]) @ T[:3, :3], T[:3, 3] + d[3:])
+        return prev.with_(camera=cam, mirror=mirror, T_cam_proj=T)
+
+
+def _S(res: CalibrationResult) -> np.ndarray:
+    return np.eye(4) if res.mirror is None else res.mirror.reflection()
+
+
+def _pose_T(p: np.ndarray) -> np.ndarray:
+    return make_T(_rotvec_R(p[:3]), p[3:])
+
+
+def _pose_p(T: np.ndarray) -> np.ndarray:
+    r, _ = cv2.Rodrigues(np.asarray(T[:3, :3], float))
+    return np.concatenate([r.reshape(3), T[:3, 3]])
+
+
+# ---- the evidence -----------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class _View:
+    """One capture: its board observations (real and/or through the mirror) and pattern points."""
+
+    capture_id: str
+    spec: object
+    real: BoardObservation | None = None
+    virtual: BoardObservation | None = None
+    pattern_cam_px: np.ndarray | None = None
+    pattern_proj_px: np.ndarray | None = None
+
+
+def _views(obs: SessionObservations, use: str) -> list[_View]:
+    """use: 'boards' (every board observation), 'mirror' (real-virtual captures), 'pattern'."""
+    out = []
+    if use in ("boards", "mirror"):
+        for mv in obs.mirror_views:
+            if mv.real is None or mv.virtual is None:
+                continue  # real-mirror captures: not used by the check (docs/RECALIBRATION.md)
+            out.append(_View(mv.capture_id, obs.mirror_board, mv.real, mv.virtual))
+    if use in ("boards", "pattern"):
+        for pv in obs.projector_views:
+            b = pv.board
+            real, virt = (None, b) if b.mirrored else (b, None)
+            pat = use == "pattern" and len(pv.pattern_cam_px) > 0
+            out.append(_View(pv.capture_id, obs.projector_board, real, virt,
+                             pv.pattern_cam_px if pat else None, pv.pattern_proj_px if pat else None))
+    return out
+
+
+def _class_sigma(prev: CalibrationResult) -> dict:
+    u = prev.uncertainty or {}
+    cs = u.get("class_sigma_px") if isinstance(u, dict) else None
+    cs = cs if isinstance(cs, dict) else {}
+
+    def get(k):
+        v = cs.get(k)
+        return float(v) if isinstance(v, (int, float)) and math.isfinite(v) and v > 0 else DEFAULT_CLASS_SIGMA_PX
+
+    return {"board": get("board"), "pattern": get("pattern"), "mirror_real": get("mirror_real"),
+            "mirror_virtual": get("mirror_virtual")}
+
+
+def _initial_pose(cal: CalibrationResult, v: _View) -> np.ndarray:
+    if v.real is not None:
+        return solve_board_pose(cal.camera, v.spec, v.real).T_cam_view
+    T_view = solve_board_pose(cal.camera, v.spec, v.virtual).T_cam_view
+    return _S(cal) @ T_view @ _F
+
+
+def _residuals(cal: CalibrationResult, v: _View, T: np.ndarray, sig: dict, mirror_view: bool) -> np.ndarray:
+    cam, S = cal.camera, _S(cal)
+    X = v.spec.corner_points()
+    parts = []
+    if v.real is not None:
+        uv = cam.project(transform_points(T, X[v.real.ids]))
+        parts.append(((uv - v.real.corners_px) / sig["mirror_real" if mirror_view else "board"]).ravel())
+    if v.virtual is not None:
+        uv = cam.project(transform_points(S @ T, X[v.virtual.ids]))
+        parts.append(((uv - v.virtual.corners_px) / sig["mirror_virtual" if mirror_view else "board"]).ravel())
+    if v.pattern_cam_px is not None:
+        Tbp = np.linalg.inv(T) @ cal.T_cam_proj
+        rays = cal.projector.rays(v.pattern_proj_px) @ Tbp[:3, :3].T
+        o = Tbp[:3, 3]
+        t = -o[2] / rays[:, 2]
+        Xb = o + t[:, None] * rays
+        uv = cam.project(transform_points(S @ T, Xb))
+        parts.append(((uv - v.pattern_cam_px) / sig["pattern"]).ravel())
+    r = np.concatenate(parts) if parts else np.zeros(0)
+    return np.where(np.isfinite(r), r, 1e3)
+
+
+@dataclass(frozen=True, eq=False)
+class Fit:
+    """A fit of the free blocks: the corrections, their covariance, the fitted calibration."""
+
+    free: tuple[str, ...]
+    delta: dict  # part -> correction vector
+    cov: dict  # part -> covariance (marginal over everything else)
+    result: CalibrationResult
+    variance_factor: float
+    n_views: int
+    rms_whitened: float  # RMS of the whitened residuals (~1 when the noise model fits)
+
+
+def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tuple[str, ...], use: str) -> Fit:
+    """Least squares of the `free` blocks (others held at `previous`) and one board pose per capture,
+    over the captures `use` selects ('boards' | 'mirror' | 'pattern')."""
+    from scipy.optimize import least_squares
+
+    if "mirror" in free and previous.mirror is None:
+        free = tuple(p for p in free if p != "mirror")
+    views = _views(obs, use)
+    if not views:
+        raise CalibrationError(f"no captures to test {', '.join(free)} with ({use} captures needed)")
+    model = _Model(previous, tuple(free))
+    sig = _class_sigma(previous)
+    mirror_view = [v.real is not None and v.virtual is not None for v in views]
+    poses0 = []
+    for v in views:
+        try:
+            poses0.append(_pose_p(_initial_pose(previous, v)))
+        except Exception as e:  # a pose that cannot be solved is a capture that cannot be used
+            raise CalibrationError(f"capture {v.capture_id}: no board pose ({e})") from None
+    x0 = np.concatenate([np.zeros(model.n_global)] + poses0)
+    ng = model.n_global
+
+    def fun(x):
+        blocks, rest = model.split(x)
+        cal = model.apply(blocks)
+        return np.concatenate([_residuals(cal, v, _pose_T(rest[6 * i:6 * i + 6]), sig, mirror_view[i])
+                               for i, v in enumerate(views)])
+
+    n_res = len(fun(x0))
+    sparsity = np.zeros((n_res, len(x0)), bool)
+    row = 0
+    blocks0, _ = model.split(x0)
+    cal0 = model.apply(blocks0)
+    for i, v in enumerate(views):
+        k = len(_residuals(cal0, v, _pose_T(x0[ng + 6 * i:ng + 6 * i + 6]), sig, mirror_view[i]))
+        sparsity[row:row + k, :ng] = True
+        sparsity[row:row + k, ng + 6 * i:ng + 6 * i + 6] = True
+        row += k
+    sol = least_squares(fun, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                        max_nfev=200)
+    r = sol.fun
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
+    dof = max(len(r) - len(x0), 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov_all = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov_all = s2 * np.linalg.pinv(J.T @ J)
+    blocks, _ = model.split(sol.x)
+    cov, i = {}, 0
+    for p in model.free:
+        k = BLOCK_SIZE[p]
+        cov[p] = cov_all[i:i + k, i:i + k]
+        i += k
+    result = model.apply(blocks)
+    rms = float(np.sqrt(np.mean(r**2)))
+    return Fit(model.free, {p: np.asarray(blocks[p]) for p in model.free}, cov, result, s2, len(views), rms)
+
+
+# ---- the previous calibration's covariance of each block --------------------------------------------
+def previous_covariance(previous: CalibrationResult, part: str) -> np.ndarray:
+    """Covariance of `part`'s correction parameters from the previous calibration's uncertainty (the
+    stored covariance where its parameter names are there, else its 1-sigma values; zeros for a part
+    the previous calibration held fixed or did not report)."""
+    k = BLOCK_SIZE[part]
+    u = previous.uncertainty if isinstance(previous.uncertainty, dict) else {}
+    cv = u.get("covariance") if isinstance(u.get("covariance"), dict) else {}
+    names, M = cv.get("names"), cv.get("matrix")
+    idx = {n: i for i, n in enumerate(names)} if isinstance(names, list) else {}
+    try:
+        M = np.array(M, float) if M is not None else None
+    except (TypeError, ValueError):
+        M = None
+    C = np.zeros((k, k))
+    if part == "camera":
+        keys = ["cam.fx", "cam.fy", "cam.cx", "cam.cy"]
+        if M is not None and all(n in idx for n in keys):
+            ii = [idx[n] for n in keys]
+            return M[np.ix_(ii, ii)]
+        c = u.get("camera") or {}
+        return np.diag([float(c.get(n, 0.0) or 0.0) ** 2 for n in ("fx", "fy", "cx", "cy")])
+    if part == "mirror":
+        m = u.get("mirror") or {}
+        s_n = math.radians(float(m.get("normal_deg", 0.0) or 0.0))
+        s_d = float(m.get("d", 0.0) or 0.0)
+        # the total angular sigma split evenly over the two tilts (isotropic in the mirror's plane)
+        return np.diag([s_n**2 / 2, s_n**2 / 2, s_d**2])
+    keys_r = [f"T_cam_proj.rot_{a}" for a in "xyz"]
+    keys_t = [f"T_cam_proj.t_{a}" for a in "xyz"]
+    if M is not None and all(n in idx for n in keys_r + keys_t):
+        ii = [idx[n] for n in keys_r + keys_t]
+        C = M[np.ix_(ii, ii)].copy()
+        C[:3, :] *= 2.0  # Gibbs vector -> rotation vector
+        C[:, :3] *= 2.0
+        return C
+    t = u.get("T_cam_proj") or {}
+    rot = [math.radians(float(v)) for v in (t.get("rot_deg") or [0, 0, 0])]
+    tt = [float(v) for v in (t.get("t") or [0, 0, 0])]
+    return np.diag([v**2 for v in rot + tt])
+
+
+# ---- stage 1: check ---------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class PartCheck:
+    part: str
+    status: str  # "moved" | "unchanged" | "not checked"
+    change: dict  # the fitted change in physical units (px, deg, units)
+    sigma: dict  # its combined 1-sigma (previous and new), same keys
+    mahalanobis2: float | None
+    threshold: float | None
+    captures: int
+    reason: str
+
+    @property
+    def moved(self) -> bool:
+        return self.status == "moved"
+
+    def to_dict(self) -> dict:
+        return {"part": self.part, "status": self.status, "change": self.change, "sigma": self.sigma,
+                "mahalanobis2": self.mahalanobis2, "threshold": self.threshold, "captures": self.captures,
+                "reason": self.reason}
+
+
+@dataclass(frozen=True, eq=False)
+class CheckReport:
+    parts: dict  # part -> PartCheck
+    current: CalibrationResult  # the previous calibration with the parts found moved provisionally re-fitted
+    rule: str = ""
+
+    @property
+    def moved(self) -> tuple[str, ...]:
+        return tuple(p for p in PARTS if p in self.parts and self.parts[p].moved)
+
+    @property
+    def verdict(self) -> str:
+        if any(c.status == "not checked" for c in self.parts.values()):
+            return "incomplete"
+        return "unchanged" if not self.moved else "moved: " + ", ".join(self.moved)
+
+    def to_dict(self) -> dict:
+        return {"verdict": self.verdict, "moved": list(self.moved), "rule": self.rule,
+                "parts": {p: c.to_dict() for p, c in self.parts.items()}}
+
+
+def describe_change(part: str, delta: np.ndarray, cov: np.ndarray, units: str) -> tuple[dict, dict]:
+    """(change, 1-sigma) of a block's correction in physical units."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if part == "camera":
+        keys = ("fx_px", "fy_px", "cx_px", "cy_px")
+        return ({k: float(v) for k, v in zip(keys, delta)}, {k: float(v) for k, v in zip(keys, sd)})
+    if part == "mirror":
+        return ({"normal_deg": math.degrees(float(np.linalg.norm(delta[:2]))), f"d_{units}": float(delta[2])},
+                {"normal_deg": math.degrees(float(np.sqrt(cov[0, 0] + cov[1, 1]))), f"d_{units}": float(sd[2])})
+    return ({"rot_deg": math.degrees(float(np.linalg.norm(delta[:3]))), f"t_{units}": float(np.linalg.norm(delta[3:])),
+             f"t_xyz_{units}": [float(v) for v in delta[3:]]},
+            {"rot_deg": math.degrees(float(np.sqrt(np.trace(cov[:3, :3])))),
+             f"t_{units}": float(np.sqrt(np.trace(cov[3:, 3:])))})
+
+
+def _test(previous: CalibrationResult, fit: Fit, part: str, alpha: float, factor: float) -> PartCheck:
+    from scipy.stats import chi2
+
+    d, Cn = fit.delta[part], fit.cov[part]
+    Cp = previous_covariance(previous, part)
+    change, sigma = describe_change(part, d, Cp + Cn, previous.units)
+    if part == "camera":  # tested on the focal lengths (what a refocus changes); cx, cy re-fitted with them
+        d, Cn, Cp = d[:2], Cn[:2, :2], Cp[:2, :2]
+    C = factor**2 * (Cp + Cn)
+    try:
+        m2 = float(d @ np.linalg.solve(C, d))
+    except np.linalg.LinAlgError:
+        m2 = float(d @ np.linalg.pinv(C) @ d)
+    thr = float(chi2.ppf(1.0 - alpha, len(d)))
+    moved = m2 > thr
+    reason = (f"change {m2:.1f} > {thr:.1f} (chi-square, {len(d)} dof, p < {alpha:g}) in units of {factor:g}x the "
+              f"combined 1-sigma of the previous calibration and these {fit.n_views} captures" if moved else
+              f"change {m2:.1f} <= {thr:.1f}: within {factor:g}x the combined 1-sigma")
+    return PartCheck(part, "moved" if moved else "unchanged", change, sigma, m2, thr, fit.n_views, reason)
+
+
+def check_rig(previous: CalibrationResult, obs: SessionObservations, alpha: float = ALPHA,
+              factor: float = SYSTEMATIC_FACTOR) -> CheckReport:
+    """Stage 1: for the camera intrinsics, the mirror and the projector pose, whether the new captures
+    `obs` agree with `previous` (see the module docstring for the rule). A part without the captures
+    its test needs is "not checked"."""
+    parts = {}
+    cur = previous
+    rule = (f"moved when d^T (F^2 (C_prev + C_new))^-1 d > chi2.ppf(1 - {alpha:g}, dim), F = {factor:g}; "
+            "parts tested in order camera, mirror, projector, each with the earlier verdicts held")
+    # camera: every board view, mirror free (through-the-mirror views constrain the camera too)
+    try:
+        fit = fit_blocks(cur, obs, ("camera", "mirror"), "boards")
+        parts["camera"] = _test(previous, fit, "camera", alpha, factor)
+        if parts["camera"].moved:
+            cur = cur.with_(camera=fit.result.camera)
+    except CalibrationError as e:
+        parts["camera"] = PartCheck("camera", "not checked", {}, {}, None, None, 0, str(e))
+    if previous.mirror is not None:
+        try:
+            fit = fit_blocks(cur, obs, ("mirror",), "mirror")
+            parts["mirror"] = _test(previous, fit, "mirror", alpha, factor)
+            if parts["mirror"].moved:
+                cur = cur.with_(mirror=fit.result.mirror)
+        except CalibrationError as e:
+            parts["mirror"] = PartCheck("mirror", "not checked", {}, {}, None, None, 0,
+                                        f"{e}: capture the board held between camera and mirror")
+    try:
+        fit = fit_blocks(cur, obs, ("projector",), "pattern")
+        parts["projector"] = _test(previous, fit, "projector", alpha, factor)
+        if parts["projector"].moved:
+            cur = cur.with_(T_cam_proj=fit.result.T_cam_proj)
+    except CalibrationError as e:
+        parts["projector"] = PartCheck("projector", "not checked", {}, {}, None, None, 0,
+                                       f"{e}: capture the board with the pattern on it")
+    return CheckReport(parts, cur, rule)
+
+
+def merge_observations(a: SessionObservations, b: SessionObservations) -> SessionObservations:
+    """The captures of `a` and `b` together (same rig and boards): the check's captures count for the
+    re-estimate too."""
+    from dataclasses import replace
+
+    return replace(a, projector_views=tuple(a.projector_views) + tuple(b.projector_views),
+                   mirror_views=tuple(a.mirror_views) + tuple(b.mirror_views),
+                   skipped=tuple(a.skipped) + tuple(b.skipped))
+
+
+# ---- stage 2: re-estimate ---------------------------------------------------------------------------
+def targets_from(previous: CalibrationResult) -> dict:
+    """The 1-sigma a re-estimated part must reach: the previous calibration's own 1-sigma of that part
+    (a recalibration at least as certain as the calibration it replaces); DEFAULT_TARGETS where the
+    previous calibration reports none (or held the part fixed)."""
+    u = previous.uncertainty if isinstance(previous.uncertainty, dict) else {}
+    out = dict(DEFAULT_TARGETS)
+
+    def pos(v):
+        return isinstance(v, (int, float)) and math.isfinite(v) and v > 0
+
+    t = u.get("T_cam_proj") or {}
+    if pos(t.get("t_total")):
+        out["projector_t"] = float(t["t_total"])
+    if pos(t.get("rot_total_deg")):
+        out["projector_rot_deg"] = float(t["rot_total_deg"])
+    m = u.get("mirror") or {}
+    if pos(m.get("normal_deg")):
+        out["mirror_normal_deg"] = float(m["normal_deg"])
+    if pos(m.get("d")):
+        out["mirror_d"] = float(m["d"])
+    c = u.get("camera") or {}
+    if pos(c.get("fx")) and pos(c.get("fy")):
+        out["camera_f_px"] = max(float(c["fx"]), float(c["fy"]))
+    return out
+
+
+_USE = {"camera": "boards", "mirror": "mirror", "projector": "pattern"}
+
+
+@dataclass(frozen=True, eq=False)
+class Reestimate:
+    result: CalibrationResult
+    parts: tuple[str, ...]
+    sigma: dict  # part -> 1-sigma of the re-estimated parameters (describe_change keys)
+    targets: dict
+    reached: bool
+    missing: tuple[str, ...]  # targets not reached, as sentences
+
+    def to_dict(self) -> dict:
+        return {"parts": list(self.parts), "sigma": self.sigma, "targets": self.targets, "reached": self.reached,
+                "missing": list(self.missing)}
+
+
+def reestimate(previous: CalibrationResult, obs: SessionObservations, parts, targets: dict | None = None,
+               method: str = "recalibration") -> Reestimate:
+    """Stage 2: re-fit only `parts` (the rest held at `previous`) from the captures `obs`, one after
+    the other in the order camera, mirror, projector, each from the captures that see it; with the
+    1-sigma of each and whether it reached `targets` (default: targets_from(previous))."""
+    targets = {**targets_from(previous), **(targets or {})}
+    cur, sigma, missing = previous, {}, []
+    u = previous.units
+    for p in PARTS:
+        if p not in parts:
+            continue
+        fit = fit_blocks(cur, obs, (p,), _USE[p])
+        cur = fit.result
+        _, s = describe_change(p, fit.delta[p], fit.cov[p], u)
+        sigma[p] = s
+        if p == "camera" and max(s["fx_px"], s["fy_px"]) > targets["camera_f_px"]:
+            missing.append(f"camera focal length 1-sigma {max(s['fx_px'], s['fy_px']):.2f} px > "
+                           f"{targets['camera_f_px']} px")
+        if p == "mirror":
+            if s["normal_deg"] > targets["mirror_normal_deg"]:
+                missing.append(f"mirror normal 1-sigma {s['normal_deg']:.3f} deg > {targets['mirror_normal_deg']} deg")
+            if s[f"d_{u}"] > targets["mirror_d"]:
+                missing.append(f"mirror offset 1-sigma {s[f'd_{u}']:.3f} {u} > {targets['mirror_d']} {u}")
+        if p == "projector":
+            if s["rot_deg"] > targets["projector_rot_deg"]:
+                missing.append(f"projector rotation 1-sigma {s['rot_deg']:.3f} deg > {targets['projector_rot_deg']} deg")
+            if s[f"t_{u}"] > targets["projector_t"]:
+                missing.append(f"projector position 1-sigma {s[f't_{u}']:.3f} {u} > {targets['projector_t']} {u}")
+    diag = dict(previous.diagnostics) if isinstance(previous.diagnostics, dict) else {}
+    diag["recalibration"] = {"reestimated": [p for p in PARTS if p in parts], "sigma": sigma}
+    result = cur.with_(method=method, diagnostics=diag)
+    return Reestimate(result, tuple(p for p in PARTS if p in parts), sigma, targets, not missing, tuple(missing))
+
+
+# ---- stage 3: compare -------------------------------------------------------------------------------
+def projection_difference(a: CameraModel, b: CameraModel, grid: tuple[int, int] = (16, 10)) -> dict:
+    """How far the same ray lands between two intrinsic models: pixels on a grid over the image,
+    unprojected with `a` and projected with `b` (mean, max, and the grid of distances in px)."""
+    w, h = a.size
+    xs = np.linspace(0.05 * w, 0.95 * w, grid[0])
+    ys = np.linspace(0.05 * h, 0.95 * h, grid[1])
+    uv = np.array([[x, y] for y in ys for x in xs])
+    uv2 = b.project(a.rays(uv))
+    dist = np.linalg.norm(uv2 - uv, axis=1)
+    return {"mean_px": float(dist.mean()), "max_px": float(dist.max()), "grid": [int(grid[0]), int(grid[1])],
+            "px": dist.reshape(grid[1], grid[0]).round(4).tolist()}
+
+
+def compare_calibrations(previous: CalibrationResult, new: CalibrationResult, sigma: dict | None = None) -> dict:
+    """Stage 3: the change of each part from `previous` to `new` (mm/units, deg, px) with its 1-sigma
+    (previous and re-estimate combined, where known), and the projection difference of the intrinsics."""
+    u = previous.units
+    sigma = sigma or {}
+    out = {"units": u}
+    T0, T1 = previous.T_cam_proj, new.T_cam_proj
+    sp = describe_change("projector", np.zeros(6), previous_covariance(previous, "projector"), u)[1]
+    sn = sigma.get("projector", {})
+    out["projector"] = {
+        f"position_change_{u}": float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])),
+        "rotation_change_deg": rotation_angle_deg(T1[:3, :3] @ T0[:3, :3].T),
+        f"position_sigma_{u}": math.hypot(sp[f"t_{u}"], sn.get(f"t_{u}", 0.0)),
+        "rotation_sigma_deg": math.hypot(sp["rot_deg"], sn.get("rot_deg", 0.0)),
+    }
+    if previous.mirror is not None and new.mirror is not None:
+        sp = describe_change("mirror", np.zeros(3), previous_covariance(previous, "mirror"), u)[1]
+        sn = sigma.get("mirror", {})
+        cosang = float(np.clip(previous.mirror.normal @ new.mirror.normal, -1, 1))
+        out["mirror"] = {"normal_change_deg": math.degrees(math.acos(cosang)),
+                         f"d_change_{u}": float(new.mirror.d - previous.mirror.d),
+                         "normal_sigma_deg": math.hypot(sp["normal_deg"], sn.get("normal_deg", 0.0)),
+                         f"d_sigma_{u}": math.hypot(sp[f"d_{u}"], sn.get(f"d_{u}", 0.0))}
+    else:
+        out["mirror"] = None
+    sp = describe_change("camera", np.zeros(4), previous_covariance(previous, "camera"), u)[1]
+    sn = sigma.get("camera", {})
+    dK = np.array(new.camera.K) - np.array(previous.camera.K)
+    out["camera"] = {
+        "fx_change_px": float(dK[0, 0]), "fy_change_px": float(dK[1, 1]),
+        "cx_change_px": float(dK[0, 2]), "cy_change_px": float(dK[1, 2]),
+        "sigma_px": {k: math.hypot(sp[k], sn.get(k, 0.0)) for k in ("fx_px", "fy_px", "cx_px", "cy_px")},
+        "projection_difference": projection_difference(previous.camera, new.camera),
+    }
+    out["projector_intrinsics"] = {"projection_difference": projection_difference(previous.projector, new.projector)}
+    return out
+
+
+# ---- the record -------------------------------------------------------------------------------------
+def sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True, eq=False)
+class RecalibrationRecord:
+    """recalibration.json: where the previous calibration came from, the check, the re-estimate, the
+    comparison, the captures used."""
+
+    previous_path: str
+    previous_sha256: str
+    archived_as: str
+    check: CheckReport
+    reestimate: Reestimate | None
+    comparison: dict | None
+    captures: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"schema": "procam-recalibration-1",
+                "previous": {"path": self.previous_path, "sha256": self.previous_sha256, "archived_as": self.archived_as},
+                "verdict": self.check.verdict, "check": self.check.to_dict(),
+                "reestimate": None if self.reestimate is None else self.reestimate.to_dict(),
+                "comparison": self.comparison, "captures": self.captures}

@@ -1,0 +1,273 @@
+"""On-site recalibration (issue 15): the bumped simulated rig, the check's verdicts, the re-estimate,
+the comparison and the archive (docs/RECALIBRATION.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.errors import SpecError
+from calib.metrics import compare
+from drivers.sim.bump import BUMP_PARTS, bump_scenario
+from drivers.sim.scenarios import get_scenario
+
+
+# ---- the bumped simulated rig --------------------------------------------------------------------
+def test_bumps_move_only_their_part_by_the_stated_amounts():
+    sc = get_scenario("nonoverlap-136", 0)
+    gt = sc.ground_truth()
+    m = {p: compare(bump_scenario(sc, p, 0).ground_truth(), gt) for p in BUMP_PARTS}
+    assert m["none"].distance == 0 and m["none"].angle_deg == 0 and m["none"].cam_k_px == 0
+    assert 10.0 <= m["projector"].distance <= 20.0 and m["projector"].angle_deg == pytest.approx(1.0, abs=1e-9)
+    assert m["projector"].cam_k_px == 0 and m["projector"].mirror_angle_deg == 0
+    assert m["mirror"].mirror_angle_deg == pytest.approx(0.5, abs=1e-6) and m["mirror"].distance == 0
+    cam0, cam1 = gt.camera, bump_scenario(sc, "camera", 0).ground_truth().camera
+    assert cam1.fx / cam0.fx == pytest.approx(1.005) and cam1.fy / cam0.fy == pytest.approx(1.005)
+    assert cam1.cx == cam0.cx and m["camera"].distance == 0 and m["camera"].mirror_angle_deg == 0
+
+
+def test_bump_is_seeded_and_unknown_part_refused():
+    sc = get_scenario("nonoverlap-136", 0)
+    a, b = bump_scenario(sc, "projector", 3), bump_scenario(sc, "projector", 3)
+    c = bump_scenario(sc, "projector", 4)
+    assert np.array_equal(a.rig.T_cam_proj, b.rig.T_cam_proj)
+    assert not np.allclose(a.rig.T_cam_proj, c.rig.T_cam_proj)
+    with pytest.raises(SpecError, match="unknown bump"):
+        bump_scenario(sc, "tripod", 0)
+
+
+def test_open_sim_rig_renders_the_bumped_rig_and_says_so():
+    from drivers.sim.rig import open_sim_rig
+
+    rig = open_sim_rig("nonoverlap-136", 0, ideal=True, bump="mirror")
+    try:
+        gt = rig.ground_truth()
+        assert compare(gt, get_scenario().ground_truth()).mirror_angle_deg == pytest.approx(0.5, abs=1e-6)
+        assert np.allclose(rig.renderer.mirror.normal, gt.mirror.normal)
+        assert rig.camera.settings()["bump"] == "mirror"
+    finally:
+        rig.close()
+
+
+# ---- the check, the re-estimate, the comparison (exact geometry + Gaussian noise, no rendering) ----
+from functools import lru_cache  # noqa: E402
+
+from calib.recalib import (  # noqa: E402
+    check_rig, compare_calibrations, merge_observations, previous_covariance, projection_difference, reestimate, targets_from,
+)
+from calib.synthetic import SyntheticSession, observe  # noqa: E402
+
+NOISE_PX = 0.1
+
+
+def _session(sc, n_projector: int, n_mirror: int, seed: int) -> SyntheticSession:
+    pp = sc.projector_poses[::max(1, len(sc.projector_poses) // max(n_projector, 1))][:n_projector]
+    mp = sc.mirror_poses_for("real-virtual", n_mirror, seed=sc.seed + 50 + seed) if n_mirror else []
+    return SyntheticSession(sc.rig, sc.layout, sc.mirror_board, sc.pattern, pp, mp, "real-virtual")
+
+
+@lru_cache(maxsize=1)
+def previous():
+    """A full joint calibration of the unbumped rig (52 + 14 captures, 0.1 px noise), with its uncertainty."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _joint_helpers import perturbed
+
+    from calib.joint import JointOptions, refine_joint
+
+    sc = get_scenario("nonoverlap-136", 0)
+    obs = observe(_session(sc, 52, 14, 0), NOISE_PX, 1)
+    return refine_joint(obs, perturbed(sc.ground_truth()), JointOptions(camera_model="5coef", projector_model="5coef",
+                                                                                 pattern_model="point"))
+
+
+@lru_cache(maxsize=8)
+def check(part: str):
+    """The check on the rig bumped at `part`: 2 real-virtual mirror captures + 2 projector captures."""
+    b = bump_scenario(get_scenario("nonoverlap-136", 0), part, 0)
+    return b, check_rig(previous(), observe(_session(b, 2, 2, 0), NOISE_PX, 7))
+
+
+def test_previous_calibration_uncertainty_is_read_as_covariances():
+    prev = previous()
+    for part, k in (("camera", 4), ("mirror", 3), ("projector", 6)):
+        C = previous_covariance(prev, part)
+        assert C.shape == (k, k) and np.all(np.diag(C) > 0)
+    # the stored translation sigma is the projector block's translation part
+    C = previous_covariance(prev, "projector")
+    assert np.sqrt(np.trace(C[3:, 3:])) == pytest.approx(prev.uncertainty["T_cam_proj"]["t_total"], rel=1e-9)
+    assert targets_from(prev)["projector_t"] == pytest.approx(prev.uncertainty["T_cam_proj"]["t_total"])
+
+
+@pytest.mark.parametrize("part,moved", [("none", ()), ("projector", ("projector",)), ("mirror", ("mirror",)),
+                                        ("camera", ("camera",))])
+def test_check_names_the_part_that_moved_and_only_it(part, moved):
+    _, rep = check(part)
+    assert rep.moved == moved, {p: (c.status, c.mahalanobis2) for p, c in rep.parts.items()}
+    assert rep.verdict == ("unchanged" if not moved else "moved: " + ", ".join(moved))
+    for p, c in rep.parts.items():
+        assert c.captures >= 2 and c.threshold > 0
+        assert (c.mahalanobis2 > c.threshold) == (p in moved)
+
+
+def test_check_without_mirror_captures_says_the_mirror_was_not_checked():
+    b = bump_scenario(get_scenario("nonoverlap-136", 0), "none", 0)
+    rep = check_rig(previous(), observe(_session(b, 2, 0, 0), NOISE_PX, 7))
+    assert rep.parts["mirror"].status == "not checked" and rep.verdict == "incomplete"
+    assert "between camera and mirror" in rep.parts["mirror"].reason
+
+
+def _reestimated(part: str, n_projector: int, n_mirror: int):
+    """The check's captures and `n_projector` + `n_mirror` more, re-estimating what the check found moved."""
+    b, rep = check(part)
+    o1 = observe(_session(b, 2, 2, 0), NOISE_PX, 7)
+    o2 = observe(_session(b, n_projector, n_mirror, 1), NOISE_PX, 8)
+    re = reestimate(rep.current, merge_observations(o1, o2), rep.moved)
+    return b, rep, re
+
+
+def test_projector_reestimate_with_exact_held_parts_is_within_05mm_005deg():
+    """With the held parts exact (the unbumped truth carrying the previous calibration's uncertainty),
+    the re-estimated pose alone reaches the bumped truth; error from held parts is the next test's."""
+    b = bump_scenario(get_scenario("nonoverlap-136", 0), "projector", 0)
+    exact = get_scenario().ground_truth().with_(uncertainty=previous().uncertainty)
+    obs = merge_observations(observe(_session(b, 2, 2, 0), NOISE_PX, 7), observe(_session(b, 8, 0, 1), NOISE_PX, 8))
+    re = reestimate(exact, obs, ("projector",))
+    m = compare(re.result, b.ground_truth())
+    assert m.distance < 0.5 and m.angle_deg < 0.05, (m.distance, m.angle_deg)
+    assert m.cam_k_px == 0 and m.mirror_angle_deg == 0
+
+
+def test_projector_reestimate_holds_the_rest_and_reports_the_change():
+    b, rep, re = _reestimated("projector", 8, 0)
+    m0 = compare(previous(), get_scenario().ground_truth())  # the previous calibration's own error
+    m = compare(re.result, b.ground_truth())
+    assert m.distance < m0.distance + 0.5 and m.angle_deg < m0.angle_deg + 0.05
+    assert re.parts == ("projector",) and re.reached, re.missing
+    # held parts are the previous calibration's, bit for bit
+    assert np.array_equal(re.result.camera.K, previous().camera.K)
+    assert np.array_equal(re.result.mirror.normal, previous().mirror.normal)
+    cmp = compare_calibrations(previous(), re.result, re.sigma)
+    true_shift = np.linalg.norm(b.rig.T_cam_proj[:3, 3] - get_scenario().rig.T_cam_proj[:3, 3])
+    assert cmp["projector"]["position_change_mm"] == pytest.approx(true_shift, abs=1.0)
+    assert cmp["projector"]["rotation_change_deg"] == pytest.approx(1.0, abs=0.1)
+    assert cmp["projector"]["position_sigma_mm"] > 0
+    assert cmp["mirror"]["normal_change_deg"] == 0 and cmp["camera"]["projection_difference"]["max_px"] < 1e-9
+
+
+def test_mirror_reestimate_normal_within_005_deg():
+    b, rep, re = _reestimated("mirror", 0, 4)
+    m = compare(re.result, b.ground_truth())
+    assert m.mirror_angle_deg < 0.05 and re.parts == ("mirror",)
+    cmp = compare_calibrations(previous(), re.result, re.sigma)
+    assert cmp["mirror"]["normal_change_deg"] == pytest.approx(0.5, abs=0.06)
+
+
+def test_camera_reestimate_recovers_the_focal_length():
+    b, rep, re = _reestimated("camera", 4, 4)
+    true_fx = b.ground_truth().camera.fx
+    assert abs(re.result.camera.fx - true_fx) < 0.5 < abs(previous().camera.fx - true_fx)
+    cmp = compare_calibrations(previous(), re.result, re.sigma)
+    assert cmp["camera"]["fx_change_px"] == pytest.approx(true_fx - previous().camera.fx, abs=0.5)
+    assert cmp["camera"]["projection_difference"]["max_px"] > 2.0
+
+
+def test_reestimate_says_which_target_is_not_reached_yet():
+    b, rep = check("camera")
+    re = reestimate(rep.current, observe(_session(b, 2, 2, 0), NOISE_PX, 7), rep.moved)
+    target = targets_from(previous())["camera_f_px"]
+    assert max(re.sigma["camera"]["fx_px"], re.sigma["camera"]["fy_px"]) > target
+    assert not re.reached and len(re.missing) == 1 and "camera focal length 1-sigma" in re.missing[0]
+
+
+def test_projection_difference_of_a_focal_change_is_its_radial_scale():
+    cam = get_scenario().rig.camera
+    K = np.array(cam.K)
+    K[0, 0] *= 1.005
+    K[1, 1] *= 1.005
+    pd = projection_difference(cam, cam.with_params(K=K), grid=(5, 4))
+    w, h = cam.size
+    xs, ys = np.linspace(0.05 * w, 0.95 * w, 5), np.linspace(0.05 * h, 0.95 * h, 4)
+    expect = np.array([[0.005 * np.hypot(x - cam.cx, y - cam.cy) for x in xs] for y in ys])
+    assert np.allclose(pd["px"], expect, atol=1e-3)
+    assert pd["max_px"] == pytest.approx(expect.max(), abs=1e-3)
+
+
+# ---- the archive and the command -----------------------------------------------------------------
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from calib.errors import SessionError  # noqa: E402
+
+
+def test_archive_copies_with_its_hash_and_never_overwrites(tmp_path):
+    from app.recalibration import archive_previous, find_previous
+    from calib.recalib import sha256_file
+
+    src_dir = tmp_path / "old"
+    src_dir.mkdir()
+    get_scenario().ground_truth().save_json(src_dir / "calibration.json")
+    src = find_previous(src_dir)  # a session folder is accepted
+    assert src == src_dir / "calibration.json" and find_previous(src) == src
+    out = tmp_path / "new"
+    dest, digest = archive_previous(src, out)
+    assert dest == out / "previous" / "calibration.json"
+    assert dest.read_bytes() == src.read_bytes() and digest == sha256_file(src)
+    before = dest.read_bytes()
+    other = tmp_path / "other.json"
+    bump_scenario(get_scenario(), "projector", 0).ground_truth().save_json(other)
+    with pytest.raises(SessionError, match="never overwrites"):
+        archive_previous(other, out)
+    assert dest.read_bytes() == before
+    with pytest.raises(SessionError, match="no previous calibration"):
+        find_previous(tmp_path / "missing")
+
+
+def _procam(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "app", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_recalibrate_refuses_a_missing_previous_and_a_used_folder(tmp_path):
+    r = _procam("recalibrate", str(tmp_path / "nope"), "--rig", "sim", "--auto", "--out", str(tmp_path / "d"))
+    assert r.returncode == 2 and "no previous calibration" in r.stderr and not (tmp_path / "d").exists()
+    get_scenario().ground_truth().save_json(tmp_path / "c.json")
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "keep.txt").write_text("x")
+    r = _procam("recalibrate", str(tmp_path / "c.json"), "--rig", "sim", "--auto", "--out", str(used))
+    assert r.returncode == 2 and "not empty" in r.stderr and sorted(p.name for p in used.iterdir()) == ["keep.txt"]
+
+
+@pytest.mark.slow
+def test_recalibrate_after_a_projector_bump_end_to_end(tmp_path):
+    """A full simulated session, then `procam recalibrate --sim-bump projector` on it."""
+    from calib.result import CalibrationResult
+    from calib.recalib import sha256_file
+
+    full = tmp_path / "full"
+    r = _procam("session", "--rig", "sim", "--auto", "--out", str(full))
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    prev_bytes = (full / "calibration.json").read_bytes()
+    d = tmp_path / "recal"
+    r = _procam("recalibrate", str(full), "--rig", "sim", "--auto", "--sim-bump", "projector", "--out", str(d))
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    rec = json.loads((d / "recalibration.json").read_text())
+    parts = rec["check"]["parts"]
+    assert parts["projector"]["status"] == "moved"
+    assert parts["mirror"]["status"] == "unchanged" and parts["camera"]["status"] == "unchanged"
+    assert rec["captures"]["total"] <= 12
+    assert rec["previous"]["sha256"] == sha256_file(full / "calibration.json")
+    assert (d / "previous" / "calibration.json").read_bytes() == prev_bytes == (full / "calibration.json").read_bytes()
+    res, gt = CalibrationResult.load_json(d / "calibration.json"), CalibrationResult.load_json(d / "ground_truth.json")
+    m = compare(res, gt)
+    assert m.distance < 0.5 and m.angle_deg < 0.05
+    assert json.loads((d / "session.json").read_text())["state"]["recalibration"]["sim_bump"] == "projector"
+    assert rec["comparison"]["projector"]["rotation_change_deg"] == pytest.approx(1.0, abs=0.05)
+    # the epipolar verification: the previous calibration fails on the bumped rig, the recalibrated one passes
+    assert rec["verification"]["previous"]["passed"] is False
+    assert rec["verification"]["recalibrated"]["passed"] is True
+    assert json.loads((d / "verification.json").read_text())["passed"] is True
