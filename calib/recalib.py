@@ -503,17 +503,17 @@ def reestimate(previous: CalibrationResult, obs: SessionObservations, parts, tar
         sigma[p] = s
         if p == "camera" and max(s["fx_px"], s["fy_px"]) > targets["camera_f_px"]:
             missing.append(f"camera focal length 1-sigma {max(s['fx_px'], s['fy_px']):.2f} px > "
-                           f"{targets['camera_f_px']} px")
+                           f"{targets['camera_f_px']:.2f} px")
         if p == "mirror":
             if s["normal_deg"] > targets["mirror_normal_deg"]:
-                missing.append(f"mirror normal 1-sigma {s['normal_deg']:.3f} deg > {targets['mirror_normal_deg']} deg")
+                missing.append(f"mirror normal 1-sigma {s['normal_deg']:.3f} deg > {targets['mirror_normal_deg']:.3f} deg")
             if s[f"d_{u}"] > targets["mirror_d"]:
-                missing.append(f"mirror offset 1-sigma {s[f'd_{u}']:.3f} {u} > {targets['mirror_d']} {u}")
+                missing.append(f"mirror offset 1-sigma {s[f'd_{u}']:.3f} {u} > {targets['mirror_d']:.3f} {u}")
         if p == "projector":
             if s["rot_deg"] > targets["projector_rot_deg"]:
-                missing.append(f"projector rotation 1-sigma {s['rot_deg']:.3f} deg > {targets['projector_rot_deg']} deg")
+                missing.append(f"projector rotation 1-sigma {s['rot_deg']:.3f} deg > {targets['projector_rot_deg']:.3f} deg")
             if s[f"t_{u}"] > targets["projector_t"]:
-                missing.append(f"projector position 1-sigma {s[f't_{u}']:.3f} {u} > {targets['projector_t']} {u}")
+                missing.append(f"projector position 1-sigma {s[f't_{u}']:.3f} {u} > {targets['projector_t']:.3f} {u}")
     diag = dict(previous.diagnostics) if isinstance(previous.diagnostics, dict) else {}
     diag["recalibration"] = {"reestimated": [p for p in PARTS if p in parts], "sigma": sigma}
     result = cur.with_(method=method, diagnostics=diag)
