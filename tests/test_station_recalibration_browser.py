@@ -35,6 +35,7 @@ def test_recalibration_checklist_from_the_panel(tmp_path):
             page = browser.new_page(viewport={"width": 1600, "height": 1000})
             page.goto(st.url)
             see(page, r"Recalibration of")
+            see(page, r"Recalibration mode.*follow the")  # not the normal session's "press Calibrate"
             see(page, r"press \*?Start check")
             assert not (folder / "recalibration.json").exists()
             page.get_by_role("button", name="Start check", exact=True).click()

@@ -52,6 +52,9 @@ class RecalibrationPanel:
             self.h_text = g.add_markdown(self.text())
             self.h_start = g.add_button("Start check", color="teal")
             self.h_accept = g.add_button("Accept verdict", visible=False)
+        # the normal session's "Step n of 6 / Next" line would ask for a Calibrate this mode never needs
+        panel.step_line = lambda: ("**Recalibration mode**: follow the *Recalibration* checklist above; the step "
+                                   "controls below are not needed.")
         self.h_start.on_click(lambda event: self.start_check())
         self.h_accept.on_click(lambda event: self.accept())
 
