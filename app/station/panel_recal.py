@@ -81,7 +81,7 @@ class RecalibrationPanel:
         if name == "verdict":
             self.report = value
             self.stage = "verdict"
-            self.h_accept.label = "Accept verdict" if value.moved else "Sign off: unchanged"
+            self.h_accept.label = "Sign off: unchanged" if value.verdict == "unchanged" else "Accept verdict"
             self.h_accept.visible = True
             self.update()
             self._accepted.wait()
@@ -125,9 +125,9 @@ class RecalibrationPanel:
         if self.report is not None:
             for p, c in self.report.parts.items():
                 lines.append(f"    - {p}: **{c.status}** ({c.reason})")
+            ask = "Sign off: unchanged" if self.report.verdict == "unchanged" else "Accept verdict"
             lines.append(f"    - verdict: **{self.report.verdict}**"
-                         + (": press *Accept verdict*" if self.stage == "verdict" and self.report.moved else "")
-                         + (": press *Sign off: unchanged*" if self.stage == "verdict" and not self.report.moved else ""))
+                         + (f": press *{ask}*" if self.stage == "verdict" else ""))
         if self.report is not None and self.report.moved:
             lines.append(f"2. **Re-measure what moved**: {', '.join(self.report.moved)}")
             units = self.report.current.units
