@@ -131,12 +131,20 @@ def _verification_summary(report) -> dict:
 
 
 def run_recalibration(previous_path, station: Station, machine: RecalibrationMachine, log=print,
-                      max_captures: int = DEFAULT_MAX_CAPTURES, workers: int = 2, verify=None) -> Outcome:
+                      max_captures: int = DEFAULT_MAX_CAPTURES, workers: int = 2, verify=None,
+                      on_stage=None) -> Outcome:
     """Check, re-measure what moved, compare. The station and machine are those of a new session.
     `verify(result, final)` (optional): the epipolar verification of a calibration on the rig; the
     previous calibration is verified during the check (evidence recorded; a failure with an
     "unchanged" verdict is an inconsistency, not a sign-off), the recalibrated one at the end
-    (final=True: its report is the session's verification.json; a failure fails the recalibration)."""
+    (final=True: its report is the session's verification.json; a failure fails the recalibration).
+    `on_stage(stage, value)` (optional; the station's panel): "verdict" with the check's report (may block
+    until the operator accepts it), "reestimate" with each round's re-estimate (progress towards the
+    1-sigma targets), "done" with the Outcome."""
+    def stage(name, value):
+        if on_stage is not None:
+            on_stage(name, value)
+
     from calib.detect import detect_session
     from calib.recalib import (
         RecalibrationRecord, check_rig, compare_calibrations, reestimate,
@@ -190,6 +198,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         verification["previous"] = _verification_summary(v)
         log(f"epipolar verification of the previous calibration: {'passed' if v.passed else 'FAILED'} "
             f"(mean {v.mean_proj_px if v.mean_proj_px is not None else float('nan'):.2f} projector px)")
+    stage("verdict", report)
     if report.verdict == "unchanged" and verification.get("previous", {}).get("passed") is False:
         ok, message = False, ("the captures say nothing moved but the epipolar verification of the previous "
                               "calibration fails: something the check does not model changed; run a full session")
@@ -203,6 +212,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
             n = len(machine.manifest.captures)
             log(f"re-estimate of {', '.join(moved)} from {n} captures: " + (
                 "1-sigma targets reached" if re.reached else "; ".join(re.missing)))
+            stage("reestimate", re)
             if re.reached:
                 break
             if n + ROUND_CAPTURES > max_captures:
@@ -246,7 +256,28 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     if settings.get("bump"):
         machine.extra_state["recalibration"]["sim_bump"] = settings["bump"]
     machine._persist()
-    return Outcome(rec, result, ok, message)
+    outcome = Outcome(rec, result, ok, message)
+    stage("done", outcome)
+    return outcome
+
+
+def rig_verify_fn(rig, folder):
+    """The `verify(result, final)` of run_recalibration on this rig (None where the rig cannot verify):
+    the previous calibration checked on the rig, the final one written as the session's verification."""
+    from app.station.setup import make_verify_fn
+
+    final_fn = make_verify_fn(rig, folder)
+    if final_fn is None:
+        return None
+
+    def verify(result, final):
+        if final:
+            return final_fn(result)
+        from app.verification import verify as check
+
+        return check(rig.camera, rig.projector, rig.operator, result)
+
+    return verify
 
 
 def _tick_until(station: Station, machine: RecalibrationMachine, state: str, timeout_s: float = 120.0) -> None:

@@ -271,3 +271,16 @@ def test_recalibrate_after_a_projector_bump_end_to_end(tmp_path):
     assert rec["verification"]["previous"]["passed"] is False
     assert rec["verification"]["recalibrated"]["passed"] is True
     assert json.loads((d / "verification.json").read_text())["passed"] is True
+
+
+def test_station_recalibration_mode_refuses_a_missing_previous_and_a_used_folder(tmp_path):
+    r = _procam("station", "--rig", "sim", "--port", "0", "--recalibrate", str(tmp_path / "nope"),
+                "--session", str(tmp_path / "d"), timeout=120)
+    assert r.returncode == 2 and "no previous calibration" in r.stderr and not (tmp_path / "d").exists()
+    get_scenario().ground_truth().save_json(tmp_path / "c.json")
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "keep.txt").write_text("x")
+    r = _procam("station", "--rig", "sim", "--port", "0", "--recalibrate", str(tmp_path / "c.json"),
+                "--session", str(used), timeout=120)
+    assert r.returncode == 2 and "not empty" in r.stderr and sorted(p.name for p in used.iterdir()) == ["keep.txt"]

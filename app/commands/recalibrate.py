@@ -81,19 +81,10 @@ def run(args) -> int:
             nonlocal outcome
             from app.recalibration import run_recalibration
 
-            from app.station.setup import make_verify_fn
-
-            final_fn = make_verify_fn(rig, folder)
-
-            def verify(result, final):
-                if final:
-                    return final_fn(result)
-                from app.verification import verify as check
-
-                return check(rig.camera, rig.projector, rig.operator, result)
+            from app.recalibration import rig_verify_fn
 
             outcome = run_recalibration(args.previous, station, machine, log=log, max_captures=max_caps,
-                                        workers=args.workers, verify=verify if final_fn is not None else None)
+                                        workers=args.workers, verify=rig_verify_fn(rig, folder))
 
         run_on_rig(rig, work)
     finally:

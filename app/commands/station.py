@@ -38,6 +38,10 @@ def add_arguments(p) -> None:
                    help="simulated rig: the simulated operator moves the board by itself and the station runs "
                         "the whole session (watch it in the browser)")
     add_rig_options(p)
+    p.add_argument("--recalibrate", metavar="PREVIOUS", default=None,
+                   help="recalibration mode (simulated rig for now): check the rig against PREVIOUS (a session "
+                        "folder holding calibration.json, or a calibration.json), re-measure what moved, compare; "
+                        "the panel shows its checklist (docs/RECALIBRATION.md)")
     p.add_argument("--mirror-method", choices=("real-virtual", "real-mirror"), default=None,
                    help="with --auto: the mirror method the station chooses (default: the scenario's)")
 
@@ -55,9 +59,8 @@ def rig_note(req, defaulted: bool) -> str:
 
 def run(args) -> int:
     from app.commands.session import open_session
-    from app.station.machine import CHECK_RIG
     from app.station.panel import StationPanel, needs_access_code, new_access_code
-    from app.station.setup import default_rig_kind, resume_request, run_on_rig
+    from app.station.setup import default_rig_kind, resume_request
     from app.station.station import Station, StationOptions
 
     defaulted = False
@@ -72,6 +75,8 @@ def run(args) -> int:
             defaulted = kind == "sim"
         args.rig = kind
     args.out = args.session
+    if args.recalibrate:
+        return run_recalibration_mode(args, kind, defaulted)
     rig, store, machine, req = open_session(args, print)
     from drivers.factory import is_simulated
 
@@ -84,6 +89,56 @@ def run(args) -> int:
     station = Station(rig, machine, opts, log=lambda text: None)
     code = new_access_code() if needs_access_code(args.host) else None
     panel = StationPanel(station, args.host, args.port, code, rig_note(req, defaulted))
+
+    return serve(args, rig, store, station, panel, code, lambda: _start(machine, station))
+
+
+def _start(machine, station) -> None:
+    from app.station.machine import CHECK_RIG
+
+    if machine.state != CHECK_RIG:  # resumed: check the rig again (the panel shows the outcome)
+        station.check_rig()
+    station.start_loop()
+
+
+def run_recalibration_mode(args, kind: str, defaulted: bool) -> int:
+    """--recalibrate PREVIOUS: the flow of `procam recalibrate` (app/recalibration.py) driven from the
+    panel's recalibration checklist (app/station/panel_recal.py)."""
+    from app.commands.session import rig_options
+    from app.recalibration import RecalibrationMachine, RecalibrationStation, find_previous, rig_verify_fn
+    from app.station.machine import Plan
+    from app.station.panel import StationPanel, needs_access_code, new_access_code
+    from app.station.panel_recal import RecalibrationPanel
+    from app.station.setup import DEFAULT_SCENARIO, RigRequest, create_session, open_rig
+    from app.station.station import StationOptions
+    from calib.errors import SessionError
+    from drivers.factory import is_simulated
+
+    if args.resume:
+        raise SessionError("--recalibrate starts a new session folder: give --session DIR, not --resume")
+    find_previous(args.recalibrate)  # a clear error before any device is opened
+    folder = Path(args.session)
+    if folder.exists() and any(folder.iterdir()):
+        raise SessionError(f"{folder} is not empty: a recalibration needs a new session folder")
+    if not is_simulated(kind):
+        raise SessionError("the station's recalibration mode runs on the simulated rig for now (--rig sim)")
+    req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
+    rig = open_rig(req, **rig_options(args, kind))
+    plan = Plan(min_real_virtual=1, min_projector_captures=1)
+    store = create_session(folder, rig, req, plan)
+    machine = RecalibrationMachine(store, plan)
+    machine._persist()
+    station = RecalibrationStation(rig, machine, StationOptions(auto=True, follow_operator=True), log=lambda t: None)
+    code = new_access_code() if needs_access_code(args.host) else None
+    panel = StationPanel(station, args.host, args.port, code, rig_note(req, defaulted))
+    RecalibrationPanel(panel, args.recalibrate, verify=rig_verify_fn(rig, folder), workers=args.workers)
+    return serve(args, rig, store, station, panel, code, lambda: None)
+
+
+def serve(args, rig, store, station, panel, code, start) -> int:
+    """Run the panel until SIGTERM or Ctrl-C; `start()` first (the station's loop)."""
+    from app.station.setup import run_on_rig
+
     stop = threading.Event()
 
     def on_signal(signum, frame):
@@ -95,9 +150,7 @@ def run(args) -> int:
         pass
 
     def work():
-        if machine.state != CHECK_RIG:  # resumed: check the rig again (the panel shows the outcome)
-            station.check_rig()
-        station.start_loop()
+        start()
         panel.start()
         print(f"procam station: panel at {panel.url}  (session {Path(store.folder)})", flush=True)
         if code is not None:

@@ -1,0 +1,177 @@
+"""The station's recalibration mode (`procam station --recalibrate PREVIOUS`): a checklist in the panel
+(Check -> Re-measure what moved -> Compare) over the same flow as `procam recalibrate`
+(app/recalibration.py's run_recalibration, RecalibrationMachine, RecalibrationStation), run in a
+thread started by the operator's *Start check*; the check's verdict waits for *Accept verdict* (a sign-off
+when nothing moved). The station's loop is not started: the flow drives the station's ticks itself."""
+
+from __future__ import annotations
+
+import threading
+
+from app.recalibration import RECALIBRATION_FILE, run_recalibration
+
+_SIGMA_TARGETS = {  # (part, sigma key) -> target key of calib.recalib.targets_from
+    ("projector", "rot_deg"): "projector_rot_deg", ("projector", "t"): "projector_t",
+    ("mirror", "normal_deg"): "mirror_normal_deg", ("mirror", "d"): "mirror_d",
+    ("camera", "fx_px"): "camera_f_px", ("camera", "fy_px"): "camera_f_px",
+}
+
+
+def progress_lines(re, units: str) -> list[str]:
+    """Each re-estimated parameter's 1-sigma against its target."""
+    out = []
+    for (part, key), tkey in _SIGMA_TARGETS.items():
+        s = (re.sigma.get(part) or {}).get(key if key != "t" and key != "d" else f"{key}_{units}")
+        if s is None:
+            continue
+        t = re.targets[tkey]
+        out.append(f"{part} {key.replace('_', ' ')}: 1-sigma {s:.3f} / target {t:.3f} {'✔' if s <= t else '…'}")
+    return out
+
+
+class RecalibrationPanel:
+    """Adds the recalibration checklist and its buttons to a StationPanel."""
+
+    def __init__(self, panel, previous, verify=None, max_captures: int | None = None, workers: int = 2):
+        self.panel = panel
+        self.station = panel.station
+        self.machine = panel.machine
+        self.previous = previous
+        self.verify = verify
+        self.max_captures = max_captures
+        self.workers = workers
+        self.stage = "ready"  # ready -> checking -> verdict -> remeasuring -> done | failed
+        self.report = None
+        self.rounds: list = []
+        self.outcome = None
+        self.error = None
+        self._accepted = threading.Event()
+        self._thread = None
+        g = panel.server.gui
+        with g.add_folder("Recalibration", order=0.5):
+            self.h_text = g.add_markdown(self.text())
+            self.h_start = g.add_button("Start check", color="teal")
+            self.h_accept = g.add_button("Accept verdict", visible=False)
+        # the normal session's "Step n of 6 / Next" line would ask for a Calibrate this mode never needs
+        panel.step_line = lambda: ("**Recalibration mode**: follow the *Recalibration* checklist above; the step "
+                                   "controls below are not needed.")
+        self.h_start.on_click(lambda event: self.start_check())
+        self.h_accept.on_click(lambda event: self.accept())
+
+    # ---- operator actions ------------------------------------------------------------------------
+    def start_check(self) -> None:
+        if self._thread is not None:
+            return
+        self.stage = "checking"
+        self.h_start.visible = False
+        self._thread = threading.Thread(target=self._run, name="recalibration", daemon=True)
+        self._thread.start()
+        self.update()
+
+    def accept(self) -> None:
+        if self.stage == "verdict":
+            self.machine.log(f"recalibration: verdict '{self.report.verdict}' accepted by the operator")
+            self.stage = "remeasuring" if self.report.moved else "comparing"
+            self.h_accept.visible = False
+            self._accepted.set()
+            self.update()
+
+    # ---- the flow --------------------------------------------------------------------------------
+    def _on_stage(self, name, value) -> None:
+        if name == "verdict":
+            self.report = value
+            self.stage = "verdict"
+            self.h_accept.label = "Sign off: unchanged" if value.verdict == "unchanged" else "Accept verdict"
+            self.h_accept.visible = True
+            self.update()
+            self._accepted.wait()
+        elif name == "reestimate":
+            self.rounds.append(value)
+        elif name == "done":
+            self.outcome = value
+        self.update()
+
+    def _run(self) -> None:
+        from app.recalibration import DEFAULT_MAX_CAPTURES
+
+        try:
+            run_recalibration(self.previous, self.station, self.machine, log=self.machine.log,
+                              max_captures=self.max_captures or DEFAULT_MAX_CAPTURES, workers=self.workers,
+                              verify=self.verify, on_stage=self._on_stage)
+            self.stage = "done" if self.outcome.ok else "failed"
+        except Exception as e:  # shown in the checklist; the log has it too
+            self.error = f"{type(e).__name__}: {e}"
+            self.machine.log(f"recalibration failed: {self.error}")
+            self.stage = "failed"
+        self.update()
+
+    # ---- what the panel shows --------------------------------------------------------------------
+    def update(self) -> None:
+        try:
+            self.h_text.content = self.text()
+        except Exception:  # the server is stopping
+            pass
+
+    def text(self) -> str:
+        mark = {"ready": "☐", "checking": "▶", "verdict": "?", "remeasuring": "▶", "comparing": "▶",
+                "done": "✔", "failed": "✖"}
+        lines = [f"**Recalibration of** `{self.previous}` ({mark[self.stage]} {self.stage})", ""]
+        n = len(self.machine.manifest.captures)
+        if self.stage == "ready":
+            lines.append("1. Check: press *Start check* (a few captures test the camera, mirror and projector "
+                         "against the previous calibration).")
+            return "\n".join(lines)
+        lines.append(f"1. **Check** ({n} captures so far)" + (": running" if self.report is None else ""))
+        if self.report is not None:
+            for p, c in self.report.parts.items():
+                lines.append(f"    - {p}: **{c.status}** ({c.reason})")
+            ask = "Sign off: unchanged" if self.report.verdict == "unchanged" else "Accept verdict"
+            lines.append(f"    - verdict: **{self.report.verdict}**"
+                         + (f": press *{ask}*" if self.stage == "verdict" else ""))
+        if self.report is not None and self.report.moved:
+            lines.append(f"2. **Re-measure what moved**: {', '.join(self.report.moved)}")
+            units = self.report.current.units
+            if self.rounds:
+                last = self.rounds[-1]
+                lines.append(f"    - round {len(self.rounds)}: "
+                             + ("1-sigma targets reached" if last.reached else "capturing more"))
+                lines += [f"    - {t}" for t in progress_lines(last, units)]
+            elif self.stage == "remeasuring":
+                lines.append("    - capturing")
+        if self.outcome is not None:
+            lines.append("3. **Compare**: " + self.outcome.message + (" (ok)" if self.outcome.ok else " (FAILED)"))
+            lines += [f"    - {t}" for t in comparison_lines(self.outcome.record)]
+            lines.append("    - files written: " + ", ".join(self.files()))
+        if self.error:
+            lines.append(f"**Failed:** {self.error}")
+        return "\n".join(lines)
+
+    def files(self) -> list[str]:
+        from pathlib import Path
+
+        folder = Path(self.machine.store.folder)
+        return [f for f in (RECALIBRATION_FILE, "calibration.json", "previous/calibration.json", "verification.json")
+                if (folder / f).exists()]
+
+
+def comparison_lines(rec: dict) -> list[str]:
+    """New against previous, with the uncertainty of each change (recalibration.json's comparison)."""
+    cmp = rec.get("comparison")
+    caps = rec["captures"]
+    out = [f"captures: {caps['total']} (check {caps['check']}; mirror {caps['mirror']}, projector {caps['projector']})"]
+    if not cmp:
+        return out + ["no part moved: calibration.json is the previous calibration"]
+    u = cmp["units"]
+    pj = cmp["projector"]
+    out.append(f"projector moved {pj[f'position_change_{u}']:.2f} {u} (1-sigma {pj[f'position_sigma_{u}']:.2f}), "
+               f"turned {pj['rotation_change_deg']:.3f} deg (1-sigma {pj['rotation_sigma_deg']:.3f})")
+    if cmp.get("mirror"):
+        m = cmp["mirror"]
+        out.append(f"mirror tilted {m['normal_change_deg']:.3f} deg (1-sigma {m['normal_sigma_deg']:.3f}), "
+                   f"offset {m[f'd_change_{u}']:+.2f} {u}")
+    c = cmp["camera"]
+    out.append(f"camera fx {c['fx_change_px']:+.2f} px, fy {c['fy_change_px']:+.2f} px; projection difference mean "
+               f"{c['projection_difference']['mean_px']:.2f} px, max {c['projection_difference']['max_px']:.2f} px")
+    for k, v in (rec.get("verification") or {}).items():
+        out.append(f"epipolar verification of the {k} calibration: {'passed' if v['passed'] else 'FAILED'}")
+    return out
