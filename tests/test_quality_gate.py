@@ -114,3 +114,26 @@ def test_procam_calibrate_writes_a_low_quality_result_and_exits_3(tmp_path, caps
     saved = json.loads((folder / "calibration.json").read_text())  # written all the same
     assert saved["diagnostics"]["trust"]["quality"]["low"] is True
     assert (folder / "calibration.yaml").exists()
+
+
+def test_station_calibrate_step_logs_the_low_quality_reasons(tmp_path, thin_result):
+    """The station machine's calibrate step (its calibration function returning the thin session's real
+    result) keeps the result and logs each quality reason with its code."""
+    from app.station.machine import CALIBRATION, Plan, RigCheck, SessionMachine
+    from tests._station_helpers import TINY, make_store
+
+    m = SessionMachine(make_store(tmp_path / "s", "mirror", 5), Plan(poses_per_position=1, real_virtual_captures=3,
+                                                                      min_real_virtual=3, min_projector_captures=5),
+                       calibrate_fn=lambda folder, intrinsics, progress: thin_result)
+    m.start_session([RigCheck("camera", True, "streaming"), RigCheck("projector", True, "up")])
+    m.choose_mirror_method("real-virtual")
+    while m.target is not None:
+        m.record_capture(TINY)
+    m.proceed()
+    while m.target is not None:
+        m.record_capture(TINY)
+    assert m.calibrate() is thin_result and m.state == CALIBRATION
+    logged = [e.text for e in m.events]
+    for code in thin_result.diagnostics["trust"]["quality"]["reasons"]:
+        assert any(t.startswith(f"[{code['code']}] LOW QUALITY") for t in logged), (code["code"], logged[-6:])
+    assert (m.store.folder / "calibration.json").exists()
