@@ -226,8 +226,8 @@ def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[Qualit
         if not value <= limit:  # NaN / inf too
             shown = (f"{raw:.3g} {unit} (1 sigma at this session's {rms:.3g} px RMS; {value:.3g} {unit} at "
                      f"{qth.reference_noise_px:g} px of noise" if math.isfinite(value) else
-                     "an amount that cannot be computed (")
-            out.append(QualityReason(code, f"LOW QUALITY: {what} is uncertain by {shown}, limit {limit:g} {unit}, "
+                     "an amount that cannot be computed (singular covariance")
+            out.append(QualityReason(code, f"LOW QUALITY: {what} is uncertain by {shown}; limit {limit:g} {unit}, "
                                      f"worst full session {reference:g} {unit}): {advice}",
                                      float(value), limit, reference, advice))
 
