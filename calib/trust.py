@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from calib.camera import CameraModel
+from calib.projection_uncertainty import large_regions, where_max
 from calib.transforms import invert_T
 
 #: length units of a session -> millimetres (limits on lengths are stated in mm)
@@ -66,6 +67,66 @@ class TrustThresholds:
     condition_max: float = 1e8  # of the correlation matrix of the geometric parameters (not distortion)
 
 
+#: quality codes (calib.trust's `quality` section: low quality, not failure)
+QUALITY_CODES = {
+    "quality_pose_translation": "the projector's position is far more uncertain than a full session's",
+    "quality_pose_rotation": "the projector's orientation is far more uncertain than a full session's",
+    "quality_camera_intrinsics": "the camera's fx, fy, cx, cy are far more uncertain than a full session's",
+    "quality_projector_intrinsics": "the projector's fx, fy, cx, cy are far more uncertain than a full session's",
+    "quality_mirror_normal": "the mirror normal is far more uncertain than a full session's",
+    "quality_camera_projection": "the camera's projection uncertainty over the image is far above a full session's",
+    "quality_projector_projection": "the projector's projection uncertainty over the image is far above a full session's",
+}
+
+_ADVICE_POSES = ("take more projector captures, at more pattern positions and with more varied board tilts and "
+                 "distances")
+_ADVICE_INTRINSICS = ("take more poses with varied tilts (30-45 deg to each side) that bring the board into the "
+                      "image corners")
+_ADVICE_MIRROR = "take more mirror captures, with the board at other places and tilts on / in front of the mirror"
+
+
+@dataclass(frozen=True)
+class QualityThresholds:
+    """Limits of the quality gate: about 2.5x the worst value of the simulated full sessions at 0.3 px noise
+    (benchmarks/quality_gate.py prints them; docs/CALIBRATION.md "Quality gate"). The `reference_*`
+    values are those worst full-session values, reported next to the measured 1-sigma."""
+
+    reference_noise_px: float = 0.3  # every 1-sigma is scaled to this noise (by it / the joint RMS)
+    sigma_t_mm: float = 3.5  # 1-sigma of T_cam_proj's translation (all axes together)
+    sigma_rot_deg: float = 0.28  # ... of its rotation
+    sigma_camera_intrinsics_px: float = 2.3  # largest 1-sigma of the camera's fx, fy, cx, cy
+    sigma_projector_intrinsics_px: float = 8.6  # ... of the projector's
+    sigma_mirror_normal_deg: float = 0.19
+    projection_camera_max_px: float = 9.7  # max over the image of the projection uncertainty grid
+    projection_projector_max_px: float = 4.0
+    # the worst of 24 simulated full sessions (8 scenarios x 3 seeds, 0.3 px noise), scaled as above
+    reference_t_mm: float = 1.39
+    reference_rot_deg: float = 0.111
+    reference_camera_intrinsics_px: float = 0.93
+    reference_projector_intrinsics_px: float = 3.45
+    reference_mirror_normal_deg: float = 0.074
+    reference_projection_camera_max_px: float = 3.87
+    reference_projection_projector_max_px: float = 1.59
+
+
+@dataclass(frozen=True)
+class QualityReason:
+    """One reason a trusted result is of low quality: the parameter's 1-sigma (`value`) against the
+    `limit`, the worst full session's value (`reference`) and what to do (`advice`)."""
+
+    code: str
+    message: str
+    value: float
+    limit: float
+    reference: float
+    advice: str
+
+    def to_dict(self) -> dict:
+        return {"code": self.code, "message": self.message,
+                "value": float(self.value) if math.isfinite(self.value) else None,
+                "limit": self.limit, "reference": self.reference, "advice": self.advice}
+
+
 @dataclass(frozen=True)
 class TrustReason:
     code: str
@@ -87,6 +148,17 @@ class TrustReport:
     metrics: dict = field(default_factory=dict)
     thresholds: TrustThresholds = field(default_factory=TrustThresholds)
     accepted_by_user: bool = False
+    quality: tuple[QualityReason, ...] = ()
+    quality_thresholds: QualityThresholds = field(default_factory=QualityThresholds)
+
+    @property
+    def low_quality(self) -> bool:
+        """Trusted (or not) but far more uncertain than a full session: see `quality`."""
+        return bool(self.quality)
+
+    @property
+    def quality_codes(self) -> list[str]:
+        return [r.code for r in self.quality]
 
     @property
     def passed(self) -> bool:
@@ -101,13 +173,17 @@ class TrustReport:
                 "reasons": [r.to_dict() for r in self.reasons],
                 "metrics": {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
                             for k, v in self.metrics.items()},
-                "thresholds": asdict(self.thresholds)}
+                "thresholds": asdict(self.thresholds),
+                "quality": {"low": self.low_quality, "reasons": [r.to_dict() for r in self.quality],
+                            "thresholds": asdict(self.quality_thresholds)}}
 
 
-def check_calibration(result, thresholds: TrustThresholds | None = None) -> TrustReport:
-    """Check a CalibrationResult (any method) for the failures listed in CODES; never raises on a bad
-    result (that is what the report is for)."""
+def check_calibration(result, thresholds: TrustThresholds | None = None,
+                      quality_thresholds: QualityThresholds | None = None) -> TrustReport:
+    """Check a CalibrationResult (any method) for the failures listed in CODES, and its quality
+    (QUALITY_CODES); never raises on a bad result (that is what the report is for)."""
     th = thresholds or TrustThresholds()
+    qth = quality_thresholds or QualityThresholds()
     reasons: list[TrustReason] = []
     metrics: dict = {}
 
@@ -123,10 +199,69 @@ def check_calibration(result, thresholds: TrustThresholds | None = None) -> Trus
     _check_rms(result, th, fail, metrics)
     _check_geometry(result, th, fail, metrics)
     _check_uncertainty(result, th, fail, metrics)
-    return TrustReport(tuple(reasons), metrics, th)
+    quality = check_quality(result, metrics, qth)
+    return TrustReport(tuple(reasons), metrics, th, quality=quality, quality_thresholds=qth)
 
 
-# ---- parameters --------------------------------------------------------------------------------------
+# ---- quality gate ------------------------------------------------------------------------------------
+def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[QualityReason, ...]:
+    """The quality reasons of a result, from the 1-sigma metrics the uncertainty check measured (joint
+    covariance) and the result's projection-uncertainty grid.
+
+    The gate judges the geometry of the session (how many and how varied the poses, how much of the
+    images they cover), not the detection noise: a 1-sigma scales with the residuals, so each one is
+    scaled to the reference noise (`qth.reference_noise_px`, the noise of the simulated full sessions
+    the limits come from) by reference_noise / the joint RMS before it is compared. The scaled values go
+    into `metrics` ("quality.*"). Methods without a covariance (paper) have nothing to judge: no reasons."""
+    out: list[QualityReason] = []
+    rms = (result.rms or {}).get("joint") if isinstance(result.rms, dict) else None
+    if not isinstance(rms, (int, float)) or not math.isfinite(rms) or rms <= 0:
+        return ()
+    scale = qth.reference_noise_px / float(rms)
+    metrics["quality.noise_scale"] = scale
+
+    def low(code, key, what, raw, limit, reference, unit, advice):
+        value = raw * scale
+        metrics[f"quality.{key}"] = value
+        if not value <= limit:  # NaN / inf too
+            shown = (f"{raw:.3g} {unit} (1 sigma at this session's {rms:.3g} px RMS; {value:.3g} {unit} at "
+                     f"{qth.reference_noise_px:g} px of noise" if math.isfinite(value) else
+                     "an amount that cannot be computed (singular covariance")
+            out.append(QualityReason(code, f"LOW QUALITY: {what} is uncertain by {shown}; limit {limit:g} {unit}, "
+                                     f"worst full session {reference:g} {unit}): {advice}",
+                                     float(value), limit, reference, advice))
+
+    m = metrics
+    if "sigma.t_mm" in m:
+        low("quality_pose_translation", "t_mm", "the projector's position", m["sigma.t_mm"], qth.sigma_t_mm,
+            qth.reference_t_mm, "mm", _ADVICE_POSES)
+    if "sigma.rot_deg" in m:
+        low("quality_pose_rotation", "rot_deg", "the projector's orientation", m["sigma.rot_deg"], qth.sigma_rot_deg,
+            qth.reference_rot_deg, "deg", _ADVICE_POSES)
+    for dev, lim, ref in (("camera", qth.sigma_camera_intrinsics_px, qth.reference_camera_intrinsics_px),
+                          ("projector", qth.sigma_projector_intrinsics_px, qth.reference_projector_intrinsics_px)):
+        if f"sigma.{dev}_intrinsics_px" in m:
+            low(f"quality_{dev}_intrinsics", f"{dev}_intrinsics_px", f"the {dev}'s fx, fy, cx, cy (largest)",
+                m[f"sigma.{dev}_intrinsics_px"], lim, ref, "px", _ADVICE_INTRINSICS)
+    if "sigma.mirror_normal_deg" in m:
+        low("quality_mirror_normal", "mirror_normal_deg", "the mirror normal", m["sigma.mirror_normal_deg"],
+            qth.sigma_mirror_normal_deg, qth.reference_mirror_normal_deg, "deg", _ADVICE_MIRROR)
+    pu = getattr(result, "projection_uncertainty", None)
+    if isinstance(pu, dict):
+        for dev, lim, ref in (("camera", qth.projection_camera_max_px, qth.reference_projection_camera_max_px),
+                              ("projector", qth.projection_projector_max_px,
+                               qth.reference_projection_projector_max_px)):
+            g = pu.get(dev)
+            if not isinstance(g, dict) or g.get("fixed") or not isinstance(g.get("max_px"), (int, float)):
+                continue
+            places = large_regions(g, lim / scale) or [where_max(g) or "the image"]
+            low(f"quality_{dev}_projection", f"projection_{dev}_max_px",
+                f"where the {dev} projects a ray (max over the image, at the {where_max(g)})", float(g["max_px"]),
+                lim, ref, "px", f"{_ADVICE_INTRINSICS}; above the limit at: {', '.join(places)}")
+    return tuple(out)
+
+
+# ---- checks ------------------------------------------------------------------------------------------
 def _finite_parameters(result) -> list[str]:
     bad = []
     for name, arr in (("camera K", result.camera.K), ("camera distortion", result.camera.dist),
@@ -334,3 +469,13 @@ def correlation_condition(cov: np.ndarray) -> float:
     corr = cov / s[:, None] / s[None, :]
     ev = np.linalg.eigvalsh((corr + corr.T) / 2)
     return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+
+
+def low_quality_lines(result) -> list[str]:
+    """The quality reasons recorded in a result's diagnostics["trust"] (by calib.pipeline's trust check),
+    one line each with its code; [] when the result is not of low quality or carries no trust report."""
+    diag = result.diagnostics if isinstance(result.diagnostics, dict) else {}
+    q = (diag.get("trust") or {}).get("quality") if isinstance(diag.get("trust"), dict) else None
+    if not isinstance(q, dict):
+        return []
+    return [f"[{r.get('code')}] {r.get('message')}" for r in q.get("reasons") or [] if isinstance(r, dict)]

@@ -172,7 +172,9 @@ def run(args) -> int:
     stale = stale_verification_note(session, out)
     if stale:
         print(stale)
-    return 0
+    from app.commands._quality import EXIT_LOW_QUALITY, report_low_quality
+
+    return EXIT_LOW_QUALITY if report_low_quality(result) else 0
 
 
 def stale_verification_note(session: Path, written: Path) -> str | None:

@@ -7,6 +7,7 @@ board, reading the instructions printed in the terminal, and auto-capture takes 
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -231,4 +232,8 @@ def run(args) -> int:
     print(summary(machine, store.folder, time.monotonic() - t0), flush=True)
     if machine.report is not None and not getattr(machine.report, "passed", True):
         return 1
+    from app.commands._quality import EXIT_LOW_QUALITY, report_low_quality
+
+    if machine.result is not None and report_low_quality(machine.result, file=sys.stdout):
+        return EXIT_LOW_QUALITY
     return 0

@@ -653,6 +653,10 @@ class SessionMachine:
             self.busy = None
             rms = ", ".join(f"{k} {v:.3f} px" for k, v in result.rms.items() if isinstance(v, (int, float)))
             self._log(f"calibrated ({rms})" if rms else "calibrated")
+            from calib.trust import low_quality_lines  # the quality gate: usable, but say why it is not good
+
+            for line in low_quality_lines(result):
+                self._log(line)
             self._persist()
             return result
 

@@ -821,6 +821,9 @@ class Station:
                 return "The captures are complete. Press Calibrate."
             if m.result_stale:
                 return "The captures changed since the last calibration. Press Calibrate to re-run it."
+            low = _low_quality_note(m.result)
+            if low:
+                return low + (" Or press Verify to check it as it is." if m.why_not("verify") is None else "")
             if m.why_not("verify") is None:
                 return "Calibrated. Press Verify to check the calibration with epipolar lines."
             return "Calibrated. Press Finish to end the session."
@@ -854,3 +857,16 @@ class Station:
             parts.append(f"mirror {c['mirror']}/{c['mirror_total']}")
         parts.append(f"projector {c['projector']}/{c['projector_total']}")
         return " | ".join(parts)
+
+
+def _low_quality_note(result) -> str:
+    """The instruction for a LOW QUALITY calibration (calib.trust's quality gate), "" when it is not."""
+    from calib.trust import QUALITY_CODES, low_quality_lines
+
+    lines = low_quality_lines(result)
+    if not lines:
+        return ""
+    codes = [ln[1:ln.index("]")] for ln in lines if ln.startswith("[") and "]" in ln]
+    what = "; ".join(QUALITY_CODES.get(c, c) for c in codes)
+    return (f"Calibrated, but LOW QUALITY: {what} (details in the log). Add captures at more pattern positions "
+            "with more varied tilts that reach the image corners, then press Calibrate again.")
