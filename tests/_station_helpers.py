@@ -147,3 +147,18 @@ def launch_chromium(playwright):
 def text_input(page, label: str):
     """viser's text input of the given label (its <label> does not point at the input)."""
     return page.locator(f"xpath=//label[normalize-space()='{label}']/ancestor::div[.//input][1]//input").first
+
+
+def tick_until_projector_captures(station, machine, n: int, max_ticks: int = 300) -> None:
+    """Start a real-virtual session and let the station tick (the simulated operator moving the board)
+    until `n` projector captures are taken, or `max_ticks` have passed."""
+    from calib.observations import STEP_PROJECTOR
+
+    machine.start_session()
+    machine.choose_mirror_method("real-virtual")
+    for _ in range(max_ticks):
+        if len(machine.captures_of(STEP_PROJECTOR)) >= n:
+            return
+        if machine.target is None:
+            machine.proceed()
+        station.tick()

@@ -9,7 +9,7 @@ import numpy as np
 import pyrealsense2 as rs
 import pytest
 
-from _station_helpers import run_procam
+from _station_helpers import run_procam, tick_until_projector_captures
 from drivers.base import ExposureControl
 from drivers.errors import DeviceDisconnected
 from drivers.factory import RIG_KINDS, open_rig
@@ -173,27 +173,15 @@ def test_captures_through_the_driver_show_only_the_image_recorded_for_them(tmp_p
     from calib.observations import STEP_PROJECTOR
 
     req = RigRequest("sim-realsense", "nonoverlap-136", 0)
+    rig = open_station_rig(req, latency_ms=150.0)
     try:
-        rig = open_station_rig(req, latency_ms=150.0)
-    except Exception as e:  # noqa: BLE001 - the ideal simulator has no latency option
-        pytest.skip(f"needs the hardware-like simulator (projector latency, frame_truth): {e}")
-    try:
-        if not hasattr(rig.sim, "frame_truth"):
-            pytest.skip("needs the hardware-like simulator's record of what each frame saw (frame_truth)")
         plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
         store = create_session(tmp_path / "s", rig, req, plan)
         m = make_machine(store, rig, plan)
         st = Station(rig, m, StationOptions(auto=False, follow_operator=True, auto_capture=True))
         checks = st.check_rig()
         assert all(c.ok for c in checks), checks
-        m.start_session()
-        m.choose_mirror_method("real-virtual")
-        for _ in range(300):
-            if len(m.captures_of(STEP_PROJECTOR)) >= 3:
-                break
-            if m.target is None:
-                m.proceed()
-            st.tick()
+        tick_until_projector_captures(st, m, 3)
         assert len(m.captures_of(STEP_PROJECTOR)) >= 3
         numbers = rig.camera.device_numbers
         for c in m.manifest.captures:

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from _station_helpers import tick_until_projector_captures
 from app.station.machine import Plan
 from app.station.setup import RigRequest, create_session, make_machine, open_rig
 from app.station.station import Station, StationOptions
@@ -213,14 +214,7 @@ def test_no_capture_and_no_verification_frame_shows_another_image(tmp_path, late
     true_max_ms = max(rig.projector.timeline.latency_s(t) for t in range(1, rig.projector.ticket + 1)) * 1000
     assert cs["projector"]["refresh_hz"] == 60.0
     assert true_max_ms <= cs["projector"]["latency_ms"] <= true_max_ms + 90
-    m.start_session()
-    m.choose_mirror_method("real-virtual")
-    for _ in range(300):
-        if len(m.captures_of(STEP_PROJECTOR)) >= 3:
-            break
-        if m.target is None:
-            m.proceed()
-        st.tick()
+    tick_until_projector_captures(st, m, 3)
     caps = m.manifest.captures
     assert len(m.captures_of(STEP_PROJECTOR)) >= 3
     for c in caps:
