@@ -96,28 +96,12 @@ def run(args) -> int:
 
 
 def summary(rec: dict, folder, elapsed_s: float) -> str:
+    from app.recalibration import comparison_lines
     from app.station.setup import load_ground_truth
 
-    lines = [f"recalibration {folder}: {rec['message']} ({'ok' if rec['ok'] else 'FAILED'}) after {elapsed_s:.1f} s",
-             f"  captures: {rec['captures']['total']} (check {rec['captures']['check']}; mirror "
-             f"{rec['captures']['mirror']}, projector {rec['captures']['projector']})"]
-    for p, c in rec["check"]["parts"].items():
-        lines.append(f"  check {p}: {c['status']}")
-    for k, v in (rec.get("verification") or {}).items():
-        lines.append(f"  epipolar verification of the {k} calibration: {'passed' if v['passed'] else 'FAILED'}")
-    cmp = rec.get("comparison")
-    if cmp:
-        u = cmp["units"]
-        pj = cmp["projector"]
-        lines.append(f"  projector moved {pj[f'position_change_{u}']:.2f} {u} (1-sigma {pj[f'position_sigma_{u}']:.2f}),"
-                     f" turned {pj['rotation_change_deg']:.3f} deg (1-sigma {pj['rotation_sigma_deg']:.3f})")
-        if cmp.get("mirror"):
-            m = cmp["mirror"]
-            lines.append(f"  mirror tilted {m['normal_change_deg']:.3f} deg (1-sigma {m['normal_sigma_deg']:.3f}), "
-                         f"offset {m[f'd_change_{u}']:+.2f} {u}")
-        c = cmp["camera"]
-        lines.append(f"  camera fx {c['fx_change_px']:+.2f} px, fy {c['fy_change_px']:+.2f} px; projection difference "
-                     f"mean {c['projection_difference']['mean_px']:.2f} px, max {c['projection_difference']['max_px']:.2f} px")
+    lines = [f"recalibration {folder}: {rec['message']} ({'ok' if rec['ok'] else 'FAILED'}) after {elapsed_s:.1f} s"]
+    lines += [f"  check {p}: {c['status']}" for p, c in rec["check"]["parts"].items()]
+    lines += [f"  {line}" for line in comparison_lines(rec)]
     gt = load_ground_truth(folder)
     cal = Path(folder) / "calibration.json"
     if gt is not None and cal.exists():

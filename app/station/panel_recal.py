@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import threading
 
-from app.recalibration import RECALIBRATION_FILE, run_recalibration
+from app.recalibration import RECALIBRATION_FILE, comparison_lines, run_recalibration
 
 _SIGMA_TARGETS = {  # (part, sigma key) -> target key of calib.recalib.targets_from
     ("projector", "rot_deg"): "projector_rot_deg", ("projector", "t"): "projector_t",
@@ -152,26 +152,3 @@ class RecalibrationPanel:
         folder = Path(self.machine.store.folder)
         return [f for f in (RECALIBRATION_FILE, "calibration.json", "previous/calibration.json", "verification.json")
                 if (folder / f).exists()]
-
-
-def comparison_lines(rec: dict) -> list[str]:
-    """New against previous, with the uncertainty of each change (recalibration.json's comparison)."""
-    cmp = rec.get("comparison")
-    caps = rec["captures"]
-    out = [f"captures: {caps['total']} (check {caps['check']}; mirror {caps['mirror']}, projector {caps['projector']})"]
-    if not cmp:
-        return out + ["no part moved: calibration.json is the previous calibration"]
-    u = cmp["units"]
-    pj = cmp["projector"]
-    out.append(f"projector moved {pj[f'position_change_{u}']:.2f} {u} (1-sigma {pj[f'position_sigma_{u}']:.2f}), "
-               f"turned {pj['rotation_change_deg']:.3f} deg (1-sigma {pj['rotation_sigma_deg']:.3f})")
-    if cmp.get("mirror"):
-        m = cmp["mirror"]
-        out.append(f"mirror tilted {m['normal_change_deg']:.3f} deg (1-sigma {m['normal_sigma_deg']:.3f}), "
-                   f"offset {m[f'd_change_{u}']:+.2f} {u}")
-    c = cmp["camera"]
-    out.append(f"camera fx {c['fx_change_px']:+.2f} px, fy {c['fy_change_px']:+.2f} px; projection difference mean "
-               f"{c['projection_difference']['mean_px']:.2f} px, max {c['projection_difference']['max_px']:.2f} px")
-    for k, v in (rec.get("verification") or {}).items():
-        out.append(f"epipolar verification of the {k} calibration: {'passed' if v['passed'] else 'FAILED'}")
-    return out
