@@ -404,31 +404,21 @@ def check_rig(previous: CalibrationResult, obs: SessionObservations, alpha: floa
     cur = previous
     rule = (f"moved when d^T (F^2 (C_prev + C_new))^-1 d > chi2.ppf(1 - {alpha:g}, dim), F = {factor:g}; "
             "parts tested in order camera, mirror, projector, each with the earlier verdicts held")
-    # camera: every board view, mirror free (through-the-mirror views constrain the camera too)
-    try:
-        fit = fit_blocks(cur, obs, ("camera", "mirror"), "boards")
-        parts["camera"] = _test(previous, fit, "camera", alpha, factor)
-        if parts["camera"].moved:
-            cur = cur.with_(camera=fit.result.camera)
-    except CalibrationError as e:
-        parts["camera"] = PartCheck("camera", "not checked", {}, {}, None, None, 0, str(e))
-    if previous.mirror is not None:
+    # (part, blocks fitted, observations, result field, what to capture when it cannot be tested); the
+    # camera from every board view with the mirror free (views through the mirror constrain it too)
+    order = (("camera", ("camera", "mirror"), "boards", "camera", ""),
+             ("mirror", ("mirror",), "mirror", "mirror", ": capture the board held between camera and mirror"),
+             ("projector", ("projector",), "pattern", "T_cam_proj", ": capture the board with the pattern on it"))
+    for part, blocks, data, field, hint in order:
+        if part == "mirror" and previous.mirror is None:
+            continue
         try:
-            fit = fit_blocks(cur, obs, ("mirror",), "mirror")
-            parts["mirror"] = _test(previous, fit, "mirror", alpha, factor)
-            if parts["mirror"].moved:
-                cur = cur.with_(mirror=fit.result.mirror)
+            fit = fit_blocks(cur, obs, blocks, data)
+            parts[part] = _test(previous, fit, part, alpha, factor)
+            if parts[part].moved:
+                cur = cur.with_(**{field: getattr(fit.result, field)})
         except CalibrationError as e:
-            parts["mirror"] = PartCheck("mirror", "not checked", {}, {}, None, None, 0,
-                                        f"{e}: capture the board held between camera and mirror")
-    try:
-        fit = fit_blocks(cur, obs, ("projector",), "pattern")
-        parts["projector"] = _test(previous, fit, "projector", alpha, factor)
-        if parts["projector"].moved:
-            cur = cur.with_(T_cam_proj=fit.result.T_cam_proj)
-    except CalibrationError as e:
-        parts["projector"] = PartCheck("projector", "not checked", {}, {}, None, None, 0,
-                                       f"{e}: capture the board with the pattern on it")
+            parts[part] = PartCheck(part, "not checked", {}, {}, None, None, 0, f"{e}{hint}")
     return CheckReport(parts, cur, rule)
 
 
