@@ -404,19 +404,19 @@ def check_rig(previous: CalibrationResult, obs: SessionObservations, alpha: floa
     cur = previous
     rule = (f"moved when d^T (F^2 (C_prev + C_new))^-1 d > chi2.ppf(1 - {alpha:g}, dim), F = {factor:g}; "
             "parts tested in order camera, mirror, projector, each with the earlier verdicts held")
-    # (part, blocks fitted, observations, result field, what to capture when it cannot be tested); the
+    # (part, blocks fitted, observations, result attribute, what to capture when it cannot be tested); the
     # camera from every board view with the mirror free (views through the mirror constrain it too)
     order = (("camera", ("camera", "mirror"), "boards", "camera", ""),
              ("mirror", ("mirror",), "mirror", "mirror", ": capture the board held between camera and mirror"),
              ("projector", ("projector",), "pattern", "T_cam_proj", ": capture the board with the pattern on it"))
-    for part, blocks, data, field, hint in order:
+    for part, blocks, data, attr, hint in order:
         if part == "mirror" and previous.mirror is None:
             continue
         try:
             fit = fit_blocks(cur, obs, blocks, data)
             parts[part] = _test(previous, fit, part, alpha, factor)
             if parts[part].moved:
-                cur = cur.with_(**{field: getattr(fit.result, field)})
+                cur = cur.with_(**{attr: getattr(fit.result, attr)})
         except CalibrationError as e:
             parts[part] = PartCheck(part, "not checked", {}, {}, None, None, 0, f"{e}{hint}")
     return CheckReport(parts, cur, rule)

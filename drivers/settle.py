@@ -173,6 +173,28 @@ def measure_settle_time(projector, camera, **kwargs) -> float:
     return measure_settle(projector, camera, **kwargs).settle_s
 
 
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v and abs(v) != float("inf")
+
+
+def recorded_exposure(camera_settings: dict | None) -> tuple[float, float] | None:
+    """(exposure_us, gain) of a manifest's rig.camera_settings when it recorded a manual exposure with
+    numbers (a session file is untrusted: anything else counts as not recorded), else None."""
+    rec = camera_settings if isinstance(camera_settings, dict) else {}
+    exposure, gain = rec.get("exposure_us"), rec.get("gain", 1.0)
+    if rec.get("auto_exposure") is False and _finite(exposure) and exposure > 0 and _finite(gain) and gain >= 0:
+        return float(exposure), float(gain)
+    return None
+
+
+def recorded_latency_s(camera_settings: dict | None) -> float | None:
+    """The projector latency (seconds) a manifest's rig.camera_settings recorded, or None."""
+    rec = camera_settings if isinstance(camera_settings, dict) else {}
+    proj = rec.get("projector")
+    v = proj.get("latency_ms") if isinstance(proj, dict) else None
+    return float(v) / 1000.0 if _finite(v) and v >= 0 else None
+
+
 def apply_timing(camera, projector, camera_settings: dict | None = None, search_image: np.ndarray | None = None,
                  measure: bool = True) -> dict:
     """Make a rig's frames trustworthy for a command that shows images and reads them back (the
@@ -188,8 +210,9 @@ def apply_timing(camera, projector, camera_settings: dict | None = None, search_
     out = {}
     if isinstance(camera, ExposureControl):
         camera.set_emitter(False)
-        if rec.get("auto_exposure") is False and isinstance(rec.get("exposure_us"), (int, float)):
-            applied = camera.set_manual_exposure(float(rec["exposure_us"]), float(rec.get("gain", 1.0)))
+        recorded = recorded_exposure(rec)
+        if recorded is not None:
+            applied = camera.set_manual_exposure(*recorded)
         else:
             img = white(tuple(projector.size)) if search_image is None else search_image
             projector.wait_presented(projector.show(img))
@@ -200,8 +223,9 @@ def apply_timing(camera, projector, camera_settings: dict | None = None, search_
                     "gain": float(applied["gain"]), "emitter_enabled": False})
     timing = dict(rec.get("projector") or {})
     if hasattr(projector, "settle_s"):
-        if isinstance(timing.get("latency_ms"), (int, float)) and timing["latency_ms"] >= 0:
-            projector.settle_s = float(timing["latency_ms"]) / 1000.0
+        latency_s = recorded_latency_s(rec)
+        if latency_s is not None:
+            projector.settle_s = latency_s
         elif measure:
             projector.settle_s = measure_settle(projector, camera).settle_s
         timing.update({"latency_ms": round(float(projector.settle_s) * 1000.0, 3),

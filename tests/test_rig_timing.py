@@ -280,3 +280,22 @@ def test_resume_reapplies_the_recorded_exposure_and_latency(tmp_path):
     assert (cur["exposure_us"], cur["gain"]) == (rec["exposure_us"], rec["gain"])
     assert rig2.projector.ticket <= 2  # nothing measured again: at most black shown
     assert SessionStore.open(tmp_path / "s").manifest.rig.camera_settings == rec
+
+
+def test_recorded_timing_from_a_hostile_manifest_counts_as_not_recorded():
+    """rig.camera_settings comes from an untrusted session.json: an exposure, gain or latency that is not
+    a finite, non-negative number is not re-applied (the station and `procam verify` search or measure
+    instead) and never raises."""
+    from drivers.settle import recorded_exposure, recorded_latency_s
+
+    good = {"auto_exposure": False, "exposure_us": 16667.0, "gain": 2.0, "projector": {"latency_ms": 85.5}}
+    assert recorded_exposure(good) == (16667.0, 2.0)
+    assert recorded_latency_s(good) == pytest.approx(0.0855)
+    assert recorded_exposure({"auto_exposure": False, "exposure_us": 8000}) == (8000.0, 1.0)  # gain defaults
+    for bad in ({**good, "auto_exposure": True}, {**good, "exposure_us": "16667"}, {**good, "gain": "x"},
+                {**good, "exposure_us": float("nan")}, {**good, "gain": float("inf")}, {**good, "exposure_us": -5},
+                {**good, "exposure_us": True}, {}, None, "settings"):
+        assert recorded_exposure(bad) is None, bad
+    for bad in ({"projector": {"latency_ms": "85"}}, {"projector": {"latency_ms": -1}}, {"projector": 85},
+                {"projector": {"latency_ms": float("nan")}}, {}, None, []):
+        assert recorded_latency_s(bad) is None, bad

@@ -14,7 +14,6 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 NAME = "verify"
 HELP = "measure a session's calibration on the rig: epipolar curves drawn by the projector vs picked camera pixels"
@@ -90,75 +89,34 @@ DEFAULT_SETTLE_S = 0.1
 
 def recorded_latency_s(manifest) -> float | None:
     """The projector latency the session measured (seconds), or None."""
-    proj = (manifest.rig.camera_settings or {}).get("projector")
-    v = proj.get("latency_ms") if isinstance(proj, dict) else None
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return None
-    return v / 1000.0 if v >= 0 and v == v and v != float("inf") else None
+    from drivers.settle import recorded_latency_s as from_settings
 
-
-def apply_recorded_camera(camera, manifest) -> dict:
-    """Set an ExposureControl camera as the session recorded it: manual exposure and gain (auto exposure
-    off), the emitter off. Returns what was applied, in the manifest's form ({} without exposure control;
-    no "exposure_us" when the session recorded no manual exposure: auto exposure is then on)."""
-    from calib.errors import SessionError
-    from drivers.base import ExposureControl
-
-    if not isinstance(camera, ExposureControl):
-        return {}
-    rec = dict(manifest.rig.camera_settings or {})
-    camera.set_emitter(False)
-    if rec.get("auto_exposure") is False and rec.get("exposure_us") is not None:
-        try:
-            exposure_us, gain = float(rec["exposure_us"]), float(rec.get("gain", 1.0))
-        except (TypeError, ValueError):
-            raise SessionError(f"session.json: rig.camera_settings exposure_us / gain are not numbers: "
-                               f"{rec.get('exposure_us')!r}, {rec.get('gain')!r}") from None
-        got = camera.set_manual_exposure(exposure_us, gain)
-        return {"auto_exposure": False, "exposure_us": float(got["exposure_us"]), "gain": float(got["gain"]),
-                "emitter_enabled": False}
-    camera.set_auto_exposure(True)
-    return {"auto_exposure": True, "emitter_enabled": False}
+    return from_settings(manifest.rig.camera_settings)
 
 
 def apply_recorded(rig, manifest, settle_s: float | None = None) -> list[str]:
     """Make the rig time and expose frames as the session did: the camera's exposure, gain and emitter
     and the projector's latency (`settle_s` overrides the recorded one). Uses the station's own
     procedure (drivers.settle.apply_timing: it also searches an exposure / measures the latency the
-    session did not record) when this build has it, else re-applies what was recorded. Returns the lines
-    to print."""
+    session did not record). Returns the lines to print."""
+    from drivers.settle import apply_timing, recorded_exposure
+
     rec = dict(manifest.rig.camera_settings or {})
     if settle_s is not None:
         rec["projector"] = {**(rec.get("projector") if isinstance(rec.get("projector"), dict) else {}),
                             "latency_ms": float(settle_s) * 1000.0}
-    try:
-        from drivers.settle import apply_timing
-    except ImportError:
-        apply_timing = None
-    if apply_timing is not None:
-        got = apply_timing(rig.camera, rig.projector, rec)
-    else:
-        got = apply_recorded_camera(rig.camera, manifest)
-        latency = recorded_latency_s(SimpleNamespace(rig=SimpleNamespace(camera_settings=rec)))
-        if latency is not None and hasattr(rig.projector, "settle_s"):
-            rig.projector.settle_s = latency
-            got["projector"] = {"latency_ms": latency * 1000.0}
+    got = apply_timing(rig.camera, rig.projector, rec)
     lines = []
     if "exposure_us" in got:
-        recorded = rec.get("auto_exposure") is False and rec.get("exposure_us") is not None
+        recorded = recorded_exposure(rec)
         line = f"camera: manual exposure {got['exposure_us']:g} us, gain {got['gain']:g}"
-        if recorded:
+        if recorded is not None:
             line += " as the session recorded"
-            try:
-                same = (abs(got["exposure_us"] - float(rec["exposure_us"])) <= 1e-6 * max(1.0, got["exposure_us"])
-                        and got["gain"] == float(rec.get("gain", got["gain"])))
-            except (TypeError, ValueError):
-                same = False
+            same = (abs(got["exposure_us"] - recorded[0]) <= 1e-6 * max(1.0, got["exposure_us"])
+                    and got["gain"] == recorded[1])
             if not same:
-                line += (f" (recorded {float(rec['exposure_us']):g} us, gain {float(rec.get('gain', 0)):g}: the "
-                         "camera's range or step differs)")
+                line += (f" (recorded {recorded[0]:g} us, gain {recorded[1]:g}: the camera's range or step "
+                         "differs)")
         else:
             line += " (the session recorded none: searched now)"
         lines.append(line + "; emitter off")

@@ -251,12 +251,13 @@ class Station:
 
     def _timing_checks(self, cam, proj, man, recorded, timing, settings, checks) -> list[RigCheck]:
         from drivers.base import ExposureControl
+        from drivers.settle import recorded_exposure, recorded_latency_s
 
         if isinstance(cam, ExposureControl):
             try:
                 cam.set_emitter(False)
-                if recorded.get("auto_exposure") is False and isinstance(recorded.get("exposure_us"), (int, float)):
-                    applied = cam.set_manual_exposure(float(recorded["exposure_us"]), float(recorded.get("gain", 1.0)))
+                if recorded_exposure(recorded) is not None:
+                    applied = cam.set_manual_exposure(*recorded_exposure(recorded))
                     detail = f"recorded {applied['exposure_us']:g} us, gain {applied['gain']:g} re-applied"
                 else:
                     from drivers.exposure import search_exposure
@@ -275,22 +276,11 @@ class Station:
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("camera exposure", False, f"could not be set: {e}"))
                 return checks
-        else:
-            lock = getattr(cam, "lock_exposure", None)
-            if callable(lock):  # a driver without manual exposure control: lock what it has
-                try:
-                    self._show(self.pattern_image(man.pattern.positions // 2))
-                    time.sleep(0.5)
-                    settings.update(dict(lock()))
-                    checks.append(RigCheck("camera exposure", True, "locked"))
-                except (DeviceError, ProcamError) as e:
-                    checks.append(RigCheck("camera exposure", False, f"could not be locked: {e}"))
-                    return checks
         if hasattr(proj, "settle_s"):
             try:
-                if isinstance(timing.get("latency_ms"), (int, float)) and timing["latency_ms"] >= 0:
-                    latency_s = float(timing["latency_ms"]) / 1000.0
-                    detail = f"recorded latency {timing['latency_ms']:.0f} ms re-applied"
+                latency_s = recorded_latency_s(recorded)
+                if latency_s is not None:
+                    detail = f"recorded latency {latency_s * 1000:.0f} ms re-applied"
                 else:
                     from drivers.settle import measure_settle
 
