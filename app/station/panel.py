@@ -645,9 +645,9 @@ class StationPanel(ControlsMixin):
 
     def _update_uncertainty(self, r) -> None:
         """The projection-uncertainty heat maps and their numbers, redrawn once per calibration."""
-        if self._global_cache.get("uncertainty") == id(r):
+        if "uncertainty" in self._global_cache and self._global_cache["uncertainty"] is r:  # (not id: reusable)
             return
-        self._global_cache["uncertainty"] = id(r)
+        self._global_cache["uncertainty"] = r
         images = {dev: uncertainty_image(r, dev) if r is not None else None for dev in self.h_unc}
         for dev, (text, image) in self.h_unc.items():
             if images[dev] is not None:
