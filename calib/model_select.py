@@ -30,6 +30,11 @@ observations. After the BIC / LRT choice, a model with k3 is weighed again over 
 model) against the same model without its highest radial orders ("4coef" = k1 k2 p1 p2, OpenCV's
 CALIB_FIX_K3); the simpler one replaces it when it is predicted at least 10% better. Such a choice is
 refitted for real and kept (the BIC confirmation would undo it). docs/JOINT.md has the measurements.
+
+k3 shrinkage (options.shrinkage, off by default): instead of keeping or dropping a 5coef model's k3 whole,
+a zero-mean Gaussian prior whose width the data set (empirical Bayes over the image: shrinkage_prior)
+pulls it toward 0 in one more solve; the prior stays in the covariance. Measured better on the wide-angle
+corner-poor sessions and worse on one real-mirror session's weakly seen real k3 (docs/JOINT.md).
 """
 
 from __future__ import annotations
