@@ -207,17 +207,16 @@ def solve(prob, loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 60,
 
         require_finite("the model's predicted pixels at the start of a solve", prob.residuals(prob.x0()))
         pi, pl = prior_terms(prob)
-        fun, jac = prob.residuals, prob.jacobian
-        if pi.size:  # the priors as extra residual rows sqrt(precision) x
-            import scipy.sparse as sp
+        import scipy.sparse as sp
 
-            rows = sp.csr_matrix((np.sqrt(pl), (np.arange(pi.size), pi)), shape=(pi.size, prob.n_params))
+        # the priors (if any) as extra residual rows sqrt(precision) x
+        rows = sp.csr_matrix((np.sqrt(pl), (np.arange(pi.size), pi)), shape=(pi.size, prob.n_params))
 
-            def fun(x):
-                return np.concatenate([prob.residuals(x), np.sqrt(pl) * x[pi]])
+        def fun(x):
+            return np.concatenate([prob.residuals(x), np.sqrt(pl) * x[pi]]) if pi.size else prob.residuals(x)
 
-            def jac(x):
-                return sp.vstack([prob.jacobian(x), rows]).tocsr()
+        def jac(x):
+            return sp.vstack([prob.jacobian(x), rows]).tocsr() if pi.size else prob.jacobian(x)
         res = least_squares(fun, prob.x0(), jac=jac, method="trf", loss=loss,
                             f_scale=f_scale, x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev,
                             tr_solver="lsmr", jac_sparsity=None)
