@@ -72,7 +72,9 @@ class JointOptions:
     hundredths of a sigma, and the Gauss-Newton step after it by far less: results agree with
     tol=1e-9 to 1e-7 sigma, one Jacobian fewer per solve). coverage: after the BIC / LRT choice, step a
     device's model down when the coefficients it drops are not constrained where the image is used
-    (calib.model_select: the mean squared projection error over the image, bias + variance)."""
+    (calib.model_select: the mean squared projection error over the image, bias + variance). shrinkage:
+    with coverage, a kept k3 is pulled toward 0 by a zero-mean Gaussian prior whose width is set from the
+    data (calib.model_select.shrinkage_prior), instead of kept or dropped whole."""
 
     camera_model: str = "auto"
     projector_model: str = "auto"
@@ -91,6 +93,7 @@ class JointOptions:
     fix_camera: bool = False
     weighting: str = "class"
     coverage: bool = True
+    shrinkage: bool = False
 
 
 # ==================================================================================================

@@ -117,6 +117,17 @@ def require_finite(what: str, *arrays) -> None:
                 "sequential estimate", code="non_finite")
 
 
+def prior_terms(prob) -> tuple[np.ndarray, np.ndarray]:
+    """(indices, precisions) of the zero-mean Gaussian priors on global parameters that `prob.prior`
+    ({global parameter name: precision in whitened-residual units}, set by calib.model_select's k3
+    shrinkage; absent or empty: none) puts on the current parametrisation. A prior adds
+    precision * x^2 to the cost: its normal equations gain the precision on the diagonal."""
+    prior = getattr(prob, "prior", None) or {}
+    idx = {n: i for i, n in enumerate(prob.global_names)}
+    names = [n for n in prior if n in idx]
+    return np.array([idx[n] for n in names], int), np.array([float(prior[n]) for n in names])
+
+
 def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.ndarray, dict]:
     """Levenberg-Marquardt on the block normal equations (poses eliminated by the Schur complement,
     Marquardt's diagonal scaling, the equivalent of x_scale='jac'); robust losses by iteratively
@@ -125,6 +136,8 @@ def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.
     r = prob.residuals(x)
     require_finite("the model's predicted pixels at the start of a solve", r)
     cost, w = _loss_cost_weights(r, loss, f_scale)
+    pi, pl = prior_terms(prob)
+    cost += float(pl @ x[pi] ** 2)
     lam = 1e-7
     nfev, njev, status = 1, 0, 0
     G = prob.n_global
@@ -135,6 +148,8 @@ def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.
         njev += 1
         require_finite("the Jacobian", Jg, Jl)
         A, B, D, g_g, g_p = normal_blocks(prob, Jg, Jl, w, r)
+        A[pi, pi] += pl
+        g_g[pi] += pl * x[pi]
         dA = np.clip(np.diag(A).copy(), 1e-12, None)
         dD = np.clip(np.diagonal(D, axis1=1, axis2=2).copy(), 1e-12, None)
         accepted = False
@@ -153,7 +168,7 @@ def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.
             step[idx_p[valid]] = dp[valid]
             # predicted decrease of the (reweighted) quadratic model
             Jstep = np.einsum("ng,g->n", Jg, dg) + np.einsum("nk,nk->n", Jl, dp[prob.row_pose])
-            pred = -2.0 * (w * r) @ Jstep - (w * Jstep) @ Jstep
+            pred = -2.0 * (w * r) @ Jstep - (w * Jstep) @ Jstep - 2.0 * (pl * x[pi]) @ dg[pi] - pl @ dg[pi] ** 2
             if pred <= 1e-12 * cost or cost < 1e-18 * r.size:
                 converged = True
                 break
@@ -161,6 +176,7 @@ def _lm(prob, loss: str, f_scale: float, max_iter: int, tol: float) -> tuple[np.
             r_new = prob.residuals(x_new)
             nfev += 1
             cost_new, w_new = _loss_cost_weights(r_new, loss, f_scale)
+            cost_new += float(pl @ x_new[pi] ** 2)
             if np.isfinite(cost_new) and cost_new <= cost:
                 accepted = True
                 break
@@ -190,7 +206,18 @@ def solve(prob, loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 60,
         from scipy.optimize import least_squares  # only here: importing scipy.optimize takes ~0.8 s
 
         require_finite("the model's predicted pixels at the start of a solve", prob.residuals(prob.x0()))
-        res = least_squares(prob.residuals, prob.x0(), jac=prob.jacobian, method="trf", loss=loss,
+        pi, pl = prior_terms(prob)
+        import scipy.sparse as sp
+
+        # the priors (if any) as extra residual rows sqrt(precision) x
+        rows = sp.csr_matrix((np.sqrt(pl), (np.arange(pi.size), pi)), shape=(pi.size, prob.n_params))
+
+        def fun(x):
+            return np.concatenate([prob.residuals(x), np.sqrt(pl) * x[pi]]) if pi.size else prob.residuals(x)
+
+        def jac(x):
+            return sp.vstack([prob.jacobian(x), rows]).tocsr() if pi.size else prob.jacobian(x)
+        res = least_squares(fun, prob.x0(), jac=jac, method="trf", loss=loss,
                             f_scale=f_scale, x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev,
                             tr_solver="lsmr", jac_sparsity=None)
         x = res.x

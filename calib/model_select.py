@@ -30,6 +30,11 @@ observations. After the BIC / LRT choice, a model with k3 is weighed again over 
 model) against the same model without its highest radial orders ("4coef" = k1 k2 p1 p2, OpenCV's
 CALIB_FIX_K3); the simpler one replaces it when it is predicted at least 10% better. Such a choice is
 refitted for real and kept (the BIC confirmation would undo it). docs/JOINT.md has the measurements.
+
+k3 shrinkage (options.shrinkage, off by default): instead of keeping or dropping a 5coef model's k3 whole,
+a zero-mean Gaussian prior whose width the data set (empirical Bayes over the image: shrinkage_prior)
+pulls it toward 0 in one more solve; the prior stays in the covariance. Measured better on the wide-angle
+corner-poor sessions and worse on one real-mirror session's weakly seen real k3 (docs/JOINT.md).
 """
 
 from __future__ import annotations
@@ -196,6 +201,47 @@ def coverage_choice(prob, S, g, rss0, theta0, sigma2, dev: str, chosen: tuple[st
     return {"chosen": chosen_m, "reference": ref, "margin": COVERAGE_MARGIN, "candidates": out}
 
 
+def shrinkage_prior(S, g, theta0, sigma2, cov: dict, dev: str, chosen: tuple[str, str], idx: dict) -> dict | None:
+    """k3 shrinkage (options.shrinkage) for a device whose coverage reference is 5coef: an empirical-Bayes
+    zero-mean Gaussian prior on k3, in place of the coverage criterion's keep-or-drop.
+
+    In the quadratic model, a prior k3 ~ N(0, tau^2) moves the whole solution from the 5coef one toward
+    the 4coef one (k3 = 0) by the fraction w = var_k3 / (var_k3 + tau^2) (the other parameters follow
+    through their correlation with k3). Over the image, the expected squared error of that combination
+    is V_5 - 2 w V_d + w^2 (F + V_d), with V_d = V_5 - V_4 the variance of the difference between the two
+    solutions and F its true squared bias, smallest at w = V_d / (F + V_d). F is estimated without bias
+    by B - V_d (B, the observed mean squared difference over the image: coverage_choice), so
+    w = V_d / B, i.e. tau^2 = var_k3 (B / V_d - 1): the prior is as wide as the data show k3 to be beyond
+    its own noise. For one coefficient B / V_d is its z^2: k3 is multiplied by 1 - 1 / z^2, and dropped
+    (w = 1) when z^2 <= 1. Returns {"param", "weight_to_zero", "z2", "k3_5coef", "k3_sigma",
+    "prior_sigma", "precision"} (precision in the whitened cost's units: 1 / tau^2 of the unit-variance
+    problem; infinite when dropped), or None when the reference is not 5coef."""
+    if cov is None or cov["reference"] != "5coef":
+        return None
+    c = {x["model"]: x for x in cov["candidates"]}
+    vd = c["5coef"]["var_px2"] - c["4coef"]["var_px2"]
+    b2 = c["4coef"]["bias2_px2"]
+    w = 1.0 if vd <= 0 or b2 <= vd else vd / b2
+    prefix, other_prefix = ("cam", "proj") if dev == "camera" else ("proj", "cam")
+    other = chosen[1] if dev == "camera" else chosen[0]
+    cons = [idx[f"{prefix}.dist{i}"] for i in range(8) if f"{prefix}.dist{i}" in idx and i not in DIST_MODELS["5coef"]]
+    cons += [idx[f"{other_prefix}.dist{i}"] for i in range(8)
+             if f"{other_prefix}.dist{i}" in idx and i not in DIST_MODELS[other]]
+    _, D = _quadratic_solution(S, g, 0.0, theta0, cons)
+    free = np.setdiff1d(np.arange(len(theta0)), np.asarray(cons, int))
+    k = idx[f"{prefix}.dist4"]
+    j = int(np.nonzero(free == k)[0][0])
+    var_unit = float(_free_covariance(S, free, 1.0)[j, j])
+    out = {"param": f"{prefix}.dist4", "weight_to_zero": float(w), "z2": float(b2 / vd) if vd > 0 else 0.0,
+           "k3_5coef": float(theta0[k] + D[k]), "k3_sigma": float(np.sqrt(sigma2 * var_unit))}
+    if w >= 1.0:
+        out.update({"prior_sigma": 0.0, "precision": float("inf")})
+    else:
+        out.update({"prior_sigma": float(np.sqrt(sigma2 * var_unit * (1.0 - w) / w)),
+                    "precision": float(w / (1.0 - w) / var_unit)})
+    return out
+
+
 def select_models(prob, options) -> dict:
     """Choose the distortion models of prob's camera and projector (prob is left fitted with the
     chosen pair). Returns the report stored in result.diagnostics["model_selection"]."""
@@ -205,6 +251,8 @@ def select_models(prob, options) -> dict:
     auto = {"camera": options.camera_model == "auto" and not prob.fix_camera,
             "projector": options.projector_model == "auto"}
     base = prob.state.copy()
+    prob.prior = {}  # calib.joint_solver.prior_terms: the k3 shrinkage's priors, set at the end
+    priors = {}
     if not any(auto.values()):
         for dev in ("camera", "projector"):
             report[dev] = {"chosen": base.cam_model if dev == "camera" else base.proj_model, "forced": True,
@@ -339,10 +387,24 @@ def select_models(prob, options) -> dict:
             if cov is None:
                 continue
             report[dev]["coverage"] = cov
+            sh = shrinkage_prior(S, g, x_rich[:prob.n_global], sigma2_w, cov, dev, best, idx) \
+                if getattr(options, "shrinkage", False) else None
+            if sh is not None:  # the prior decides in place of the margin rule
+                cov["shrinkage"] = sh
+                cov["chosen"] = "4coef" if sh["weight_to_zero"] >= 1.0 else "5coef"
+                if cov["chosen"] == "5coef":
+                    priors[sh["param"]] = sh["precision"]
+                    report[dev]["reason"] += (
+                        f"; k3 shrinkage: k3 {sh['k3_5coef']:+.4g} (1-sigma {sh['k3_sigma']:.2g}, z^2 = "
+                        f"{sh['z2']:.2f} over the image) pulled toward 0 by a zero-mean Gaussian prior of sigma "
+                        f"{sh['prior_sigma']:.2g} set from the data (weight toward 0: {sh['weight_to_zero']:.2f})")
             if cov["chosen"] != cov["reference"]:
                 c = {x_["model"]: x_ for x_ in cov["candidates"]}
                 a, r_ = c[cov["chosen"]], c[cov["reference"]]
                 report[dev]["reason"] += (
+                    f"; k3 shrinkage: '4coef' instead, the bias k3 would remove over the image is no larger than "
+                    f"its variance there (z^2 = {sh['z2']:.2f} <= 1): the prior width set from the data is zero"
+                ) if sh is not None else (
                     f"; coverage criterion: '{cov['chosen']}' instead, its estimated mean squared projection error "
                     f"over the image is {a['mse_px2']:.3g} px^2 against {r_['mse_px2']:.3g} for '{cov['reference']}' "
                     f"(whose extra coefficients are not constrained where the image is used: variance "
@@ -404,4 +466,12 @@ def select_models(prob, options) -> dict:
                     report[dev]["chosen"] = m
     else:
         prob.set_state(base)
+    if priors:  # the kept k3 under its shrinkage prior: one more solve, and the covariance includes the prior
+        prob.prior = priors
+        x, _ = solve(prob, "linear", 1.0, options.max_nfev, options.tol, options.solver)
+        m = prob.unpack(x)
+        for dev, key in (("camera", "cam_d"), ("projector", "proj_d")):
+            sh = report[dev].get("coverage", {}).get("shrinkage") if isinstance(report.get(dev), dict) else None
+            if sh is not None and sh["param"] in priors:
+                sh["k3_final"] = float(np.real(m[key][4]))
     return report

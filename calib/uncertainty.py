@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.joint_solver import normal_blocks
+from calib.joint_solver import normal_blocks, prior_terms
 
 
 def _sym_inv(A: np.ndarray) -> np.ndarray:
@@ -34,6 +34,8 @@ def marginal_covariance(prob, x: np.ndarray):
     A, B, D, _, _ = normal_blocks(prob, Jg, Jl, np.ones_like(r), r)
     E = np.einsum("vij,vjg->vig", np.linalg.inv(D), B)
     schur = A - np.einsum("vkg,vkh->gh", B, E)
+    pi, pl = prior_terms(prob)  # a zero-mean prior (k3 shrinkage) adds its precision
+    schur[pi, pi] += pl
     dof = max(r.size - prob.n_params, 1)
     s2 = float(np.einsum("i,i->", r, r)) / dof
     return s2 * _sym_inv(schur), s2, dof

@@ -84,3 +84,28 @@ def test_chi2_survival_function_matches_scipy():
     assert chi2_sf(0.0, 3) == 1.0
     with pytest.raises(ValueError):
         chi2_sf(1.0, 0)
+
+
+@pytest.mark.parametrize("solver", ["lm", "scipy"])
+def test_a_prior_on_k3_shrinks_it_by_the_expected_fraction(solver):
+    """The solver's zero-mean Gaussian prior (prob.prior, what the k3 shrinkage sets): with a precision equal
+    to the data's own for k3, the estimate is halved (the quadratic model's identity: the prior moves k3 by
+    var / (var + tau^2)) by both solvers, and the covariance's k3 variance is halved too."""
+    from calib.joint import build_problem, solve
+    from calib.uncertainty import marginal_covariance
+
+    kw = dict(per_position=1)
+    obs = observations(0.1, 6, **kw)
+    prob, _ = build_problem(obs, perturbed(ground_truth(**kw)), JointOptions(pattern_model="point"), "5coef", "k1k2")
+    x, _ = solve(prob, "linear", 1.0, 100, 1e-12, "lm")
+    k = prob.global_names.index("cam.dist4")
+    k3, x0 = x[k], x.copy()
+    cov, s2, _ = marginal_covariance(prob, x)
+    var_unit = cov[k, k] / s2
+    prob.prior = {"cam.dist4": 1.0 / var_unit}
+    xp, _ = solve(prob, "linear", 1.0, 100, 1e-12, solver)
+    assert abs(k3) > 3 * np.sqrt(cov[k, k])  # a k3 the data show
+    assert xp[k] == pytest.approx(0.5 * k3, rel=0.02)
+    assert not np.allclose(xp[:k], x0[:k])  # the other parameters follow
+    cov_p, _, _ = marginal_covariance(prob, xp)
+    assert cov_p[k, k] == pytest.approx(0.5 * cov[k, k], rel=0.05)

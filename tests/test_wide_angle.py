@@ -94,6 +94,56 @@ def test_a_constrained_k3_is_kept():
     assert cands["4coef"]["mse_px2"] > 10 * cands["5coef"]["mse_px2"]
 
 
+SHRINK = {"shrinkage": True}
+
+
+def test_k3_shrinkage_pulls_an_unconstrained_k3_toward_zero():
+    """Seed 4 of the wide-angle scenario (true k3 = 0): the keep-or-drop rule keeps a k3 that only noise put
+    there (z^2 1.9); the shrinkage prior multiplies it by 1 - 1/z^2, the other parameters following, which
+    brings the error over the image down; its covariance carries the prior."""
+    sc, obs = _obs(NAME, 4)
+    true = sc.rig.camera
+    kept = calibrate_observations(obs, "joint", method_options={"shrinkage": False})
+    assert kept.diagnostics["model_selection"]["camera"]["chosen"] == "5coef"
+    r = calibrate_observations(obs, "joint", method_options=SHRINK)
+    ms = r.diagnostics["model_selection"]["camera"]
+    sh = ms["coverage"]["shrinkage"]
+    assert ms["chosen"] == "5coef" and "k3 shrinkage" in ms["reason"]
+    w = sh["weight_to_zero"]
+    assert w == pytest.approx(1 / sh["z2"]) and 0.3 < w < 0.8
+    # the MAP under the prior is (1 - w) times the unshrunk k3 (the quadratic model's identity)
+    assert r.camera.dist[4] == pytest.approx(sh["k3_final"])
+    assert abs(sh["k3_final"] - (1 - w) * sh["k3_5coef"]) < 0.05 * sh["k3_sigma"]
+    assert abs(r.camera.dist[4]) < 0.7 * abs(kept.camera.dist[4])
+    # posterior 1-sigma of k3: sqrt(1 - w) of the data's
+    assert r.uncertainty["camera"]["dist"][4] == pytest.approx(np.sqrt(1 - w) * sh["k3_sigma"], rel=0.1)
+    assert distortion_error_over_image(r.camera, true) < 0.85 * distortion_error_over_image(kept.camera, true)
+
+
+def test_k3_shrinkage_drops_k3_when_the_data_show_no_more_than_noise():
+    sc, obs = _obs(NAME, 0)
+    r = calibrate_observations(obs, "joint", method_options=SHRINK)
+    ms = r.diagnostics["model_selection"]["camera"]
+    sh = ms["coverage"]["shrinkage"]
+    assert sh["z2"] <= 1 and sh["weight_to_zero"] == 1.0 and sh["precision"] == float("inf")
+    assert ms["chosen"] == "4coef" and r.camera.dist[4] == 0.0
+    assert "prior width set from the data is zero" in ms["reason"]
+
+
+def test_k3_shrinkage_leaves_a_constrained_k3():
+    """The D455-like camera of the default rig has a real k3 (-0.019) that its views constrain: the prior is
+    wide and k3 is recovered as without it."""
+    sc, obs = _obs("nonoverlap-136", 0)
+    r = calibrate_observations(obs, "joint", method_options=SHRINK)
+    ms = r.diagnostics["model_selection"]["camera"]
+    sh = ms["coverage"]["shrinkage"]
+    assert ms["chosen"] == "5coef" and sh["weight_to_zero"] < 0.01 and sh["prior_sigma"] > 10 * sh["k3_sigma"]
+    true_k3 = sc.rig.camera.dist[4]
+    assert true_k3 == pytest.approx(-0.019)
+    assert abs(r.camera.dist[4] - true_k3) < 2 * r.uncertainty["camera"]["dist"][4]
+    assert r.camera.dist[4] == pytest.approx(sh["k3_5coef"], rel=0.01)
+
+
 def test_accuracy_table_has_the_distortion_error_over_the_image():
     from app.commands.bench import accuracy_table
 

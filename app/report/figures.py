@@ -104,7 +104,7 @@ def projection_uncertainty_figure(devices: list[tuple[str, dict]], large_px: flo
         cb.set_label("1-sigma (px)", fontsize=8)
         cb.ax.tick_params(labelsize=7)
         _image_axes(ax, W, H, f"{name}: median {np.median(s):.3f}, max {top:.3f} px")
-    _margins(fig, left=0.08, right=0.97, bottom=0.13, top=0.9, wspace=0.3)
+    _margins(fig, left=0.08 if len(devices) > 1 else 0.13, right=0.97, bottom=0.13, top=0.9, wspace=0.3)
     return png(fig)
 
 

@@ -17,8 +17,8 @@ banner shows when the capture loop failed (restarted) or stopped.
 
 Detection runs in the station's own threads; the panel only draws (app/station/panel_live.py): the live
 image is redrawn from each new frame with the newest detection, up to IMAGE_RATE_HZ times a second.
-Guidance: app/station/panel_guidance.py; results and downloads: app/station/panel_results.py; the 3D
-view: app/station/panel_scene.py.
+Guidance: app/station/panel_guidance.py; results and downloads: app/station/panel_results.py; the
+projection-uncertainty heat maps: app/station/panel_uncertainty.py; the 3D view: app/station/panel_scene.py.
 """
 
 from __future__ import annotations
@@ -75,6 +75,9 @@ from app.station.panel_results import (
     write_report_if_available,
 )
 from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane, update_rig, view_whole_rig
+from app.station.panel_uncertainty import DEVICES as UNCERTAINTY_DEVICES
+from app.station.panel_uncertainty import INTRO as UNCERTAINTY_INTRO
+from app.station.panel_uncertainty import uncertainty_image, uncertainty_text
 from calib.observations import STEP_PROJECTOR
 
 LIVE_WIDTH = 640
@@ -192,6 +195,12 @@ class StationPanel(ControlsMixin):
             self.h_results = g.add_markdown("No calibration yet.")
             with g.add_folder("Parameters and distortion"):
                 self.h_params = g.add_markdown("")
+            with g.add_folder("Projection uncertainty (1 sigma over the image)"):
+                g.add_markdown(UNCERTAINTY_INTRO)
+                self.h_unc = {dev: (g.add_markdown(""), g.add_image(np.zeros((8, 8, 3), np.uint8), format="png",
+                                                                      label=f"{dev} projection uncertainty",
+                                                                      visible=False))
+                              for dev in UNCERTAINTY_DEVICES}
             with g.add_folder("Worst views (reprojection RMS)", expand_by_default=False):
                 self.h_worst = g.add_markdown("")
             with g.add_folder("Files written", expand_by_default=False):
@@ -602,6 +611,7 @@ class StationPanel(ControlsMixin):
             self._set(self.h_results, "content", self.results_summary())
             self._set(self.h_params, "content", parameters_text(r, bool(m.camera_intrinsics)) if r else "")
             self._set(self.h_worst, "content", worst_views_text(r) if r else "")
+            self._update_uncertainty(r)
             files_key = (tuple(c.id for c in m.manifest.captures), id(r), id(m.report), m.state, m.busy)
             if self._global_cache.get("files") != files_key:
                 self._global_cache["files"] = files_key
@@ -632,6 +642,18 @@ class StationPanel(ControlsMixin):
                     except Exception:  # a browser that went away mid-update
                         pass
             self.update_scene()
+
+    def _update_uncertainty(self, r) -> None:
+        """The projection-uncertainty heat maps and their numbers, redrawn once per calibration."""
+        if "uncertainty" in self._global_cache and self._global_cache["uncertainty"] is r:  # (not id: reusable)
+            return
+        self._global_cache["uncertainty"] = r
+        images = {dev: uncertainty_image(r, dev) if r is not None else None for dev in self.h_unc}
+        for dev, (text, image) in self.h_unc.items():
+            if images[dev] is not None:
+                image.image = images[dev]
+            image.visible = images[dev] is not None
+            text.content = uncertainty_text(r, dev) if r is not None else ""
 
     def _auto_report(self) -> None:
         """After each calibration and each verification: report.html in the session (app.report, when
