@@ -38,13 +38,22 @@ def _previous_session(folder: Path, scenario: str, calibration=None) -> Path:
     return folder
 
 
-def _synthetic_previous(folder: Path) -> Path:
-    """The cheap joint calibration of tests/test_recalibrate.py (default scenario, with its uncertainty)."""
+def _synthetic_previous(folder: Path, projector_target_scale: float = 1.0) -> Path:
+    """The cheap joint calibration of tests/test_recalibrate.py (default scenario, with its uncertainty).
+    `projector_target_scale` < 1 shrinks the projector's reported 1-sigma, the re-estimate's target (the
+    check reads the covariance, not these values), so that a projector bump needs re-measure captures:
+    this synthetic calibration's own targets are reached by the check's 4 captures alone."""
     sys.path.insert(0, str(Path(__file__).parent))
     from tests.test_recalibrate import previous
 
     folder.mkdir(parents=True, exist_ok=True)
-    previous().save_json(folder / "calibration.json")
+    cal = previous()
+    if projector_target_scale != 1.0:
+        u = json.loads(json.dumps(cal.uncertainty))
+        u["T_cam_proj"]["t_total"] *= projector_target_scale
+        u["T_cam_proj"]["rot_total_deg"] *= projector_target_scale
+        cal = cal.with_(uncertainty=u)
+    cal.save_json(folder / "calibration.json")
     return folder / "calibration.json"
 
 
@@ -141,7 +150,7 @@ def test_scripted_operator_is_prompted_through_check_and_remeasure(tmp_path):
     from app.commands.recalibrate import open_recalibration, prepare
     from app.recalibration import run_recalibration
 
-    prev = _synthetic_previous(tmp_path / "prev")
+    prev = _synthetic_previous(tmp_path / "prev", projector_target_scale=0.5)
     d = tmp_path / "recal"
     args = argparse.Namespace(previous=str(prev), out=str(d), resume=False, rig="sim", auto=False, scenario=None,
                               seed=None, quality=None, sim_latency_ms=None, sim_bump="projector", board=None,
