@@ -227,3 +227,60 @@ def test_sim_realsense_recalibration_unchanged(tmp_path):
     man = json.loads((d / "session.json").read_text())
     assert man["rig"]["driver"] == "sim-realsense" and man["state"]["rig_request"]["kind"] == "sim-realsense"
     assert rec["verification"]["previous"]["passed"] is True
+
+
+# ---- the station's recalibration mode ----------------------------------------------------------------
+@pytest.mark.slow
+def test_station_checklist_prompts_the_operator_on_sim_realsense(tmp_path):
+    """`procam station --recalibrate PREV --rig sim-realsense` as its command builds it (prepare,
+    open_recalibration, the panel's checklist), driven by the checklist's own actions (Start check,
+    Sign off): every capture is announced in the checklist's *Now* line before it is taken."""
+    import argparse
+    import time
+
+    from app.commands.recalibrate import open_recalibration, prepare
+    from app.recalibration import rig_verify_fn
+    from app.station.panel import StationPanel
+    from app.station.panel_recal import RecalibrationPanel
+
+    prev = _synthetic_previous(tmp_path / "prev")
+    d = tmp_path / "recal"
+    args = argparse.Namespace(previous=str(prev), out=str(d), resume=False, rig="sim-realsense", auto=False,
+                              scenario=None, seed=None, quality=None, sim_latency_ms=None, sim_bump="none", board=None,
+                              mirror_board=None, units=None, serial=None, projector_screen=None, settle_s=None,
+                              max_captures=None, workers=2)
+    kind, ctx = prepare(args, lambda text: None)
+    rig = ctx["open"]()
+    panel = None
+    try:
+        store, machine, station = open_recalibration(args, kind, rig, ctx, lambda text: None)
+        panel = StationPanel(station, "127.0.0.1", 0)
+        rp = RecalibrationPanel(panel, prev, verify=rig_verify_fn(rig, d))
+        shown = []
+        show = rp._prompt
+
+        def prompt(text):  # what the checklist shows when the flow prompts (before the capture)
+            show(text)
+            shown.append((rp.text(), len(machine.manifest.captures)))
+
+        rp._prompt = prompt
+        rp.start_check()
+        t_end = time.monotonic() + 300
+        while rp.stage not in ("verdict", "failed") and time.monotonic() < t_end:
+            time.sleep(0.2)
+        assert rp.stage == "verdict", rp.error
+        assert rp.h_accept.label == "Sign off: unchanged"
+        rp.accept()
+        while rp.stage not in ("done", "failed") and time.monotonic() < t_end:
+            time.sleep(0.2)
+        assert rp.stage == "done", rp.error
+    finally:
+        if panel is not None:
+            panel.stop()
+        rig.close()
+    assert [k for _, k in shown] == [0, 1, 2, 3]
+    assert "**Now:** Check, capture 1 of 4: Mirror capture 1 of 2: Hold the mirror board" in shown[0][0]
+    assert "**Now:** Check, capture 3 of 4: The projector shows the pattern" in shown[2][0]
+    assert "**Now:**" not in rp.text() and "3. **Compare**: unchanged (ok)" in rp.text()
+    rec = json.loads((d / "recalibration.json").read_text())
+    assert rec["verdict"] == "unchanged" and json.loads((d / "session.json").read_text())["rig"]["driver"] == "sim-realsense"
