@@ -16,8 +16,10 @@ DESCRIPTION = (
     "1-sigma); what moved is re-estimated with the rest held, capturing until its 1-sigma reaches the "
     "previous calibration's. DIR becomes a session folder with previous/calibration.json (the archive), "
     "calibration.json, recalibration.json (verdicts, changes with their uncertainty, the previous file's "
-    "sha256) and, on the simulated rig, ground_truth.json. Exit status 1 when the check is incomplete or "
-    "the targets were not reached."
+    "sha256) and, on the simulated rig, ground_truth.json. The boards are PREVIOUS's (its session.json; "
+    "--board for a calibration.json alone). Without --auto the technician is told each capture's step and "
+    "presses Enter. Exit status 1 when the check is incomplete or the targets were not reached; 4 when the "
+    "input closed part-way (130 after Ctrl-C): the folder continues with --resume."
 )
 
 
