@@ -38,6 +38,11 @@ CAPTURE_TIMEOUT_S = 120.0  # the simulated operator: no capture in this long is 
 PROMPTED_CAPTURE_TIMEOUT_S = 600.0  # a person: a board never still and detected in 10 minutes stops the flow
 
 
+#: the prompt before an epipolar verification (the projector draws curves on the board; the camera measures them)
+VERIFY_PROMPT = ("Verification: hold the projector board still, facing the projector, in the middle of its image, "
+                 "where the camera sees it in the mirror, until the verification is done.")
+
+
 class RecalibrationStopped(SessionError):
     """The recalibration stopped part-way (the technician's input closed, or no capture came): every capture
     taken is on disk and the folder continues with `procam recalibrate PREVIOUS --out DIR --resume`."""
@@ -380,6 +385,8 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     result = previous
     verification = {}
     if verify is not None:
+        if prompt is not None:
+            prompt(f"Epipolar verification of the previous calibration: {VERIFY_PROMPT}")
         v = verify(previous, False)
         verification["previous"] = _verification_summary(v)
         log(f"epipolar verification of the previous calibration: {'passed' if v.passed else 'FAILED'} "
@@ -424,6 +431,8 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         result.save_json(folder / "calibration.json")  # before verifying: the report records its hash
         machine.result = result
         if verify is not None and report.moved:
+            if prompt is not None:
+                prompt(f"Epipolar verification of the recalibrated calibration: {VERIFY_PROMPT}")
             v = verify(result, True)
             verification["recalibrated"] = _verification_summary(v)
             log(f"epipolar verification of the recalibration: {'passed' if v.passed else 'FAILED'}")

@@ -148,7 +148,7 @@ def test_scripted_operator_is_prompted_through_check_and_remeasure(tmp_path):
     import argparse
 
     from app.commands.recalibrate import open_recalibration, prepare
-    from app.recalibration import run_recalibration
+    from app.recalibration import rig_verify_fn, run_recalibration
 
     prev = _synthetic_previous(tmp_path / "prev", projector_target_scale=0.5)
     d = tmp_path / "recal"
@@ -166,11 +166,17 @@ def test_scripted_operator_is_prompted_through_check_and_remeasure(tmp_path):
 
     try:
         store, machine, station = open_recalibration(args, kind, rig, ctx, said.append)
-        out = run_recalibration(prev, station, machine, log=said.append, prompt=operator)
+        out = run_recalibration(prev, station, machine, log=said.append, prompt=operator,
+                                verify=rig_verify_fn(rig, d))
     finally:
         rig.close()
     assert out.ok and out.record["check"]["parts"]["projector"]["status"] == "moved", out.message
     n = out.record["captures"]["total"]
+    verifying = [t for t, _ in prompts if t.startswith("Epipolar verification")]
+    assert [t.split(":")[0] for t in verifying] == ["Epipolar verification of the previous calibration",
+                                                   "Epipolar verification of the recalibrated calibration"]
+    assert "hold the projector board still, facing the projector" in verifying[0]
+    prompts = [(t, k) for t, k in prompts if not t.startswith("Epipolar verification")]
     assert len(prompts) == n and [k for _, k in prompts] == list(range(n))  # one prompt before each capture
     texts = [t for t, _ in prompts]
     assert texts[0].startswith("Check, capture 1 of 4: Mirror capture 1 of 2: Hold the mirror board")
@@ -278,7 +284,8 @@ def test_station_checklist_prompts_the_operator_on_sim_realsense(tmp_path):
         if panel is not None:
             panel.stop()
         rig.close()
-    assert [k for _, k in shown] == [0, 1, 2, 3]
+    assert [k for _, k in shown] == [0, 1, 2, 3, 4]  # the 4 check captures, then the verification
+    assert "**Now:** Epipolar verification of the previous calibration" in shown[4][0]
     assert "**Now:** Check, capture 1 of 4: Mirror capture 1 of 2: Hold the mirror board" in shown[0][0]
     assert "**Now:** Check, capture 3 of 4: The projector shows the pattern" in shown[2][0]
     assert "**Now:**" not in rp.text() and "3. **Compare**: unchanged (ok)" in rp.text()
