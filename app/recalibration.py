@@ -12,15 +12,18 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, SessionMachine, Target
+from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target
 from app.station.station import Station
+from calib.boards import CharucoSpec
 from calib.errors import SessionError
 from calib.fileio import atomic_write_text
-from calib.observations import STEP_PROJECTOR
+from calib.observations import STEP_PROJECTOR, VIEW_DIRECT, VIEW_MIRROR
+from calib.pattern import PatternSpec
 from calib.result import CalibrationResult
+from calib.session import MANIFEST, SessionStore
 
 PREVIOUS_DIR = "previous"
 RECALIBRATION_FILE = "recalibration.json"
@@ -28,6 +31,20 @@ CHECK_MIRROR_CAPTURES = 2
 CHECK_PROJECTOR_CAPTURES = 2
 ROUND_CAPTURES = 2  # captures added per round of the re-estimate before its 1-sigma is looked at again
 DEFAULT_MAX_CAPTURES = 24
+#: the session plan of a recalibration (its capture plan is set by the flow): one pose per pattern position
+RECALIBRATION_PLAN = Plan(poses_per_position=1, min_real_virtual=1, min_projector_captures=1)
+CAPTURE_TIMEOUT_S = 120.0  # the simulated operator: no capture in this long is an error
+PROMPTED_CAPTURE_TIMEOUT_S = 600.0  # a person: a board never still and detected in 10 minutes stops the flow
+
+
+#: the prompt before an epipolar verification (the projector draws curves on the board; the camera measures them)
+VERIFY_PROMPT = ("Verification: hold the projector board still, facing the projector, in the middle of its image, "
+                 "where the camera sees it in the mirror, until the verification is done.")
+
+
+class RecalibrationStopped(SessionError):
+    """The recalibration stopped part-way (the technician's input closed, or no capture came): every capture
+    taken is on disk and the folder continues with `procam recalibrate PREVIOUS --out DIR --resume`."""
 
 
 def find_previous(path) -> Path:
@@ -57,6 +74,141 @@ def archive_previous(previous: Path, folder: Path) -> tuple[Path, str]:
     if sha256_file(dest) != digest:
         raise SessionError(f"the archived copy {dest} differs from {previous} (changed while copying?)")
     return dest, digest
+
+
+def check_resumed_previous(previous: Path, folder: Path) -> str:
+    """Resuming: PREVIOUS must be the calibration the recalibration in `folder` started from (sha256 of
+    the archive, or of the state's record when the archive was never written). Its sha256, else SessionError."""
+    from calib.recalib import sha256_file
+
+    folder = Path(folder)
+    dest = folder / PREVIOUS_DIR / "calibration.json"
+    try:
+        rec = (SessionStore.open(folder).manifest.state or {}).get("recalibration") or {}
+    except SessionError:
+        rec = {}
+    want = rec.get("previous_sha256") if isinstance(rec.get("previous_sha256"), str) else None
+    if want is None and dest.is_file():
+        want = sha256_file(dest)
+    if want is None:
+        raise SessionError(f"{folder} is not a recalibration (no {PREVIOUS_DIR}/calibration.json): continue a session "
+                           f"with `procam session --resume {folder}`")
+    got = sha256_file(previous)
+    if got != want:
+        was = f" ({rec['previous']})" if isinstance(rec.get("previous"), str) else ""
+        raise SessionError(f"{previous} (sha256 {got[:12]}...) is not the calibration the recalibration in {folder} "
+                           f"started from{was} (sha256 {want[:12]}..., archived as {PREVIOUS_DIR}/calibration.json): "
+                           "resume with that PREVIOUS")
+    if dest.is_file() and sha256_file(dest) != want:
+        raise SessionError(f"{dest} changed since it was archived (sha256 differs): this recalibration cannot be "
+                           "trusted any more; start a new one")
+    return want
+
+
+# ---- the boards of the previous calibration -----------------------------------------------------------
+@dataclass(frozen=True)
+class BoardSpecs:
+    """The physical boards, projected pattern and view a recalibration must use: those of the calibration
+    it checks. `rig_request` is the previous session's (the simulated rig's scenario and seed)."""
+
+    board: CharucoSpec
+    mirror_board: CharucoSpec | None
+    pattern: PatternSpec
+    view: str
+    source: str  # where they were read from, for the log
+    rig_request: dict | None = None
+
+    def manifest_kw(self) -> dict:
+        """The keyword arguments of app.station.setup.new_manifest / create_session."""
+        return {"board": self.board, "mirror_board": self.mirror_board, "pattern": self.pattern, "view": self.view}
+
+    def describe(self) -> str:
+        p = self.pattern
+        mb = f", mirror board {self.mirror_board}" if self.mirror_board is not None else ", no mirror"
+        return f"board {self.board}{mb}, pattern {p.cols}x{p.rows} {p.kind} ({self.source})"
+
+
+def previous_session_folder(previous_path) -> Path | None:
+    """The session folder PREVIOUS belongs to (PREVIOUS itself, or the folder of its calibration.json),
+    when it holds a session.json; None for a calibration.json on its own."""
+    p = Path(previous_path)
+    folder = p if p.is_dir() else p.parent
+    return folder if (folder / MANIFEST).is_file() else None
+
+
+def previous_board_specs(previous_path, previous: CalibrationResult, board: str | None = None,
+                         mirror_board: str | None = None, units: str | None = None,
+                         simulated: bool = False) -> BoardSpecs | None:
+    """The boards of PREVIOUS: from its session.json; for a calibration.json on its own (which records the
+    devices' image sizes and units, not the boards) from `board` / `mirror_board` (COLSxROWS:DICT:SQUARE
+    [:MARKER], in `units`, default the calibration's) with the default pattern of its projector. None on a
+    simulated rig when nothing names them (the scenario's boards are the rig's); SessionError on a real
+    rig, naming what to add. Given specs that contradict the session's are refused."""
+    units = units or previous.units
+    given = CharucoSpec.parse(board, units) if board else None
+    given_mirror = CharucoSpec.parse(mirror_board, units) if mirror_board else None
+    for spec, opt in ((given, "--board"), (given_mirror, "--mirror-board")):
+        if spec is not None and spec.units != previous.units:
+            raise SessionError(f"{opt} is in {spec.units} but PREVIOUS is calibrated in {previous.units}: give the "
+                               f"board lengths in {previous.units} (--units {previous.units})")
+    view = VIEW_MIRROR if previous.mirror is not None else VIEW_DIRECT
+    folder = previous_session_folder(previous_path)
+    if folder is not None:
+        man = SessionStore.open(folder).manifest  # read only; a session.json that does not load is an error
+        where = folder / MANIFEST
+        for what, a, b in (("camera", man.rig.camera_size, previous.camera.size),
+                           ("projector", man.rig.projector_size, previous.projector.size)):
+            if tuple(a) != tuple(b):
+                raise SessionError(f"{where} records a {a[0]}x{a[1]} {what} but its calibration is for "
+                                   f"{b[0]}x{b[1]}: PREVIOUS mixes two sessions; give the calibration.json alone "
+                                   "with --board")
+        if man.units != previous.units:
+            raise SessionError(f"{where} has boards in {man.units} but the calibration is in {previous.units}")
+        if man.rig.view != view:
+            raise SessionError(f"{where} is a {man.rig.view} session but its calibration "
+                               + ("has no mirror" if previous.mirror is None else "has a mirror"))
+        specs = BoardSpecs(man.projector_board, man.mirror_board, man.pattern, view, str(where),
+                           (man.state or {}).get("rig_request"))
+        for spec, opt, have in ((given, "--board", specs.board), (given_mirror, "--mirror-board", specs.mirror_board)):
+            if spec is not None and spec != have:
+                raise SessionError(f"{opt} {spec} is not the board PREVIOUS was captured with ({have}, {where}): "
+                                   f"a recalibration measures with the same boards; leave {opt} out")
+        return specs
+    if given is not None:
+        mb = (given_mirror or given) if view == VIEW_MIRROR else None
+        return BoardSpecs(given, mb, PatternSpec.default_for(*previous.projector.size), view, "--board")
+    if simulated:
+        return None
+    rec = previous.diagnostics.get("session") if isinstance(previous.diagnostics, dict) else None
+    hint = f" (it was calibrated from {rec}: give that session folder as PREVIOUS, or)" if isinstance(rec, str) else ""
+    raise SessionError(f"{previous_path} does not record the boards it was calibrated with (no session.json beside "
+                       f"it){hint}: add --board COLSxROWS:DICT:SQUARE[:MARKER] (and --mirror-board if the mirror "
+                       "board differs), the boards given to `procam session` for that calibration")
+
+
+def check_rig_matches(previous: CalibrationResult, specs: BoardSpecs | None, rig, scenario: str | None = None) -> None:
+    """The connected rig is the one PREVIOUS calibrated: camera resolution as its camera model's, projector
+    screen as its projector's; on a simulated rig the scenario's boards are PREVIOUS's. SessionError."""
+    cw, ch = (int(v) for v in rig.camera.size)
+    pw, ph = (int(v) for v in rig.projector.size)
+    if (cw, ch) != tuple(previous.camera.size):
+        raise SessionError(f"the camera streams {cw}x{ch} but PREVIOUS's camera model is for {previous.camera.size[0]}x"
+                           f"{previous.camera.size[1]}: connect the same camera at that resolution")
+    if (pw, ph) != tuple(previous.projector.size):
+        raise SessionError(f"the projector screen is {pw}x{ph} but PREVIOUS calibrated a {previous.projector.size[0]}x"
+                           f"{previous.projector.size[1]} projector: connect that projector (or choose its screen with "
+                           "--projector-screen) at its resolution")
+    from drivers.factory import is_simulated
+
+    if specs is not None and is_simulated(getattr(rig, "kind", "sim")):
+        from app.station.setup import sim_specs
+
+        s = sim_specs(rig)
+        for what, have, want in (("board", s["board"], specs.board), ("mirror board", s["mirror_board"], specs.mirror_board),
+                                 ("pattern", s["pattern"], specs.pattern)):
+            if have != want:
+                raise SessionError(f"the simulated scenario '{scenario}' has the {what} {have}, PREVIOUS was captured "
+                                   f"with {want}: choose the scenario PREVIOUS was captured on (--scenario)")
 
 
 class RecalibrationMachine(SessionMachine):
@@ -132,15 +284,21 @@ def _verification_summary(report) -> dict:
 
 def run_recalibration(previous_path, station: Station, machine: RecalibrationMachine, log=print,
                       max_captures: int = DEFAULT_MAX_CAPTURES, workers: int = 2, verify=None,
-                      on_stage=None) -> Outcome:
-    """Check, re-measure what moved, compare. The station and machine are those of a new session.
+                      on_stage=None, prompt=None, resume: bool = False) -> Outcome:
+    """Check, re-measure what moved, compare. The station and machine are those of a new session, or of
+    the stopped recalibration being resumed (`resume`: its captures are kept, PREVIOUS must be the archived
+    calibration, the check already done is not re-taken).
     `verify(result, final)` (optional): the epipolar verification of a calibration on the rig; the
     previous calibration is verified during the check (evidence recorded; a failure with an
     "unchanged" verdict is an inconsistency, not a sign-off), the recalibrated one at the end
     (final=True: its report is the session's verification.json; a failure fails the recalibration).
     `on_stage(stage, value)` (optional; the station's panel): "verdict" with the check's report (may block
     until the operator accepts it), "reestimate" with each round's re-estimate (progress towards the
-    1-sigma targets), "done" with the Outcome."""
+    1-sigma targets), "done" with the Outcome.
+    `prompt(text)` (optional; a person moves the board): called before each capture with what to do (the
+    station's own guidance: which board, where, which tilt); it returns when the person is ready (Enter)
+    or raises RecalibrationStopped to stop (the folder stays resumable). Auto-capture then takes the frame
+    when the board is still and detected, exposed after the projector's image became visible."""
     def stage(name, value):
         if on_stage is not None:
             on_stage(name, value)
@@ -153,38 +311,70 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     folder = Path(machine.store.folder)
     src = find_previous(previous_path)
     previous = CalibrationResult.load_json(src)
-    archived, digest = archive_previous(src, folder)
-    log(f"previous calibration {src} (sha256 {digest[:12]}...) archived as {archived.relative_to(folder)}")
+    archived = folder / PREVIOUS_DIR / "calibration.json"
+    if resume:
+        digest = check_resumed_previous(src, folder)
+        if not archived.exists():
+            archive_previous(src, folder)
+        log(f"previous calibration {src} (sha256 {digest[:12]}...) is the one archived in {PREVIOUS_DIR}/")
+    else:
+        archived, digest = archive_previous(src, folder)
+        log(f"previous calibration {src} (sha256 {digest[:12]}...) archived as {archived.relative_to(folder)}")
+    state = dict(machine.extra_state.get("recalibration") or {})
+    state.update(previous=str(src.resolve()), previous_sha256=digest)
+    machine.extra_state["recalibration"] = state
+    machine._persist()
     man = machine.manifest
     w, h = man.rig.projector_size
     mirrored = man.mirror_board is not None and previous.mirror is not None
     t0 = time.monotonic()
+    timeout_s = CAPTURE_TIMEOUT_S if prompt is None else PROMPTED_CAPTURE_TIMEOUT_S
 
-    def capture(n_mirror: int, n_projector: int):
-        """Take n_mirror more real-virtual and n_projector more projector captures through the station."""
+    def capture(n_mirror: int, n_projector: int, label, more: bool = True):
+        """Take n_mirror real-virtual and n_projector projector captures through the station: that many
+        more (`more`), or until there are that many (the check's, so a resumed check takes only the rest).
+        Captures on disk (a resumed recalibration) count."""
         if mirrored and n_mirror:
-            if machine.state == PROJECTOR_CAPTURE:
+            on_disk = machine.counts()["mirror"]
+            machine.mirror_quota = (max(machine.mirror_quota, on_disk) + n_mirror) if more else max(
+                machine.mirror_quota, n_mirror)
+            if machine.target is None and machine.state == PROJECTOR_CAPTURE and on_disk < machine.mirror_quota:
                 machine.go_back()
-            machine.mirror_quota += n_mirror
-            _tick_until(station, machine, MIRROR_CAPTURE)
+            _take(station, machine, MIRROR_CAPTURE, prompt, label, log, timeout_s)
         if n_projector:
             if machine.state == MIRROR_CAPTURE:
                 machine.proceed()
-            done = len(machine.projector_queue)
-            machine.projector_queue += spread_positions(man.pattern, w, h, n_projector, start=done)
-            _tick_until(station, machine, PROJECTOR_CAPTURE)
+            on_disk = len(machine.captures_of(STEP_PROJECTOR))
+            k = (max(len(machine.projector_queue), on_disk) + n_projector) if more else max(
+                len(machine.projector_queue), n_projector)
+            machine.projector_queue = spread_positions(man.pattern, w, h, k)
+            _take(station, machine, PROJECTOR_CAPTURE, prompt, label, log, timeout_s)
         station.wait_for_detections()
         return detect_session(machine.store, workers)
 
-    # start: rig check, then the mirror step (the station chooses real-virtual)
+    # start: rig check (again, on a resumed recalibration: exposure and latency re-applied), then the
+    # mirror step (the station chooses real-virtual)
+    if machine.state != "check_rig":
+        bad = [c for c in station.check_rig() if not c.ok]
+        if bad:
+            raise SessionError("the rig check failed: " + "; ".join(f"{c.name}: {c.detail}" for c in bad))
     while machine.state == "check_rig":
         station.tick()
     if mirrored and machine.mirror_method is None:
         machine.choose_mirror_method("real-virtual")  # the check's mirror test needs real-virtual captures
-    n_check = (CHECK_MIRROR_CAPTURES if mirrored else 0) + CHECK_PROJECTOR_CAPTURES
-    log(f"check: {n_check} captures")
-    obs = capture(CHECK_MIRROR_CAPTURES if mirrored else 0, CHECK_PROJECTOR_CAPTURES)
-    report = check_rig(previous, obs)
+    n_m, n_p = (CHECK_MIRROR_CAPTURES if mirrored else 0), CHECK_PROJECTOR_CAPTURES
+    n_check = n_m + n_p
+    check_ids = state.get("check_captures")
+    if isinstance(check_ids, list):
+        log(f"check: done before the stop ({len(check_ids)} captures)")
+    else:
+        log(f"check: {n_check} captures")
+    obs = capture(n_m, n_p, lambda: f"Check, capture {len(machine.manifest.captures) + 1} of {n_check}", more=False)
+    if not isinstance(check_ids, list):
+        check_ids = [c.id for c in machine.manifest.captures]
+        state["check_captures"] = check_ids
+        machine._persist()
+    report = check_rig(previous, only_captures(obs, set(check_ids)))
     for p, c in report.parts.items():
         log(f"  {p}: {c.status} ({c.reason})")
     log(f"check verdict: {report.verdict} after {time.monotonic() - t0:.1f} s")
@@ -194,6 +384,8 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     result = previous
     verification = {}
     if verify is not None:
+        if prompt is not None:
+            prompt(f"Epipolar verification of the previous calibration: {VERIFY_PROMPT}")
         v = verify(previous, False)
         verification["previous"] = _verification_summary(v)
         log(f"epipolar verification of the previous calibration: {'passed' if v.passed else 'FAILED'} "
@@ -207,6 +399,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
             f"{p}: {c.reason}" for p, c in report.parts.items() if c.status == "not checked")
     elif report.moved:
         moved = report.moved
+        rounds = 0
         while True:
             re = reestimate(report.current, obs, moved)
             n = len(machine.manifest.captures)
@@ -219,11 +412,13 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
                 ok, message = False, (f"the re-estimate did not reach its 1-sigma targets within {max_captures} "
                                       f"captures: {'; '.join(re.missing)}")
                 break
+            rounds += 1
             n_m = ROUND_CAPTURES if ("mirror" in moved or "camera" in moved) and mirrored else 0
             n_p = ROUND_CAPTURES if ("projector" in moved or ("camera" in moved and not n_m)) else 0
             if n_m and n_p:
                 n_m = n_p = ROUND_CAPTURES // 2
-            obs = capture(n_m, n_p)
+            obs = capture(n_m, n_p, lambda: (f"Re-measure {', '.join(moved)} (round {rounds}), capture "
+                                             f"{len(machine.manifest.captures) + 1}"))
         result = re.result
         comparison = compare_calibrations(previous, result, re.sigma)
         if ok:
@@ -235,6 +430,8 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         result.save_json(folder / "calibration.json")  # before verifying: the report records its hash
         machine.result = result
         if verify is not None and report.moved:
+            if prompt is not None:
+                prompt(f"Epipolar verification of the recalibrated calibration: {VERIFY_PROMPT}")
             v = verify(result, True)
             verification["recalibrated"] = _verification_summary(v)
             log(f"epipolar verification of the recalibration: {'passed' if v.passed else 'FAILED'}")
@@ -244,21 +441,30 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     counts = machine.counts()
     rec = RecalibrationRecord(str(src.resolve()), digest, str(archived.relative_to(folder)), report, re, comparison,
                               {"total": n_caps, "mirror": counts["mirror"], "projector": counts["projector"],
-                               "check": n_check, "elapsed_s": round(time.monotonic() - t0, 2)}).to_dict()
+                               "check": len(check_ids), "elapsed_s": round(time.monotonic() - t0, 2)}).to_dict()
     rec["ok"] = ok
     rec["message"] = message
     rec["verification"] = verification or None
+    if resume:
+        rec["resumed"] = True
     from calib.result import _jsonable
 
     atomic_write_text(folder / RECALIBRATION_FILE, json.dumps(_jsonable(rec), indent=2) + "\n")
-    machine.extra_state["recalibration"] = {"verdict": report.verdict, "ok": ok, "previous_sha256": digest}
+    state.update(verdict=report.verdict, ok=ok, previous_sha256=digest)
     settings = getattr(man.rig, "camera_settings", None) or {}
     if settings.get("bump"):
-        machine.extra_state["recalibration"]["sim_bump"] = settings["bump"]
+        state["sim_bump"] = settings["bump"]
     machine._persist()
     outcome = Outcome(rec, result, ok, message)
     stage("done", outcome)
     return outcome
+
+
+def only_captures(obs, ids: set):
+    """The observations of the captures `ids` alone (the check's, when more were taken since)."""
+    return replace(obs, projector_views=tuple(v for v in obs.projector_views if v.capture_id in ids),
+                   mirror_views=tuple(v for v in obs.mirror_views if v.capture_id in ids),
+                   skipped=tuple(s for s in obs.skipped if s.capture_id in ids))
 
 
 def rig_verify_fn(rig, folder):
@@ -280,12 +486,54 @@ def rig_verify_fn(rig, folder):
     return verify
 
 
-def _tick_until(station: Station, machine: RecalibrationMachine, state: str, timeout_s: float = 120.0) -> None:
-    t_end = time.monotonic() + timeout_s
+def step_instruction(station: Station) -> str:
+    """What the person should do for the capture the machine asks for: the station's own guidance (which
+    board, where, which tilt), without the hint about the last frame."""
+    text = station.instruction()
+    hint = station._live_hint(station.live)
+    return text[: -len(hint)] if hint and text.endswith(hint) else text
+
+
+def describe_capture(cap, pattern_points: int | None = None) -> str:
+    """What a capture got, in a person's words (the live detection kept in its metadata; a projector
+    capture is only taken with every pattern point detected)."""
+    m = cap.meta or {}
+    parts = [f"{m['corners']} board corners" if "corners" in m else "the board"]
+    if "virtual_corners" in m:
+        parts.append(f"{m['virtual_corners']} in the mirror")
+    if cap.pattern_position is not None:
+        parts.append(f"the pattern{f' ({pattern_points} points)' if pattern_points else ''} at position "
+                     f"{cap.pattern_position + 1}")
+    return f"got {cap.id}: " + ", ".join(parts)
+
+
+def _take(station: Station, machine: RecalibrationMachine, state: str, prompt, label, log,
+          timeout_s: float = CAPTURE_TIMEOUT_S) -> None:
+    """Take every capture the machine asks for in `state`. With `prompt` (a person), each one is announced
+    first (`label()`: the stage, then the station's guidance) and waited for; auto-capture keeps the frame
+    when the board is still, detected and exposed after the image became visible; the person is told
+    what it got, and while waiting what the live frame lacks."""
     while machine.state == state and machine.target is not None:
-        if time.monotonic() > t_end:
-            raise SessionError(f"no capture for {machine.target.step} in {timeout_s:.0f} s")
-        station.tick()
+        tgt = machine.target
+        if prompt is not None:
+            prompt(f"{label()}: {step_instruction(station)}")
+        before = machine.last_capture
+        t_end = time.monotonic() + timeout_s
+        said, said_s = "", 0.0
+        while machine.state == state and machine.target == tgt:
+            if time.monotonic() > t_end:
+                why = station.live.decision.message if station.live is not None and station.live.decision else ""
+                raise RecalibrationStopped(f"no capture for {tgt.step} in {timeout_s:.0f} s"
+                                           + (f" ({why})" if why else ""))
+            station.tick()
+            if prompt is not None:
+                hint = station._live_hint(station.live).strip()
+                if hint and hint != said and time.monotonic() - said_s > 2.0:
+                    log(hint)
+                    said, said_s = hint, time.monotonic()
+        cap = machine.last_capture
+        if prompt is not None and cap is not None and cap is not before:
+            log(describe_capture(cap, machine.manifest.pattern.n_points))
 
 
 def comparison_lines(rec: dict) -> list[str]:

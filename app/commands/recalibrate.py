@@ -16,83 +16,195 @@ DESCRIPTION = (
     "1-sigma); what moved is re-estimated with the rest held, capturing until its 1-sigma reaches the "
     "previous calibration's. DIR becomes a session folder with previous/calibration.json (the archive), "
     "calibration.json, recalibration.json (verdicts, changes with their uncertainty, the previous file's "
-    "sha256) and, on the simulated rig, ground_truth.json. Exit status 1 when the check is incomplete or "
-    "the targets were not reached."
+    "sha256) and, on the simulated rig, ground_truth.json. The boards are PREVIOUS's (its session.json; "
+    "--board for a calibration.json alone). Without --auto the technician is told each capture's step and "
+    "presses Enter. Exit status 1 when the check is incomplete or the targets were not reached; 4 when the "
+    "input closed part-way (130 after Ctrl-C): the folder continues with --resume."
 )
 
 
 def add_arguments(p) -> None:
     p.add_argument("previous", metavar="PREVIOUS", help="session folder holding calibration.json, or a calibration.json")
-    p.add_argument("--out", metavar="DIR", required=True, help="new session folder")
+    p.add_argument("--out", metavar="DIR", required=True, help="new session folder (with --resume: the stopped one)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the recalibration in DIR where it stopped (Ctrl-C, closed input, crash): its "
+                        "captures are kept; PREVIOUS must be the calibration it started from")
     p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), default=None,
-                   help="rig to use (default: realsense when one is connected, else sim)")
-    p.add_argument("--auto", action="store_true", help="on the simulated rig the simulated operator moves the board")
-    p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
-    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
+                   help="rig to use (default: realsense when one is connected, else sim; with --resume the "
+                        "stopped recalibration's)")
+    p.add_argument("--auto", action="store_true",
+                   help="simulated rig: the simulated operator moves the board with no prompts (without it the "
+                        "command tells the technician each step and waits for Enter)")
+    p.add_argument("--scenario", default=None, help="simulated rig scenario (default: PREVIOUS's, else nonoverlap-136)")
+    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default: PREVIOUS's, else 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
     add_sim_latency_option(p)
     add_sim_bump_option(p)
+    p.add_argument("--board", default=None,
+                   help="projector board COLSxROWS:DICT:SQUARE[:MARKER], only when PREVIOUS is a calibration.json "
+                        "without its session.json (else the boards are PREVIOUS's)")
+    p.add_argument("--mirror-board", default=None, help="mirror board spec, with --board (default: --board)")
+    p.add_argument("--units", default=None, help="unit of the --board lengths (default: PREVIOUS's)")
+    p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
+    p.add_argument("--projector-screen", type=int, default=None,
+                   help="real rig: screen the projector is connected to, from `procam devices`")
+    p.add_argument("--settle-s", type=float, default=None,
+                   help="real rig: projector latency to wait after each image (seconds)")
     p.add_argument("--max-captures", type=int, default=None, metavar="N",
                    help="give up (exit 1) when the re-estimate needs more than N captures in all (default 24)")
     p.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
 
 
-def run(args) -> int:
-    from app.commands.session import rig_options
-    from app.recalibration import (
-        DEFAULT_MAX_CAPTURES, RecalibrationMachine, RecalibrationStation, find_previous,
-    )
-    from app.station.machine import Plan
-    from app.station.setup import DEFAULT_SCENARIO, RigRequest, create_session, default_rig_kind, open_rig, run_on_rig
-    from app.station.station import StationOptions
-    from calib.errors import SessionError
-    from drivers.factory import is_simulated
+#: exit status of a recalibration stopped part-way by a closed input (Ctrl-C: 130); the folder is resumable
+EXIT_STOPPED = 4
 
+
+def run(args) -> int:
     t0 = time.monotonic()
 
     def log(text):
         print(f"[{time.monotonic() - t0:6.1f} s] {text}", flush=True)
 
-    find_previous(args.previous)  # a clear error before any device is opened
     folder = Path(args.out)
-    if folder.exists() and any(folder.iterdir()):
-        raise SessionError(f"{folder} is not empty: a recalibration needs a new session folder")
-    kind = args.rig or default_rig_kind()
-    if not is_simulated(kind):
-        raise SessionError("the headless recalibration runs on the simulated rig for now (--rig sim); on the "
-                           "real rig it needs the board specs and a person's prompts, not written yet")
-    if not args.auto:
-        raise SessionError("the simulated rig has nobody to move the board: add --auto")
-    max_caps = args.max_captures or DEFAULT_MAX_CAPTURES
-    if max_caps < 4:
-        raise SessionError(f"--max-captures must be at least 4 (the check's captures), got {max_caps}")
-    req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
-    rig = open_rig(req, **rig_options(args, kind))
-    outcome = None
+    outcome = run_on_rig(args, log)
+    if isinstance(outcome, int):  # stopped part-way: resumable
+        return outcome
+    print(summary(outcome.record, folder, time.monotonic() - t0), flush=True)
+    return 0 if outcome.ok else 1
+
+
+def run_on_rig(args, log):
+    """Open (or resume) the recalibration's session and run its flow on the rig: the Outcome, or the
+    exit status of a recalibration stopped part-way (the command's message says how to resume)."""
+    from app.recalibration import RecalibrationStopped, run_recalibration
+
+    kind, ctx = prepare(args, log)
+    rig = ctx["open"]()
     try:
-        plan = Plan(min_real_virtual=1, min_projector_captures=1)
-        store = create_session(folder, rig, req, plan)
-        machine = RecalibrationMachine(store, plan)
-        machine._persist()
-        station = RecalibrationStation(rig, machine, StationOptions(auto=True, follow_operator=True), log=log)
-        machine.on_event = lambda text: None if text.startswith("captured") else log(text)
+        store, machine, station = open_recalibration(args, kind, rig, ctx, log)
+        prompt = None if (args.auto and ctx["simulated"]) else terminal_prompt
 
         def work():
-            nonlocal outcome
-            from app.recalibration import run_recalibration
+            return run_recalibration(ctx["src"], station, machine, log=log, max_captures=ctx["max_captures"],
+                                     workers=args.workers, verify=ctx["verify"](rig, store.folder), prompt=prompt,
+                                     resume=args.resume)
 
-            from app.recalibration import rig_verify_fn
+        from app.station.setup import run_on_rig as on_rig
 
-            outcome = run_recalibration(args.previous, station, machine, log=log, max_captures=max_caps,
-                                        workers=args.workers, verify=rig_verify_fn(rig, folder))
-
-        run_on_rig(rig, work)
+        try:
+            return on_rig(rig, work)
+        except (RecalibrationStopped, KeyboardInterrupt) as e:
+            stopped = isinstance(e, RecalibrationStopped)
+            if stopped:  # the last capture's background detection, so detections.json is complete
+                station.wait_for_detections(5.0)
+            n = len(store.manifest.captures)
+            print(f"recalibration stopped{': ' + str(e) if stopped else ' (Ctrl-C)'}; {n} captures kept in "
+                  f"{store.folder}. Continue it with: procam recalibrate {args.previous} --out {store.folder} "
+                  "--resume", flush=True)
+            return EXIT_STOPPED if stopped else 130
     finally:
         close = getattr(rig, "close", None)
         if callable(close):
             close()
-    print(summary(outcome.record, folder, time.monotonic() - t0), flush=True)
-    return 0 if outcome.ok else 1
+
+
+def terminal_prompt(text: str) -> None:
+    """The technician's prompt on the terminal: what to do, then wait for Enter. A closed input stops the
+    recalibration (RecalibrationStopped; the folder is resumable); Ctrl-C stops it too."""
+    import sys
+
+    from app.recalibration import RecalibrationStopped
+
+    print(f"\n>>> {text}\n    Press Enter when the board is in place (Ctrl-C stops; --resume continues).", flush=True)
+    if sys.stdin is None or not sys.stdin.readline():
+        raise RecalibrationStopped("the input closed while waiting for the board")
+
+
+def prepare(args, log):
+    """Everything checked before a device is opened: PREVIOUS, the folder (new, or the stopped
+    recalibration to resume, with the same PREVIOUS), the boards of PREVIOUS and the rig to open."""
+    from app.commands.session import rig_options
+    from app.recalibration import (
+        DEFAULT_MAX_CAPTURES, check_resumed_previous, find_previous, previous_board_specs, rig_verify_fn,
+    )
+    from app.station.setup import DEFAULT_SCENARIO, RigRequest, default_rig_kind, open_rig, resume_request
+    from calib.errors import SessionError
+    from calib.result import CalibrationResult
+    from drivers.factory import is_simulated
+
+    src = find_previous(args.previous)  # a clear error before any device is opened
+    previous = CalibrationResult.load_json(src)
+    folder = Path(args.out)
+    if args.resume:
+        from app.recalibration import RECALIBRATION_FILE
+
+        if not (folder / "session.json").is_file():
+            raise SessionError(f"{folder} holds no session to resume (no session.json): start the recalibration "
+                               "without --resume")
+        if (folder / RECALIBRATION_FILE).exists():
+            raise SessionError(f"the recalibration in {folder} is finished ({RECALIBRATION_FILE}): nothing to resume")
+        check_resumed_previous(src, folder)
+        req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
+        kind = req.kind
+        if is_simulated(kind) and args.sim_bump is None:  # the same simulated world as before the stop
+            from calib.session import SessionStore
+
+            args.sim_bump = (SessionStore.open(folder).manifest.rig.camera_settings or {}).get("bump")
+    elif folder.exists() and any(folder.iterdir()):
+        raise SessionError(f"{folder} is not empty: a recalibration needs a new session folder (or --resume to "
+                           "continue a stopped one)")
+    else:
+        kind = args.rig or default_rig_kind()
+    simulated = is_simulated(kind)
+    max_caps = args.max_captures or DEFAULT_MAX_CAPTURES
+    if max_caps < 4:
+        raise SessionError(f"--max-captures must be at least 4 (the check's captures), got {max_caps}")
+    specs = None
+    if not args.resume:
+        specs = previous_board_specs(args.previous, previous, args.board, args.mirror_board, args.units, simulated)
+        if specs is not None:
+            log(f"boards of PREVIOUS: {specs.describe()}")
+        rr = (specs.rig_request if specs is not None else None) or {}
+        from_prev = simulated and is_simulated(rr.get("kind"))
+        req = RigRequest(kind, args.scenario or (rr.get("scenario") if from_prev else None) or DEFAULT_SCENARIO,
+                         args.seed if args.seed is not None else (rr.get("seed") if from_prev else None) or 0,
+                         args.quality or "live")
+    return kind, {"src": src, "previous": previous, "specs": specs, "req": req, "simulated": simulated,
+                  "max_captures": max_caps, "verify": rig_verify_fn,
+                  "open": lambda: open_rig(req, **rig_options(args, kind))}
+
+
+def open_recalibration(args, kind: str, rig, ctx, log):
+    """(store, machine, station) of the recalibration on the opened rig: a new session folder with
+    PREVIOUS's boards, or the stopped one (its captures kept), after checking the rig is PREVIOUS's."""
+    from app.recalibration import RECALIBRATION_PLAN, RecalibrationMachine, RecalibrationStation, check_rig_matches
+    from app.station.setup import check_same_rig, create_session
+    from app.station.station import StationOptions
+    from calib.session import SessionStore
+
+    req = ctx["req"]
+    check_rig_matches(ctx["previous"], ctx["specs"], rig, req.scenario)
+    plan = RECALIBRATION_PLAN
+    folder = Path(args.out)
+    if args.resume:
+        store = SessionStore.open(folder, lock=True)  # one process per session folder: refused while in use
+        check_same_rig(store, rig)
+        machine = RecalibrationMachine.from_store(store, plan)
+        c = machine.counts()
+        log(f"resuming the recalibration in {folder}: {len(store.manifest.captures)} captures on disk (mirror "
+            f"{c['mirror']}, projector {c['projector']}), step '{machine.state}'")
+    else:
+        kw = {} if ctx["simulated"] or ctx["specs"] is None else ctx["specs"].manifest_kw()
+        store = create_session(folder, rig, req, plan, **kw)
+        machine = RecalibrationMachine(store, plan)
+    machine._persist()
+    opts = StationOptions(auto=True, follow_operator=True)
+    if not ctx["simulated"]:  # a person needs time, and a pose too close to another is never kept
+        opts.max_frames_per_target = 10**9
+        opts.stuck_frames = 10**9
+    station = RecalibrationStation(rig, machine, opts, log=log)
+    machine.on_event = lambda text: None if text.startswith("captured") else log(text)
+    return store, machine, station
 
 
 def summary(rec: dict, folder, elapsed_s: float) -> str:

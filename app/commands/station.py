@@ -39,9 +39,10 @@ def add_arguments(p) -> None:
                         "the whole session (watch it in the browser)")
     add_rig_options(p)
     p.add_argument("--recalibrate", metavar="PREVIOUS", default=None,
-                   help="recalibration mode (simulated rig for now): check the rig against PREVIOUS (a session "
-                        "folder holding calibration.json, or a calibration.json), re-measure what moved, compare; "
-                        "the panel shows its checklist (docs/RECALIBRATION.md)")
+                   help="recalibration mode: check the rig against PREVIOUS (a session folder holding "
+                        "calibration.json, or a calibration.json; its boards are used), re-measure what moved, "
+                        "compare; the panel shows its checklist and prompts the operator; with --resume DIR a "
+                        "stopped recalibration continues (docs/RECALIBRATION.md)")
     p.add_argument("--mirror-method", choices=("real-virtual", "real-mirror"), default=None,
                    help="with --auto: the mirror method the station chooses (default: the scenario's)")
 
@@ -77,6 +78,13 @@ def run(args) -> int:
     args.out = args.session
     if args.recalibrate:
         return run_recalibration_mode(args, kind, defaulted)
+    if args.resume:
+        from app.station.setup import read_state
+        from calib.errors import SessionError
+
+        if (Path(args.resume) / "session.json").is_file() and (read_state(args.resume) or {}).get("recalibration"):
+            raise SessionError(f"{args.resume} is a recalibration: continue it with --recalibrate PREVIOUS --resume "
+                               f"{args.resume}")
     rig, store, machine, req = open_session(args, print)
     from drivers.factory import is_simulated
 
@@ -102,37 +110,39 @@ def _start(machine, station) -> None:
 
 
 def run_recalibration_mode(args, kind: str, defaulted: bool) -> int:
-    """--recalibrate PREVIOUS: the flow of `procam recalibrate` (app/recalibration.py) driven from the
-    panel's recalibration checklist (app/station/panel_recal.py)."""
-    from app.commands.session import rig_options
-    from app.recalibration import RecalibrationMachine, RecalibrationStation, find_previous, rig_verify_fn
-    from app.station.machine import Plan
+    """--recalibrate PREVIOUS: the flow of `procam recalibrate` (app/recalibration.py, opened by
+    app/commands/recalibrate.py's prepare / open_recalibration: PREVIOUS's boards, the rig checked against
+    it, --resume DIR of a stopped one) driven from the panel's recalibration checklist
+    (app/station/panel_recal.py), which prompts the operator at each capture."""
+    import argparse
+
+    from app.commands.recalibrate import open_recalibration, prepare
+    from app.recalibration import RECALIBRATION_FILE, rig_verify_fn
     from app.station.panel import StationPanel, needs_access_code, new_access_code
     from app.station.panel_recal import RecalibrationPanel
-    from app.station.setup import DEFAULT_SCENARIO, RigRequest, create_session, open_rig
-    from app.station.station import StationOptions
-    from calib.errors import SessionError
-    from drivers.factory import is_simulated
 
-    if args.resume:
-        raise SessionError("--recalibrate starts a new session folder: give --session DIR, not --resume")
-    find_previous(args.recalibrate)  # a clear error before any device is opened
-    folder = Path(args.session)
-    if folder.exists() and any(folder.iterdir()):
-        raise SessionError(f"{folder} is not empty: a recalibration needs a new session folder")
-    if not is_simulated(kind):
-        raise SessionError("the station's recalibration mode runs on the simulated rig for now (--rig sim)")
-    req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
-    rig = open_rig(req, **rig_options(args, kind))
-    plan = Plan(min_real_virtual=1, min_projector_captures=1)
-    store = create_session(folder, rig, req, plan)
-    machine = RecalibrationMachine(store, plan)
-    machine._persist()
-    station = RecalibrationStation(rig, machine, StationOptions(auto=True, follow_operator=True), log=lambda t: None)
+    rargs = argparse.Namespace(**vars(args))
+    rargs.previous, rargs.out, rargs.resume = args.recalibrate, args.resume or args.session, bool(args.resume)
+    rargs.max_captures = None
+    kind, ctx = prepare(rargs, print)  # every check before a device is opened
+    rig = ctx["open"]()
+    try:
+        store, machine, station = open_recalibration(rargs, kind, rig, ctx, lambda text: None)
+    except BaseException:
+        close = getattr(rig, "close", None)
+        if callable(close):
+            close()
+        raise
+    req = ctx["req"]
     code = new_access_code() if needs_access_code(args.host) else None
     panel = StationPanel(station, args.host, args.port, code, rig_note(req, defaulted))
-    RecalibrationPanel(panel, args.recalibrate, verify=rig_verify_fn(rig, folder), workers=args.workers)
-    return serve(args, rig, store, station, panel, code, lambda: None)
+    RecalibrationPanel(panel, ctx["src"], verify=rig_verify_fn(rig, store.folder), workers=args.workers,
+                       resume=rargs.resume)
+    rc = serve(args, rig, store, station, panel, code, lambda: None)
+    if not (Path(store.folder) / RECALIBRATION_FILE).exists():
+        print(f"procam station: the recalibration is not finished; continue it with --recalibrate {args.recalibrate} "
+              f"--resume {store.folder}")
+    return rc
 
 
 def serve(args, rig, store, station, panel, code, start) -> int:

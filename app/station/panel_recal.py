@@ -32,7 +32,8 @@ def progress_lines(re, units: str) -> list[str]:
 class RecalibrationPanel:
     """Adds the recalibration checklist and its buttons to a StationPanel."""
 
-    def __init__(self, panel, previous, verify=None, max_captures: int | None = None, workers: int = 2):
+    def __init__(self, panel, previous, verify=None, max_captures: int | None = None, workers: int = 2,
+                 resume: bool = False):
         self.panel = panel
         self.station = panel.station
         self.machine = panel.machine
@@ -40,6 +41,8 @@ class RecalibrationPanel:
         self.verify = verify
         self.max_captures = max_captures
         self.workers = workers
+        self.resume = resume  # a stopped recalibration continued: its captures are kept
+        self.now = ""  # what the operator should do for the capture asked for (the flow's prompt)
         self.stage = "ready"  # ready -> checking -> verdict -> remeasuring -> done | failed
         self.report = None
         self.rounds: list = []
@@ -78,6 +81,7 @@ class RecalibrationPanel:
 
     # ---- the flow --------------------------------------------------------------------------------
     def _on_stage(self, name, value) -> None:
+        self.now = ""
         if name == "verdict":
             self.report = value
             self.stage = "verdict"
@@ -91,13 +95,19 @@ class RecalibrationPanel:
             self.outcome = value
         self.update()
 
+    def _prompt(self, text: str) -> None:
+        """The flow's prompt before each capture: shown in the checklist; auto-capture then takes the frame
+        when the board is still and detected (nothing to press)."""
+        self.now = text
+        self.update()
+
     def _run(self) -> None:
         from app.recalibration import DEFAULT_MAX_CAPTURES
 
         try:
             run_recalibration(self.previous, self.station, self.machine, log=self.machine.log,
                               max_captures=self.max_captures or DEFAULT_MAX_CAPTURES, workers=self.workers,
-                              verify=self.verify, on_stage=self._on_stage)
+                              verify=self.verify, on_stage=self._on_stage, prompt=self._prompt, resume=self.resume)
             self.stage = "done" if self.outcome.ok else "failed"
         except Exception as e:  # shown in the checklist; the log has it too
             self.error = f"{type(e).__name__}: {e}"
@@ -118,6 +128,8 @@ class RecalibrationPanel:
         lines = [f"**Recalibration of** `{self.previous}` ({mark[self.stage]} {self.stage})", ""]
         n = len(self.machine.manifest.captures)
         if self.stage == "ready":
+            if self.resume:
+                lines.append(f"Resumed with {n} captures on disk: they are kept, only the rest is taken.")
             lines.append("1. Check: press *Start check* (a few captures test the camera, mirror and projector "
                          "against the previous calibration).")
             return "\n".join(lines)
@@ -138,6 +150,8 @@ class RecalibrationPanel:
                 lines += [f"    - {t}" for t in progress_lines(last, units)]
             elif self.stage == "remeasuring":
                 lines.append("    - capturing")
+        if self.now and self.stage in ("checking", "remeasuring"):
+            lines.append(f"**Now:** {self.now} (the capture is taken when the board is still and detected)")
         if self.outcome is not None:
             lines.append("3. **Compare**: " + self.outcome.message + (" (ok)" if self.outcome.ok else " (FAILED)"))
             lines += [f"    - {t}" for t in comparison_lines(self.outcome.record)]
