@@ -76,9 +76,13 @@ def test_session_boards_are_used_and_a_closed_input_stops_resumably(tmp_path):
     assert new["state"]["recalibration"]["previous_sha256"] == sha256_file(prev / "calibration.json")
     assert (d / "previous" / "calibration.json").read_bytes() == (prev / "calibration.json").read_bytes()
     assert not (d / "recalibration.json").exists()
-    # the station's normal resume refuses it: it is a recalibration
-    r = _procam("station", "--resume", str(d), "--port", "0", timeout=120)
-    assert r.returncode == 2 and "is a recalibration: continue it with --recalibrate PREVIOUS --resume" in r.stderr
+    # the station's and the session's normal resume refuse it: it is a recalibration, and nothing changes
+    before = (d / "session.json").read_bytes()
+    for cmd in (("station", "--resume", str(d), "--port", "0"), ("session", "--resume", str(d), "--auto")):
+        r = _procam(*cmd, timeout=120)
+        assert r.returncode == 2 and f"is a recalibration: continue it with `procam recalibrate PREVIOUS --out {d} " \
+            "--resume`" in r.stderr, (cmd, r.stderr[-800:])
+    assert (d / "session.json").read_bytes() == before
 
 
 def test_a_scenario_or_board_other_than_previous_is_refused(tmp_path):

@@ -65,6 +65,17 @@ def rig_options(args, kind: str) -> dict:
     return {k: v for k, v in opts.items() if v is not None}
 
 
+def refuse_recalibration_folder(folder: Path) -> None:
+    """A stopped recalibration is continued by its own flow (it checks PREVIOUS again), never as a plain
+    session: `procam session --resume` and `procam station --resume` refuse it, naming the right command."""
+    from app.station.setup import read_state
+    from calib.errors import SessionError
+
+    if (folder / "session.json").is_file() and (read_state(folder) or {}).get("recalibration"):
+        raise SessionError(f"{folder} is a recalibration: continue it with `procam recalibrate PREVIOUS --out {folder} "
+                           f"--resume` or `procam station --recalibrate PREVIOUS --resume {folder}`")
+
+
 def open_session(args, log=print):
     """(rig, store, machine, request) for --out (new) or --resume (existing) from the arguments."""
     from app.station.setup import (
@@ -78,6 +89,7 @@ def open_session(args, log=print):
 
     if args.resume:
         folder = Path(args.resume)
+        refuse_recalibration_folder(folder)
         store = SessionStore.open(folder, lock=True)  # one process per session folder: refused while in use
         req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
         rig = open_rig(req, **rig_options(args, req.kind))

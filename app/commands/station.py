@@ -78,13 +78,6 @@ def run(args) -> int:
     args.out = args.session
     if args.recalibrate:
         return run_recalibration_mode(args, kind, defaulted)
-    if args.resume:
-        from app.station.setup import read_state
-        from calib.errors import SessionError
-
-        if (Path(args.resume) / "session.json").is_file() and (read_state(args.resume) or {}).get("recalibration"):
-            raise SessionError(f"{args.resume} is a recalibration: continue it with --recalibrate PREVIOUS --resume "
-                               f"{args.resume}")
     rig, store, machine, req = open_session(args, print)
     from drivers.factory import is_simulated
 
