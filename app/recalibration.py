@@ -139,11 +139,11 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     "unchanged" verdict is an inconsistency, not a sign-off), the recalibrated one at the end
     (final=True: its report is the session's verification.json; a failure fails the recalibration).
     `on_stage(stage, value)` (optional; the station's panel): "verdict" with the check's report (may block
-    until the operator accepts it), "reestimate" with each round's re-estimate (progress towards the
+    until the operator accepts it; what it returns, a dict, is recorded as recalibration.json's sign_off), "reestimate" with each round's re-estimate (progress towards the
     1-sigma targets), "done" with the Outcome."""
     def stage(name, value):
         if on_stage is not None:
-            on_stage(name, value)
+            return on_stage(name, value)
 
     from calib.detect import detect_session
     from calib.recalib import (
@@ -198,7 +198,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         verification["previous"] = _verification_summary(v)
         log(f"epipolar verification of the previous calibration: {'passed' if v.passed else 'FAILED'} "
             f"(mean {v.mean_proj_px if v.mean_proj_px is not None else float('nan'):.2f} projector px)")
-    stage("verdict", report)
+    sign_off = stage("verdict", report)  # the panel: the operator's acceptance (who, which button, when)
     if report.verdict == "unchanged" and verification.get("previous", {}).get("passed") is False:
         ok, message = False, ("the captures say nothing moved but the epipolar verification of the previous "
                               "calibration fails: something the check does not model changed; run a full session")
@@ -248,6 +248,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     rec["ok"] = ok
     rec["message"] = message
     rec["verification"] = verification or None
+    rec["sign_off"] = sign_off if isinstance(sign_off, dict) else None
     from calib.result import _jsonable
 
     atomic_write_text(folder / RECALIBRATION_FILE, json.dumps(_jsonable(rec), indent=2) + "\n")
