@@ -139,8 +139,9 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     "unchanged" verdict is an inconsistency, not a sign-off), the recalibrated one at the end
     (final=True: its report is the session's verification.json; a failure fails the recalibration).
     `on_stage(stage, value)` (optional; the station's panel): "verdict" with the check's report (may block
-    until the operator accepts it; what it returns, a dict, is recorded as recalibration.json's sign_off), "reestimate" with each round's re-estimate (progress towards the
-    1-sigma targets), "done" with the Outcome."""
+    until the operator accepts it; a dict it returns is recorded as recalibration.json's sign_off),
+    "reestimate" with each round's re-estimate (progress towards the 1-sigma targets), "done" with the
+    Outcome."""
     def stage(name, value):
         if on_stage is not None:
             return on_stage(name, value)

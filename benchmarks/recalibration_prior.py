@@ -105,9 +105,12 @@ def main() -> None:
         for mode in ("held", "prior"):
             ev = [e[mode] for _, b, _, e in rows if b == bump]
             if ev:
+                def mean(f):
+                    return sum(f(r) for r in ev) / len(ev)
+
                 print(f"  {bump} {mode}: " + ", ".join(
-                    f"{k} {sum(r[k] / r[k + '_sig'] for r in ev) / len(ev):.2f} (error {sum(r[k] for r in ev) / len(ev):.4f},"
-                    f" 1-sigma {sum(r[k + '_sig'] for r in ev) / len(ev):.4f})" for k in keys))
+                    f"{k} {mean(lambda r: r[k] / r[k + '_sig']):.2f} (error {mean(lambda r: r[k]):.4f}, "
+                    f"1-sigma {mean(lambda r: r[k + '_sig']):.4f})" for k in keys))
     print("\ncamera bump (the check, unchanged by the mode, runs first):")
     for seed, verdict, m2, thr, n, rc in camera_rows:
         print(f"  seed {seed}: {verdict} (camera m2 {m2:.1f} > {thr:.1f}), {n} captures, exit {rc}")

@@ -4,7 +4,7 @@ Pure computation (docs/RECALIBRATION.md). One entry function per stage:
 
   check_rig(previous, obs)            -> CheckReport: per part (camera intrinsics, mirror, projector
                                          pose) whether the new observations say it moved
-  reestimate(previous, obs, parts)    -> Reestimate: the moved parts re-fitted, the rest held
+  reestimate(previous, obs, parts)    -> Reestimate: the moved parts re-fitted (intrinsics under a prior)
   compare_calibrations(prev, new)     -> dict: the change of each part with its uncertainty
 
 The model is the previous calibration with small corrections of three parameter blocks:
@@ -12,9 +12,12 @@ The model is the previous calibration with small corrections of three parameter 
   mirror    3: two tilts of the normal (rad, about tangent axes of the previous normal) and d (units)
   projector 6: rotation vector (rad, camera axes, R = exp([w]) R_prev) and translation (units, camera
                frame) of T_cam_proj
-and one free board pose per capture (a nuisance parameter). Residuals are whitened by the previous
-calibration's per-class noise sigma (uncertainty.class_sigma_px) and minimised with
-scipy.optimize.least_squares; the covariance of a fitted block is s^2 (J^T J)^-1 (s^2 the variance
+and one free board pose per capture (a nuisance parameter). The re-estimate adds, by default, the
+intrinsics of both devices (fx, fy, cx, cy and the distortion coefficients the previous calibration
+estimated) under a Gaussian prior from the previous calibration's covariance (IntrinsicsPrior;
+reestimate's `intrinsics` "prior" | "held", docs/RECALIBRATION.md for the numbers). Residuals are
+whitened by the previous calibration's per-class noise sigma (uncertainty.class_sigma_px) and minimised
+with scipy.optimize.least_squares; the covariance of a fitted block is s^2 (J^T J)^-1 (s^2 the variance
 factor), marginal over the board poses.
 
 The rule of the check, per part p with correction delta_p fitted from the new captures (C_new its
@@ -689,7 +692,8 @@ class Reestimate:
 def _missing(p: str, s: dict, targets: dict, u: str) -> list[str]:
     out = []
     if p == "camera" and max(s["fx_px"], s["fy_px"]) > targets["camera_f_px"]:
-        out.append(f"camera focal length 1-sigma {max(s['fx_px'], s['fy_px']):.2f} px > {targets['camera_f_px']:.2f} px")
+        out.append(f"camera focal length 1-sigma {max(s['fx_px'], s['fy_px']):.2f} px > "
+                   f"{targets['camera_f_px']:.2f} px")
     if p == "mirror":
         if s["normal_deg"] > targets["mirror_normal_deg"]:
             out.append(f"mirror normal 1-sigma {s['normal_deg']:.3f} deg > {targets['mirror_normal_deg']:.3f} deg")
