@@ -293,15 +293,16 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     "unchanged" verdict is an inconsistency, not a sign-off), the recalibrated one at the end
     (final=True: its report is the session's verification.json; a failure fails the recalibration).
     `on_stage(stage, value)` (optional; the station's panel): "verdict" with the check's report (may block
-    until the operator accepts it), "reestimate" with each round's re-estimate (progress towards the
-    1-sigma targets), "done" with the Outcome.
+    until the operator accepts it; a dict it returns is recorded as recalibration.json's sign_off),
+    "reestimate" with each round's re-estimate (progress towards the 1-sigma targets), "done" with the
+    Outcome.
     `prompt(text)` (optional; a person moves the board): called before each capture with what to do (the
     station's own guidance: which board, where, which tilt); it returns when the person is ready (Enter)
     or raises RecalibrationStopped to stop (the folder stays resumable). Auto-capture then takes the frame
     when the board is still and detected, exposed after the projector's image became visible."""
     def stage(name, value):
         if on_stage is not None:
-            on_stage(name, value)
+            return on_stage(name, value)
 
     from calib.detect import detect_session
     from calib.recalib import (
@@ -390,7 +391,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         verification["previous"] = _verification_summary(v)
         log(f"epipolar verification of the previous calibration: {'passed' if v.passed else 'FAILED'} "
             f"(mean {v.mean_proj_px if v.mean_proj_px is not None else float('nan'):.2f} projector px)")
-    stage("verdict", report)
+    sign_off = stage("verdict", report)  # the panel: the operator's acceptance (who, which button, when)
     if report.verdict == "unchanged" and verification.get("previous", {}).get("passed") is False:
         ok, message = False, ("the captures say nothing moved but the epipolar verification of the previous "
                               "calibration fails: something the check does not model changed; run a full session")
@@ -447,6 +448,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     rec["verification"] = verification or None
     if resume:
         rec["resumed"] = True
+    rec["sign_off"] = sign_off if isinstance(sign_off, dict) else None
     from calib.result import _jsonable
 
     atomic_write_text(folder / RECALIBRATION_FILE, json.dumps(_jsonable(rec), indent=2) + "\n")

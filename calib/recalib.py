@@ -4,7 +4,7 @@ Pure computation (docs/RECALIBRATION.md). One entry function per stage:
 
   check_rig(previous, obs)            -> CheckReport: per part (camera intrinsics, mirror, projector
                                          pose) whether the new observations say it moved
-  reestimate(previous, obs, parts)    -> Reestimate: the moved parts re-fitted, the rest held
+  reestimate(previous, obs, parts)    -> Reestimate: the moved parts re-fitted (intrinsics under a prior)
   compare_calibrations(prev, new)     -> dict: the change of each part with its uncertainty
 
 The model is the previous calibration with small corrections of three parameter blocks:
@@ -12,9 +12,12 @@ The model is the previous calibration with small corrections of three parameter 
   mirror    3: two tilts of the normal (rad, about tangent axes of the previous normal) and d (units)
   projector 6: rotation vector (rad, camera axes, R = exp([w]) R_prev) and translation (units, camera
                frame) of T_cam_proj
-and one free board pose per capture (a nuisance parameter). Residuals are whitened by the previous
-calibration's per-class noise sigma (uncertainty.class_sigma_px) and minimised with
-scipy.optimize.least_squares; the covariance of a fitted block is s^2 (J^T J)^-1 (s^2 the variance
+and one free board pose per capture (a nuisance parameter). The re-estimate adds, by default, the
+intrinsics of both devices (fx, fy, cx, cy and the distortion coefficients the previous calibration
+estimated) under a Gaussian prior from the previous calibration's covariance (IntrinsicsPrior;
+reestimate's `intrinsics` "prior" | "held", docs/RECALIBRATION.md for the numbers). Residuals are
+whitened by the previous calibration's per-class noise sigma (uncertainty.class_sigma_px) and minimised
+with scipy.optimize.least_squares; the covariance of a fitted block is s^2 (J^T J)^-1 (s^2 the variance
 factor), marginal over the board poses.
 
 The rule of the check, per part p with correction delta_p fitted from the new captures (C_new its
@@ -39,6 +42,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -54,6 +58,9 @@ PARTS = ("camera", "mirror", "projector")
 BLOCK_SIZE = {"camera": 4, "mirror": 3, "projector": 6}
 ALPHA = 1e-3
 SYSTEMATIC_FACTOR = 2.0
+#: xtol and ftol of the least squares: at 1e-12 every fit ran to max_nfev (200 evaluations of a finite-
+#: difference Jacobian); 1e-8 stops after 4-10 with changes below 1/100 of the 1-sigma (docs/RECALIBRATION.md)
+TOL = 1e-8
 DEFAULT_CLASS_SIGMA_PX = 0.3
 #: 1-sigma targets of a re-estimate where the previous calibration reports none (see targets_from)
 DEFAULT_TARGETS = {"projector_t": 0.5, "projector_rot_deg": 0.05, "mirror_normal_deg": 0.05, "mirror_d": 0.5,
@@ -76,25 +83,38 @@ def _rotvec_R(w) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class _Model:
-    """The previous calibration and which blocks are free."""
+    """The previous calibration and which blocks are free; `prior` (optional) adds the intrinsics
+    blocks "cam_intr" / "proj_intr" (see IntrinsicsPrior)."""
 
     previous: CalibrationResult
     free: tuple[str, ...]
+    prior: "IntrinsicsPrior | None" = None
+
+    def size(self, p: str) -> int:
+        return BLOCK_SIZE[p] if p in BLOCK_SIZE else self.prior.block_size(p)
+
+    @property
+    def blocks(self) -> tuple[str, ...]:
+        return self.free + (self.prior.blocks if self.prior is not None else ())
 
     def split(self, x: np.ndarray) -> tuple[dict, np.ndarray]:
         out, i = {}, 0
-        for p in self.free:
-            out[p] = x[i:i + BLOCK_SIZE[p]]
-            i += BLOCK_SIZE[p]
+        for p in self.blocks:
+            out[p] = x[i:i + self.size(p)]
+            i += self.size(p)
         return out, x[i:]
 
     @property
     def n_global(self) -> int:
-        return sum(BLOCK_SIZE[p] for p in self.free)
+        return sum(self.size(p) for p in self.blocks)
 
     def apply(self, blocks: dict) -> CalibrationResult:
         prev = self.previous
         cam = prev.camera
+        proj = prev.projector
+        if self.prior is not None:
+            cam = self.prior.device(cam, "cam_intr", blocks)
+            proj = self.prior.device(proj, "proj_intr", blocks)
         if "camera" in blocks:
             K = np.array(cam.K, float)
             d = blocks["camera"]
@@ -113,7 +133,7 @@ class _Model:
         if "projector" in blocks:
             d = blocks["projector"]
             T = make_T(_rotvec_R(d[:3]) @ T[:3, :3], T[:3, 3] + d[3:])
-        return prev.with_(camera=cam, mirror=mirror, T_cam_proj=T)
+        return prev.with_(camera=cam, projector=proj, mirror=mirror, T_cam_proj=T)
 
 
 def _S(res: CalibrationResult) -> np.ndarray:
@@ -143,18 +163,19 @@ class _View:
 
 
 def _views(obs: SessionObservations, use: str) -> list[_View]:
-    """use: 'boards' (every board observation), 'mirror' (real-virtual captures), 'pattern'."""
+    """use: 'boards' (every board observation), 'mirror' (real-virtual captures), 'pattern', or
+    'mirror+pattern' (both: a joint re-estimate of the mirror and the projector)."""
     out = []
-    if use in ("boards", "mirror"):
+    if use in ("boards", "mirror", "mirror+pattern"):
         for mv in obs.mirror_views:
             if mv.real is None or mv.virtual is None:
                 continue  # real-mirror captures: not used by the check (docs/RECALIBRATION.md)
             out.append(_View(mv.capture_id, obs.mirror_board, mv.real, mv.virtual))
-    if use in ("boards", "pattern"):
+    if use in ("boards", "pattern", "mirror+pattern"):
         for pv in obs.projector_views:
             b = pv.board
             real, virt = (None, b) if b.mirrored else (b, None)
-            pat = use == "pattern" and len(pv.pattern_cam_px) > 0
+            pat = use in ("pattern", "mirror+pattern") and len(pv.pattern_cam_px) > 0
             out.append(_View(pv.capture_id, obs.projector_board, real, virt,
                              pv.pattern_cam_px if pat else None, pv.pattern_proj_px if pat else None))
     return out
@@ -207,17 +228,38 @@ class Fit:
     """A fit of the free blocks: the corrections, their covariance, the fitted calibration."""
 
     free: tuple[str, ...]
-    delta: dict  # part -> correction vector
-    cov: dict  # part -> covariance (marginal over everything else)
+    delta: dict  # block -> correction vector (the free parts, and "cam_intr" / "proj_intr" under a prior)
+    cov: dict  # block -> covariance (marginal over everything else)
     result: CalibrationResult
     variance_factor: float
     n_views: int
-    rms_whitened: float  # RMS of the whitened residuals (~1 when the noise model fits)
+    rms_whitened: float  # RMS of the whitened data residuals (~1 when the noise model fits)
+    names: tuple[str, ...] = ()  # the global parameters, named as in the joint's covariance (see _joint_names)
+    cov_global: np.ndarray | None = None  # their covariance, board poses marginalised
+    prior: "IntrinsicsPrior | None" = None
 
 
-def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tuple[str, ...], use: str) -> Fit:
+def _joint_names(model: _Model) -> tuple[str, ...]:
+    """The global parameters of `model` under the names of calib.joint's covariance (the projector's
+    rotation and the mirror's tilts in this module's own parametrisation: _updated_uncertainty converts)."""
+    names = []
+    for p in model.blocks:
+        if p == "camera":
+            names += ["cam.fx", "cam.fy", "cam.cx", "cam.cy"]
+        elif p == "mirror":
+            names += ["mirror.tilt_1", "mirror.tilt_2", "mirror.d"]
+        elif p == "projector":
+            names += [f"T_cam_proj.rot_{a}" for a in "xyz"] + [f"T_cam_proj.t_{a}" for a in "xyz"]
+        else:
+            names += list(model.prior.names_of(p))
+    return tuple(names)
+
+
+def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tuple[str, ...], use: str,
+               prior: "IntrinsicsPrior | None" = None) -> Fit:
     """Least squares of the `free` blocks (others held at `previous`) and one board pose per capture,
-    over the captures `use` selects ('boards' | 'mirror' | 'pattern')."""
+    over the captures `use` selects ('boards' | 'mirror' | 'pattern' | 'mirror+pattern'). With `prior`
+    the intrinsics it names are free too, pulled to their previous values by its Gaussian prior term."""
     from scipy.optimize import least_squares
 
     if "mirror" in free and previous.mirror is None:
@@ -225,7 +267,7 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
     views = _views(obs, use)
     if not views:
         raise CalibrationError(f"no captures to test {', '.join(free)} with ({use} captures needed)")
-    model = _Model(previous, tuple(free))
+    model = _Model(previous, tuple(free), prior)
     sig = _class_sigma(previous)
     mirror_view = [v.real is not None and v.virtual is not None for v in views]
     poses0 = []
@@ -234,44 +276,74 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
             poses0.append(_pose_p(_initial_pose(previous, v)))
         except Exception as e:  # a pose that cannot be solved is a capture that cannot be used
             raise CalibrationError(f"capture {v.capture_id}: no board pose ({e})") from None
-    x0 = np.concatenate([np.zeros(model.n_global)] + poses0)
     ng = model.n_global
+    n_prior = 0 if prior is None else prior.n
+    # the prior's parameters are solved for in whitened coordinates z = W (x - x_prev) (the prior's residual
+    # itself): the intrinsics' correlations (k1, k2, k3; f and the distortion) then do not slow the solver
+    g0 = np.zeros(ng)
+    if prior is not None:
+        g0[ng - n_prior:] = prior.W @ prior.offset
+    x0 = np.concatenate([g0] + poses0)
+
+    def decode(x):
+        blocks, rest = model.split(x)
+        if prior is None:
+            return blocks, rest, None
+        z = x[ng - n_prior:ng]
+        d = prior.unwhiten(z)
+        i = 0
+        for b in prior.blocks:
+            blocks[b] = d[i:i + prior.block_size(b)]
+            i += prior.block_size(b)
+        return blocks, rest, z
 
     def fun(x):
-        blocks, rest = model.split(x)
+        blocks, rest, z = decode(x)
         cal = model.apply(blocks)
-        return np.concatenate([_residuals(cal, v, _pose_T(rest[6 * i:6 * i + 6]), sig, mirror_view[i])
-                               for i, v in enumerate(views)])
+        r = [_residuals(cal, v, _pose_T(rest[6 * i:6 * i + 6]), sig, mirror_view[i]) for i, v in enumerate(views)]
+        if prior is not None:
+            r.append(z)
+        return np.concatenate(r)
 
     n_res = len(fun(x0))
     sparsity = np.zeros((n_res, len(x0)), bool)
     row = 0
-    blocks0, _ = model.split(x0)
+    blocks0, _, _ = decode(x0)
     cal0 = model.apply(blocks0)
     for i, v in enumerate(views):
         k = len(_residuals(cal0, v, _pose_T(x0[ng + 6 * i:ng + 6 * i + 6]), sig, mirror_view[i]))
         sparsity[row:row + k, :ng] = True
         sparsity[row:row + k, ng + 6 * i:ng + 6 * i + 6] = True
         row += k
-    sol = least_squares(fun, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
+    sparsity[row:, :ng] = True  # the prior's rows (the intrinsics columns; zeros elsewhere are harmless)
+    sol = least_squares(fun, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", xtol=TOL, ftol=TOL,
                         max_nfev=200)
-    r = sol.fun
     J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
-    dof = max(len(r) - len(x0), 1)
+    n_data = n_res - n_prior
+    r, Jd, Jp = sol.fun[:n_data], J[:n_data], J[n_data:]
+    # the variance factor from the data alone (the prior's parameters are determined by the prior, so they
+    # do not use up data degrees of freedom); the prior enters the information with weight 1
+    dof = max(n_data - (len(x0) - n_prior), 1)
     s2 = float(r @ r) / dof
+    info = Jd.T @ Jd / s2 + Jp.T @ Jp
     try:
-        cov_all = s2 * np.linalg.inv(J.T @ J)
+        cov_all = np.linalg.inv(info)
     except np.linalg.LinAlgError:
-        cov_all = s2 * np.linalg.pinv(J.T @ J)
-    blocks, _ = model.split(sol.x)
+        cov_all = np.linalg.pinv(info)
+    if prior is not None:  # back from the whitened coordinates: d = W^-1 z - offset
+        T = np.eye(len(x0))
+        T[ng - n_prior:ng, ng - n_prior:ng] = prior.W_inv
+        cov_all = T @ cov_all @ T.T
+    blocks, _, _ = decode(sol.x)
     cov, i = {}, 0
-    for p in model.free:
-        k = BLOCK_SIZE[p]
+    for p in model.blocks:
+        k = model.size(p)
         cov[p] = cov_all[i:i + k, i:i + k]
         i += k
     result = model.apply(blocks)
     rms = float(np.sqrt(np.mean(r**2)))
-    return Fit(model.free, {p: np.asarray(blocks[p]) for p in model.free}, cov, result, s2, len(views), rms)
+    return Fit(model.free, {p: np.asarray(blocks[p]) for p in model.blocks}, cov, result, s2, len(views), rms,
+               _joint_names(model), cov_all[:ng, :ng], prior)
 
 
 # ---- the previous calibration's covariance of each block --------------------------------------------
@@ -314,6 +386,139 @@ def previous_covariance(previous: CalibrationResult, part: str) -> np.ndarray:
     rot = [math.radians(float(v)) for v in (t.get("rot_deg") or [0, 0, 0])]
     tt = [float(v) for v in (t.get("t") or [0, 0, 0])]
     return np.diag([v**2 for v in rot + tt])
+
+
+# ---- the intrinsics prior ---------------------------------------------------------------------------
+#: eigenvalues of the prior's correlation matrix below PRIOR_EIG_FLOOR x the largest are raised to it:
+#: along directions the previous session could not separate (e.g. k3 against k1, k2) the prior becomes
+#: weaker, never stronger, and its Cholesky factor exists
+PRIOR_EIG_FLOOR = 1e-9
+INTRINSICS_MODES = ("held", "prior")
+_DEVICE_BLOCK = {"cam": "cam_intr", "proj": "proj_intr"}
+
+
+@dataclass(frozen=True, eq=False)
+class IntrinsicsPrior:
+    """A Gaussian prior on device intrinsics (fx, fy, cx, cy and the distortion coefficients the
+    previous calibration estimated): the previous values as its mean, the previous covariance of those
+    parameters (the marginal: the matching rows and columns of the stored covariance) as its
+    covariance. Its residuals are W (x - x_prev), W = L^-1 D^-1 where D^-1 C D^-1 = L L^T (Cholesky of
+    the correlation matrix, eigenvalues floored at PRIOR_EIG_FLOOR): |r|^2 = (x - x_prev)^T C^-1 (x - x_prev)."""
+
+    blocks: tuple[str, ...]  # "cam_intr" and/or "proj_intr"
+    params: dict  # block -> tuple of names ("cam.fx", ..., "cam.dist1", ...)
+    offset: np.ndarray  # the model's start minus the prior's mean, in the order of the blocks' names
+    W: np.ndarray  # (n, n) whitening matrix
+    floored: int  # eigenvalues raised to the floor
+
+    @property
+    def n(self) -> int:
+        return len(self.offset)
+
+    def block_size(self, block: str) -> int:
+        return len(self.params[block])
+
+    def names_of(self, block: str) -> tuple[str, ...]:
+        return self.params[block]
+
+    def residual(self, blocks: dict) -> np.ndarray:
+        return self.W @ (self.offset + np.concatenate([blocks[b] for b in self.blocks]))
+
+    @cached_property
+    def W_inv(self) -> np.ndarray:
+        return np.linalg.inv(self.W)
+
+    def unwhiten(self, z: np.ndarray) -> np.ndarray:
+        """The corrections (all blocks, in order) whose residual is z."""
+        return self.W_inv @ z - self.offset
+
+    def device(self, dev: CameraModel, block: str, blocks: dict) -> CameraModel:
+        """`dev` with the correction of `block` applied (unchanged when the block is not there)."""
+        if block not in blocks:
+            return dev
+        return _with_intrinsics(dev, self.params[block], _intrinsics(dev, self.params[block]) + blocks[block])
+
+
+def _dist_index(name: str) -> int | None:
+    tail = name.rsplit(".", 1)[-1]
+    return int(tail[4:]) if tail.startswith("dist") and tail[4:].isdigit() else None
+
+
+def _intrinsics(dev: CameraModel, names) -> np.ndarray:
+    K = np.asarray(dev.K, float)
+    d8 = np.zeros(8)
+    d8[:dev.dist.size] = dev.dist
+    val = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    return np.array([val[n.rsplit(".", 1)[-1]] if _dist_index(n) is None else d8[_dist_index(n)] for n in names])
+
+
+def _with_intrinsics(dev: CameraModel, names, values) -> CameraModel:
+    K = np.array(dev.K, float)
+    top = max([_dist_index(n) for n in names if _dist_index(n) is not None], default=-1)
+    d = np.zeros(8 if max(top, dev.dist.size - 1) >= 5 else 5)
+    d[:dev.dist.size] = dev.dist
+    pos = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
+    for n, v in zip(names, values):
+        i = _dist_index(n)
+        if i is None:
+            K[pos[n.rsplit(".", 1)[-1]]] = v
+        else:
+            d[i] = v
+    return dev.with_params(K=K, dist=d)
+
+
+def _stored_covariance(previous: CalibrationResult) -> tuple[list, np.ndarray] | None:
+    u = previous.uncertainty if isinstance(previous.uncertainty, dict) else {}
+    cv = u.get("covariance") if isinstance(u.get("covariance"), dict) else {}
+    names = cv.get("names")
+    try:
+        M = np.array(cv.get("matrix"), float)
+    except (TypeError, ValueError):
+        return None
+    if not isinstance(names, list) or M.ndim != 2 or M.shape != (len(names), len(names)) or \
+            not np.all(np.isfinite(M)):
+        return None
+    return names, (M + M.T) / 2
+
+
+def intrinsics_prior(previous: CalibrationResult, current: CalibrationResult,
+                     devices=("cam", "proj")) -> IntrinsicsPrior | None:
+    """The prior on the intrinsics of `devices` ("cam", "proj") from `previous`'s stored covariance, for
+    a model started at `current`; None when the previous calibration stored no covariance of them (held
+    fixed, another method, or an unreadable file): then they can only be held."""
+    stored = _stored_covariance(previous)
+    if stored is None:
+        return None
+    names, M = stored
+    idx = {n: i for i, n in enumerate(names)}
+    params = {}
+    for dev in devices:
+        core = [f"{dev}.{k}" for k in ("fx", "fy", "cx", "cy")]
+        if not all(n in idx for n in core):
+            continue
+        dist = sorted((n for n in names if n.startswith(f"{dev}.dist") and _dist_index(n) is not None),
+                      key=_dist_index)
+        params[_DEVICE_BLOCK[dev]] = tuple(core + dist)
+    if not params:
+        return None
+    blocks = tuple(params)
+    order = [n for b in blocks for n in params[b]]
+    ii = [idx[n] for n in order]
+    C = M[np.ix_(ii, ii)]
+    sd = np.sqrt(np.diag(C))
+    if not np.all(sd > 0):
+        return None
+    R = C / sd[:, None] / sd[None, :]
+    lam, V = np.linalg.eigh((R + R.T) / 2)
+    floor = PRIOR_EIG_FLOOR * float(lam[-1])
+    floored = int(np.sum(lam < floor))
+    L = np.linalg.cholesky((V * np.maximum(lam, floor)) @ V.T)
+    from scipy.linalg import solve_triangular
+
+    W = solve_triangular(L, np.diag(1.0 / sd), lower=True)
+    devs = {"cam_intr": (current.camera, previous.camera), "proj_intr": (current.projector, previous.projector)}
+    offset = np.concatenate([_intrinsics(devs[b][0], params[b]) - _intrinsics(devs[b][1], params[b]) for b in blocks])
+    return IntrinsicsPrior(blocks, params, offset, W, floored)
 
 
 # ---- stage 1: check ---------------------------------------------------------------------------------
@@ -362,7 +567,7 @@ class CheckReport:
 def describe_change(part: str, delta: np.ndarray, cov: np.ndarray, units: str) -> tuple[dict, dict]:
     """(change, 1-sigma) of a block's correction in physical units."""
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    if part == "camera":
+    if part in ("camera", "cam_intr", "proj_intr"):  # fx, fy, cx, cy first (distortion not described)
         keys = ("fx_px", "fy_px", "cx_px", "cy_px")
         return ({k: float(v) for k, v in zip(keys, delta)}, {k: float(v) for k, v in zip(keys, sd)})
     if part == "mirror":
@@ -462,6 +667,12 @@ def targets_from(previous: CalibrationResult) -> dict:
 _USE = {"camera": "boards", "mirror": "mirror", "projector": "pattern"}
 
 
+#: how a re-estimate treats the intrinsics of the parts it does not re-fit (docs/RECALIBRATION.md,
+#: "Intrinsics: held or prior", for the numbers behind the default)
+DEFAULT_INTRINSICS = "prior"
+_SIGMA_KEY = {"cam_intr": "camera_intrinsics", "proj_intr": "projector_intrinsics"}
+
+
 @dataclass(frozen=True, eq=False)
 class Reestimate:
     result: CalibrationResult
@@ -470,44 +681,185 @@ class Reestimate:
     targets: dict
     reached: bool
     missing: tuple[str, ...]  # targets not reached, as sentences
+    intrinsics: str = "held"  # the mode used: "held" | "prior" (see reestimate)
+    intrinsics_note: str = ""
 
     def to_dict(self) -> dict:
-        return {"parts": list(self.parts), "sigma": self.sigma, "targets": self.targets, "reached": self.reached,
-                "missing": list(self.missing)}
+        return {"parts": list(self.parts), "intrinsics": self.intrinsics, "intrinsics_note": self.intrinsics_note,
+                "sigma": self.sigma, "targets": self.targets, "reached": self.reached, "missing": list(self.missing)}
+
+
+def _missing(p: str, s: dict, targets: dict, u: str) -> list[str]:
+    out = []
+    if p == "camera" and max(s["fx_px"], s["fy_px"]) > targets["camera_f_px"]:
+        out.append(f"camera focal length 1-sigma {max(s['fx_px'], s['fy_px']):.2f} px > "
+                   f"{targets['camera_f_px']:.2f} px")
+    if p == "mirror":
+        if s["normal_deg"] > targets["mirror_normal_deg"]:
+            out.append(f"mirror normal 1-sigma {s['normal_deg']:.3f} deg > {targets['mirror_normal_deg']:.3f} deg")
+        if s[f"d_{u}"] > targets["mirror_d"]:
+            out.append(f"mirror offset 1-sigma {s[f'd_{u}']:.3f} {u} > {targets['mirror_d']:.3f} {u}")
+    if p == "projector":
+        if s["rot_deg"] > targets["projector_rot_deg"]:
+            out.append(f"projector rotation 1-sigma {s['rot_deg']:.3f} deg > {targets['projector_rot_deg']:.3f} deg")
+        if s[f"t_{u}"] > targets["projector_t"]:
+            out.append(f"projector position 1-sigma {s[f't_{u}']:.3f} {u} > {targets['projector_t']:.3f} {u}")
+    return out
 
 
 def reestimate(previous: CalibrationResult, obs: SessionObservations, parts, targets: dict | None = None,
-               method: str = "recalibration") -> Reestimate:
-    """Stage 2: re-fit only `parts` (the rest held at `previous`) from the captures `obs`, one after
-    the other in the order camera, mirror, projector, each from the captures that see it; with the
-    1-sigma of each and whether it reached `targets` (default: targets_from(previous))."""
-    targets = {**targets_from(previous), **(targets or {})}
-    cur, sigma, missing = previous, {}, []
+               method: str = "recalibration", intrinsics: str = DEFAULT_INTRINSICS,
+               prior_from: CalibrationResult | None = None) -> Reestimate:
+    """Stage 2: re-fit only `parts` from the captures `obs`, with the 1-sigma of each and whether it
+    reached `targets` (default: targets_from(previous)). `previous` is where the model starts (the
+    check's `current`); `prior_from` the calibration whose values and covariance make the prior
+    (default `previous`).
+
+    intrinsics "held": the parts one after the other (camera, mirror, projector), each from the
+    captures that see it, everything else held at `previous`. "prior": the camera first when it moved
+    (re-fitted freely, as held), then the mirror and the projector together from their captures, with
+    the intrinsics of both devices free under the Gaussian prior of the previous covariance (the
+    camera's only when it did not move): their previous uncertainty propagates into the 1-sigma of the
+    re-estimated parts. "prior" falls back to "held" (said in `intrinsics_note`) when the previous
+    calibration stored no covariance."""
+    if intrinsics not in INTRINSICS_MODES:
+        raise CalibrationError(f"unknown intrinsics mode '{intrinsics}' ({' or '.join(INTRINSICS_MODES)})")
+    prior_from = prior_from or previous
+    targets = {**targets_from(prior_from), **(targets or {})}
+    cur, sigma, missing, fits = previous, {}, [], []
     u = previous.units
-    for p in PARTS:
-        if p not in parts:
-            continue
-        fit = fit_blocks(cur, obs, (p,), _USE[p])
+    note = ""
+    todo = [p for p in PARTS if p in parts]
+    rest = [p for p in todo if p != "camera"]
+    prior = None
+    if intrinsics == "prior":
+        devices = ("proj",) if "camera" in todo else ("cam", "proj")
+        if "projector" not in rest:
+            devices = tuple(d for d in devices if d != "proj")  # the mirror's captures do not see the projector
+        prior = intrinsics_prior(prior_from, previous, devices) if rest and devices else None
+        if not rest or not devices:
+            intrinsics, note = "held", "nothing to constrain by a prior (the camera re-fitted freely)"
+        elif prior is None:
+            intrinsics, note = "held", "the previous calibration stored no covariance of the intrinsics: held"
+        else:
+            note = (f"{', '.join(prior.blocks)} free under the previous covariance as a prior "
+                    f"({prior.n} parameters, {prior.floored} eigenvalue(s) floored)")
+    groups = [(p,) for p in todo] if prior is None else ([("camera",)] if "camera" in todo else []) + [tuple(rest)]
+    for group in groups:
+        use = "mirror+pattern" if len(group) > 1 else _USE[group[0]]
+        with_prior = prior if group != ("camera",) else None
+        if with_prior is not None:  # the prior's offset from where this fit starts
+            with_prior = intrinsics_prior(prior_from, cur, tuple(b.split("_")[0] for b in prior.blocks))
+        fit = fit_blocks(cur, obs, group, use, prior=with_prior)
+        fits.append(fit)
         cur = fit.result
-        _, s = describe_change(p, fit.delta[p], fit.cov[p], u)
-        sigma[p] = s
-        if p == "camera" and max(s["fx_px"], s["fy_px"]) > targets["camera_f_px"]:
-            missing.append(f"camera focal length 1-sigma {max(s['fx_px'], s['fy_px']):.2f} px > "
-                           f"{targets['camera_f_px']:.2f} px")
-        if p == "mirror":
-            if s["normal_deg"] > targets["mirror_normal_deg"]:
-                missing.append(f"mirror normal 1-sigma {s['normal_deg']:.3f} deg > {targets['mirror_normal_deg']:.3f} deg")
-            if s[f"d_{u}"] > targets["mirror_d"]:
-                missing.append(f"mirror offset 1-sigma {s[f'd_{u}']:.3f} {u} > {targets['mirror_d']:.3f} {u}")
-        if p == "projector":
-            if s["rot_deg"] > targets["projector_rot_deg"]:
-                missing.append(f"projector rotation 1-sigma {s['rot_deg']:.3f} deg > {targets['projector_rot_deg']:.3f} deg")
-            if s[f"t_{u}"] > targets["projector_t"]:
-                missing.append(f"projector position 1-sigma {s[f't_{u}']:.3f} {u} > {targets['projector_t']:.3f} {u}")
+        for p in fit.delta:
+            _, s = describe_change(p, fit.delta[p], fit.cov[p], u)
+            sigma[_SIGMA_KEY.get(p, p)] = s
+            if p in PARTS:
+                missing += _missing(p, s, targets, u)
     diag = dict(previous.diagnostics) if isinstance(previous.diagnostics, dict) else {}
-    diag["recalibration"] = {"reestimated": [p for p in PARTS if p in parts], "sigma": sigma}
+    diag["recalibration"] = {"reestimated": todo, "intrinsics": intrinsics, "sigma": sigma}
     result = cur.with_(method=method, diagnostics=diag)
-    return Reestimate(result, tuple(p for p in PARTS if p in parts), sigma, targets, not missing, tuple(missing))
+    result = _with_updated_uncertainty(result, prior_from, fits, intrinsics)
+    return Reestimate(result, tuple(todo), sigma, targets, not missing, tuple(missing), intrinsics, note)
+
+
+# ---- the recalibrated result's uncertainty ----------------------------------------------------------
+def _to_joint(fit: Fit, result: CalibrationResult) -> np.ndarray:
+    """The Jacobian A of the joint's parametrisation with respect to this module's, at `result`
+    (cov_joint = A cov A^T): rotation vector -> Gibbs vector (1/2); the mirror's tilts from this
+    module's tangent basis to calib.joint's at the new normal."""
+    from calib.joint import _tangent_basis as joint_basis
+
+    A = np.eye(len(fit.names))
+    names = list(fit.names)
+    for a in "xyz":
+        if f"T_cam_proj.rot_{a}" in names:
+            i = names.index(f"T_cam_proj.rot_{a}")
+            A[i, i] = 0.5
+    if "mirror.tilt_1" in names and result.mirror is not None:
+        i = names.index("mirror.tilt_1")
+        u1, u2 = _tangent_basis(fit.result.mirror.normal)  # at the fitted normal (the fit's start is < 1 deg away)
+        e1, e2 = joint_basis(result.mirror.normal)
+        A[i:i + 2, i:i + 2] = [[e1 @ u1, e1 @ u2], [e2 @ u1, e2 @ u2]]
+    return A
+
+
+def _with_updated_uncertainty(result: CalibrationResult, previous: CalibrationResult, fits: list,
+                              intrinsics: str) -> CalibrationResult:
+    """`result` with an `uncertainty` that says what it is: the previous calibration's covariance with the
+    rows and columns of every re-fitted parameter replaced by the re-estimate's (their correlation with
+    the parameters not re-fitted set to 0: the fits held those), the 1-sigma summaries recomputed from
+    it, the projection-uncertainty grids and the trust/quality report recomputed too. Without a stored
+    covariance only the summaries of the re-estimated parts are replaced."""
+    u = dict(previous.uncertainty) if isinstance(previous.uncertainty, dict) else None
+    if u is None:
+        return result
+    stored = _stored_covariance(previous)
+    if stored is not None:
+        names, M = stored
+        M = M.copy()
+        idx = {n: i for i, n in enumerate(names)}
+        for fit in fits:
+            keep = [k for k, n in enumerate(fit.names) if n in idx]
+            A = _to_joint(fit, result)
+            C = (A @ fit.cov_global @ A.T)[np.ix_(keep, keep)]
+            ii = [idx[fit.names[k]] for k in keep]
+            M[ii, :] = 0.0
+            M[:, ii] = 0.0
+            M[np.ix_(ii, ii)] = C
+        sd = np.sqrt(np.clip(np.diag(M), 0, None))
+
+        def dev(prefix, old):
+            if not isinstance(old, dict) or old.get("fixed") or f"{prefix}.fx" not in idx:
+                return old
+            new = dict(old)
+            for k in ("fx", "fy", "cx", "cy"):
+                new[k] = float(sd[idx[f"{prefix}.{k}"]])
+            dist = list(old.get("dist") or [])
+            for n in names:
+                i = _dist_index(n) if n.startswith(f"{prefix}.dist") else None
+                if i is not None and i < len(dist):
+                    dist[i] = float(sd[idx[n]])
+            new["dist"] = dist
+            return new
+
+        u["camera"] = dev("cam", u.get("camera"))
+        u["projector"] = dev("proj", u.get("projector"))
+        ri = [idx.get(f"T_cam_proj.rot_{a}") for a in "xyz"]
+        ti = [idx.get(f"T_cam_proj.t_{a}") for a in "xyz"]
+        if None not in ri + ti:
+            cr, ct = 4.0 * M[np.ix_(ri, ri)], M[np.ix_(ti, ti)]
+            u["T_cam_proj"] = {"t": np.sqrt(np.diag(ct)).tolist(), "t_total": float(np.sqrt(np.trace(ct))),
+                               "rot_deg": np.degrees(np.sqrt(np.diag(cr))).tolist(),
+                               "rot_total_deg": float(np.degrees(np.sqrt(np.trace(cr))))}
+        mi = [idx.get("mirror.tilt_1"), idx.get("mirror.tilt_2"), idx.get("mirror.d")]
+        if None not in mi and isinstance(u.get("mirror"), dict):
+            u["mirror"] = {"normal_deg": float(np.degrees(np.sqrt(M[mi[0], mi[0]] + M[mi[1], mi[1]]))),
+                           "d": float(sd[mi[2]])}
+        u["covariance"] = dict(u["covariance"], matrix=M.tolist())
+    else:
+        for fit in fits:
+            for p in fit.free:
+                _, s = describe_change(p, fit.delta[p], fit.cov[p], previous.units)
+                if p == "projector":
+                    u["T_cam_proj"] = {"t_total": s[f"t_{previous.units}"], "rot_total_deg": s["rot_deg"]}
+                elif p == "mirror":
+                    u["mirror"] = {"normal_deg": s["normal_deg"], "d": s[f"d_{previous.units}"]}
+    u["recalibration"] = {"intrinsics": intrinsics, "reestimated": sorted({p for f in fits for p in f.free}),
+                          "note": "the re-fitted parameters' covariance from the recalibration's captures"
+                                  + (" and the intrinsics prior" if intrinsics == "prior" else
+                                     " with everything else held exact") + "; the rest the previous calibration's"}
+    from calib.projection_uncertainty import projection_uncertainty
+    from calib.trust import check_calibration
+
+    out = result.with_(uncertainty=u)
+    if previous.projection_uncertainty is not None:
+        out = out.with_(projection_uncertainty=projection_uncertainty(out))
+    diag = dict(out.diagnostics) if isinstance(out.diagnostics, dict) else {}
+    diag["trust"] = check_calibration(out).to_dict()
+    return out.with_(diagnostics=diag)
 
 
 # ---- stage 3: compare -------------------------------------------------------------------------------
@@ -588,5 +940,7 @@ class RecalibrationRecord:
         return {"schema": "procam-recalibration-1",
                 "previous": {"path": self.previous_path, "sha256": self.previous_sha256, "archived_as": self.archived_as},
                 "verdict": self.check.verdict, "check": self.check.to_dict(),
+                # how the intrinsics were treated by the re-estimate (None: nothing was re-estimated)
+                "intrinsics": None if self.reestimate is None else self.reestimate.intrinsics,
                 "reestimate": None if self.reestimate is None else self.reestimate.to_dict(),
                 "comparison": self.comparison, "captures": self.captures}

@@ -119,12 +119,13 @@ def test_check_without_mirror_captures_says_the_mirror_was_not_checked():
     assert "between camera and mirror" in rep.parts["mirror"].reason
 
 
-def _reestimated(part: str, n_projector: int, n_mirror: int):
+def _reestimated(part: str, n_projector: int, n_mirror: int, intrinsics: str = "prior", previous_cal=None):
     """The check's captures and `n_projector` + `n_mirror` more, re-estimating what the check found moved."""
     b, rep = check(part)
     o1 = observe(_session(b, 2, 2, 0), NOISE_PX, 7)
     o2 = observe(_session(b, n_projector, n_mirror, 1), NOISE_PX, 8)
-    re = reestimate(rep.current, merge_observations(o1, o2), rep.moved)
+    start = rep.current if previous_cal is None else previous_cal
+    re = reestimate(start, merge_observations(o1, o2), rep.moved, intrinsics=intrinsics)
     return b, rep, re
 
 
@@ -134,14 +135,14 @@ def test_projector_reestimate_with_exact_held_parts_is_within_05mm_005deg():
     b = bump_scenario(get_scenario("nonoverlap-136", 0), "projector", 0)
     exact = get_scenario().ground_truth().with_(uncertainty=previous().uncertainty)
     obs = merge_observations(observe(_session(b, 2, 2, 0), NOISE_PX, 7), observe(_session(b, 8, 0, 1), NOISE_PX, 8))
-    re = reestimate(exact, obs, ("projector",))
+    re = reestimate(exact, obs, ("projector",), intrinsics="held")
     m = compare(re.result, b.ground_truth())
     assert m.distance < 0.5 and m.angle_deg < 0.05, (m.distance, m.angle_deg)
     assert m.cam_k_px == 0 and m.mirror_angle_deg == 0
 
 
 def test_projector_reestimate_holds_the_rest_and_reports_the_change():
-    b, rep, re = _reestimated("projector", 8, 0)
+    b, rep, re = _reestimated("projector", 8, 0, intrinsics="held")
     m0 = compare(previous(), get_scenario().ground_truth())  # the previous calibration's own error
     m = compare(re.result, b.ground_truth())
     assert m.distance < m0.distance + 0.5 and m.angle_deg < m0.angle_deg + 0.05
@@ -172,6 +173,138 @@ def test_camera_reestimate_recovers_the_focal_length():
     cmp = compare_calibrations(previous(), re.result, re.sigma)
     assert cmp["camera"]["fx_change_px"] == pytest.approx(true_fx - previous().camera.fx, abs=0.5)
     assert cmp["camera"]["projection_difference"]["max_px"] > 2.0
+
+
+# ---- the intrinsics prior (the previous covariance) -----------------------------------------------
+from calib.recalib import PRIOR_EIG_FLOOR, RecalibrationRecord, intrinsics_prior  # noqa: E402
+
+
+def _stored(prev):
+    cv = prev.uncertainty["covariance"]
+    return list(cv["names"]), np.array(cv["matrix"])
+
+
+def test_prior_residual_is_the_mahalanobis_distance_to_the_previous_intrinsics():
+    prev = previous()
+    pr = intrinsics_prior(prev, prev)
+    names, M = _stored(prev)
+    order = [n for b in pr.blocks for n in pr.params[b]]
+    assert pr.blocks == ("cam_intr", "proj_intr") and order[:4] == ["cam.fx", "cam.fy", "cam.cx", "cam.cy"]
+    assert all(n.startswith(("cam.", "proj.")) for n in order) and len(order) == 4 + 5 + 4 + 5
+    ii = [names.index(n) for n in order]
+    C = M[np.ix_(ii, ii)]
+    rng = np.random.default_rng(0)
+    d = rng.multivariate_normal(np.zeros(len(C)), C)
+    blocks = {"cam_intr": d[:9], "proj_intr": d[9:]}
+    assert np.allclose(pr.offset, 0) and pr.floored == 0
+    assert pr.residual(blocks) @ pr.residual(blocks) == pytest.approx(d @ np.linalg.solve(C, d), rel=1e-6)
+    # started elsewhere (a model whose camera fx is 1 px off the previous value): the offset says so
+    K = np.array(prev.camera.K)
+    K[0, 0] += 1.0
+    assert intrinsics_prior(prev, prev.with_(camera=prev.camera.with_params(K=K))).offset[0] == pytest.approx(1.0)
+
+
+def test_prior_of_an_ill_conditioned_covariance_is_floored_weaker_never_stronger():
+    prev = previous()
+    names, M = _stored(prev)
+    i, j = names.index("proj.dist0"), names.index("proj.dist1")
+    M[j, :], M[:, j] = M[i, :] * 2.0, M[:, i] * 2.0  # dist1 = 2 dist0 exactly: a singular covariance
+    M[j, j] = 4.0 * M[i, i]
+    bad = prev.with_(uncertainty=dict(prev.uncertainty, covariance=dict(prev.uncertainty["covariance"],
+                                                                        matrix=M.tolist())))
+    pr = intrinsics_prior(bad, bad, ("proj",))
+    assert pr.floored >= 1 and np.all(np.isfinite(pr.W))
+    order = list(pr.params["proj_intr"])
+    ii = [names.index(n) for n in order]
+    C = M[np.ix_(ii, ii)]
+    v = np.zeros(len(order))  # the direction the covariance says is exact: dist1 - 2 dist0 != 0
+    v[order.index("proj.dist0")], v[order.index("proj.dist1")] = 1.0, -0.5
+    v *= np.sqrt(M[i, i])
+    r = pr.residual({"proj_intr": v})
+    # a finite penalty (no infinite pull), bounded by the floor: |r|^2 <= |v|^2 / (floor * lambda_max) in
+    # the Jacobi-scaled coordinates
+    assert 0 < r @ r < 10.0 / PRIOR_EIG_FLOOR
+    # along a well-determined direction the prior is the covariance's own (fx alone)
+    u = np.zeros(len(order))
+    u[0] = 1.0
+    e = pr.residual({"proj_intr": u})
+    assert e @ e == pytest.approx(u @ np.linalg.pinv(C) @ u, rel=0.05)
+
+
+def test_prior_reestimate_propagates_the_intrinsics_uncertainty_into_the_pose():
+    """Held intrinsics ignore their own uncertainty; under the prior the pose's 1-sigma carries it, and
+    the intrinsics move (within their previous 1-sigma) where the new captures ask for it."""
+    b, rep, held = _reestimated("projector", 8, 0, intrinsics="held")
+    _, _, pri = _reestimated("projector", 8, 0, intrinsics="prior")
+    assert held.intrinsics == "held" and pri.intrinsics == "prior" and "18 parameters" in pri.intrinsics_note
+    sh, sp = held.sigma["projector"], pri.sigma["projector"]
+    assert sp["t_mm"] > 1.1 * sh["t_mm"] and sp["rot_deg"] > 1.5 * sh["rot_deg"]
+    m = compare(pri.result, b.ground_truth())
+    assert m.distance < 3 * sp["t_mm"] and m.angle_deg < 3 * sp["rot_deg"], (m.distance, m.angle_deg, sp)
+    u = previous().uncertainty
+    dfx = pri.result.projector.fx - previous().projector.fx
+    assert 0 < abs(dfx) < 3 * u["projector"]["fx"]
+    assert abs(pri.result.camera.fx - previous().camera.fx) < 3 * u["camera"]["fx"]
+    assert pri.sigma["projector_intrinsics"]["fx_px"] <= u["projector"]["fx"] * (1 + 1e-6)
+    # the result's uncertainty is the re-estimate's, and says how it was made
+    ru = pri.result.uncertainty
+    assert ru["T_cam_proj"]["t_total"] == pytest.approx(sp["t_mm"], rel=1e-6)
+    assert ru["T_cam_proj"]["rot_total_deg"] == pytest.approx(sp["rot_deg"], rel=1e-6)
+    assert ru["recalibration"]["intrinsics"] == "prior"
+    assert held.result.uncertainty["T_cam_proj"]["t_total"] == pytest.approx(sh["t_mm"], rel=1e-6)
+    assert pri.result.diagnostics["trust"]["quality"]["low"] is False
+    # recalibration.json records the mode
+    d = RecalibrationRecord("p", "0" * 64, "previous/calibration.json", rep, pri, None).to_dict()
+    assert d["intrinsics"] == "prior" and d["reestimate"]["intrinsics"] == "prior"
+
+
+def test_prior_does_not_hide_a_refocus_and_falls_back_without_a_covariance():
+    # the check runs first, with the same rule in both modes: a refocus is found, and the camera re-fitted
+    b, rep, re = _reestimated("camera", 4, 4, intrinsics="prior")
+    assert rep.moved == ("camera",) and re.parts == ("camera",)
+    assert abs(re.result.camera.fx - b.ground_truth().camera.fx) < 0.5
+    # no stored covariance (another method, an old file): the intrinsics can only be held, and it says so
+    prev = previous()
+    bare = prev.with_(uncertainty={k: v for k, v in prev.uncertainty.items() if k != "covariance"})
+    _, rep, re = _reestimated("projector", 8, 0, intrinsics="prior", previous_cal=bare)
+    assert re.intrinsics == "held" and "no covariance" in re.intrinsics_note
+    assert np.array_equal(re.result.camera.K, prev.camera.K)
+    with pytest.raises(Exception, match="unknown intrinsics mode"):
+        reestimate(prev, observe(_session(b, 2, 2, 0), NOISE_PX, 7), ("projector",), intrinsics="free")
+
+
+def inflated(prev, k: float):
+    """`prev` with every 1-sigma k times larger (covariance k^2): trusted, but far more uncertain than a
+    full session (the quality gate's LOW QUALITY), with its trust report and projection grids to match."""
+    from calib.projection_uncertainty import projection_uncertainty
+    from calib.trust import check_calibration
+
+    u = dict(prev.uncertainty)
+    for dev in ("camera", "projector"):
+        u[dev] = {key: ([k * x for x in v] if isinstance(v, list) else k * v) for key, v in u[dev].items()}
+    t = u["T_cam_proj"]
+    u["T_cam_proj"] = {key: ([k * x for x in v] if isinstance(v, list) else k * v) for key, v in t.items()}
+    u["mirror"] = {key: k * v for key, v in u["mirror"].items()}
+    u["covariance"] = dict(u["covariance"], matrix=(k * k * np.array(u["covariance"]["matrix"])).tolist())
+    out = prev.with_(uncertainty=u)
+    out = out.with_(projection_uncertainty=projection_uncertainty(out))
+    return out.with_(diagnostics=dict(out.diagnostics or {}, trust=check_calibration(out).to_dict()))
+
+
+def test_quality_gate_of_the_recalibrated_result_is_its_own():
+    """A recalibration from a previous calibration far more uncertain than a full session reaches its
+    (loose) targets at once, and its result says LOW QUALITY; from a good one it does not."""
+    low = inflated(previous(), 10.0)
+    assert low.diagnostics["trust"]["passed"] and low.diagnostics["trust"]["quality"]["low"]
+    b, rep = check("projector")
+    obs = observe(_session(b, 2, 2, 0), NOISE_PX, 7)
+    start = low.with_(T_cam_proj=rep.current.T_cam_proj)
+    for mode in ("held", "prior"):
+        re = reestimate(start, obs, ("projector",), intrinsics=mode)
+        q = re.result.diagnostics["trust"]["quality"]
+        assert re.reached and q["low"], mode
+    good = reestimate(rep.current, obs, ("projector",))
+    assert good.result.diagnostics["trust"]["passed"] and not good.result.diagnostics["trust"]["quality"]["low"]
 
 
 def test_reestimate_says_which_target_is_not_reached_yet():
@@ -271,6 +404,24 @@ def test_recalibrate_after_a_projector_bump_end_to_end(tmp_path):
     assert rec["verification"]["previous"]["passed"] is False
     assert rec["verification"]["recalibrated"]["passed"] is True
     assert json.loads((d / "verification.json").read_text())["passed"] is True
+
+
+@pytest.mark.slow
+def test_recalibrate_exit_code_3_for_a_low_quality_calibration_0_for_a_good_one(tmp_path):
+    """`--sim-bump none` from a previous calibration far more uncertain than a full session: the
+    calibration written (the previous one) fails the quality gate, exit 3 with the reasons, as
+    `procam calibrate` / `session`; the same flow from the good calibration exits 0."""
+    low, good = tmp_path / "low.json", tmp_path / "good.json"
+    inflated(previous(), 10.0).save_json(low)
+    previous().save_json(good)
+    for prev, code in ((low, 3), (good, 0)):
+        d = tmp_path / f"recal-{code}"
+        r = _procam("recalibrate", str(prev), "--rig", "sim", "--auto", "--sim-bump", "none", "--out", str(d))
+        assert r.returncode == code, r.stdout[-3000:] + r.stderr[-2000:]
+        rec = json.loads((d / "recalibration.json").read_text())
+        assert rec["ok"] is True and rec["verdict"] == "unchanged" and (d / "calibration.json").exists()
+        assert rec["sign_off"] is None and rec["intrinsics"] is None  # headless: nobody asked; nothing re-fitted
+        assert ("LOW QUALITY" in r.stdout and "[quality_" in r.stdout) == (code == 3)
 
 
 def test_station_recalibration_mode_refuses_a_missing_previous_and_a_used_folder(tmp_path):

@@ -59,3 +59,57 @@ def test_recalibration_checklist_from_the_panel(tmp_path):
     assert rec["ok"] is True and rec["check"]["parts"]["projector"]["status"] == "moved"
     assert (folder / "previous" / "calibration.json").read_bytes() == prev.read_bytes()
     assert rec["comparison"]["projector"]["rotation_change_deg"] == pytest.approx(1.0, abs=0.1)
+    assert rec["sign_off"]["by"] == "operator" and rec["sign_off"]["button"] == "Accept verdict"
+    assert rec["sign_off"]["verdict"] == "moved: projector"
+
+
+def test_unchanged_signoff_from_the_panel(tmp_path):
+    """`--sim-bump none`: the check ends "unchanged", the technician signs off with the button; what the
+    sign-off writes: recalibration.json with the verdict and the operator's sign-off, calibration.json
+    the previous calibration (verdict in its diagnostics, nothing re-estimated), no verification.json."""
+    from calib.result import CalibrationResult
+    from tests.test_recalibrate import previous
+
+    prev = tmp_path / "prev" / "calibration.json"
+    prev.parent.mkdir()
+    previous().save_json(prev)
+    folder = tmp_path / "recal"
+    st = StationProcess("--rig", "sim", "--sim-bump", "none", "--recalibrate", str(prev.parent), "--session",
+                        str(folder))
+    try:
+        with sync_playwright() as p:
+            browser = launch_chromium(p)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(st.url)
+            see(page, r"press \*?Start check")
+            page.get_by_role("button", name="Start check", exact=True).click()
+            see(page, r"verdict: unchanged", timeout=120_000)
+            for part in ("camera", "mirror", "projector"):
+                see(page, rf"{part}: unchanged")
+            sign = page.get_by_role("button", name="Sign off: unchanged", exact=True)
+            expect(sign).to_be_visible()
+            expect(page.get_by_role("button", name="Accept verdict", exact=True)).to_have_count(0)
+            time.sleep(1.0)  # the flow waits for the technician: nothing is written before the sign-off
+            assert not (folder / "recalibration.json").exists() and not (folder / "calibration.json").exists()
+            sign.click()
+            see(page, r"Compare.*unchanged \(ok\)", timeout=60_000)
+            see(page, r"no part moved: calibration\.json is the previous calibration")
+            see(page, r"files written: recalibration\.json, calibration\.json, previous/calibration\.json$")
+            see(page, r"Recalibration of.*✔ done")
+            expect(sign).to_have_count(0)
+            page.screenshot(path=str(tmp_path / "signed-off.png"))
+            browser.close()
+    finally:
+        st.stop()
+    rec = json.loads((folder / "recalibration.json").read_text())
+    assert rec["verdict"] == "unchanged" and rec["ok"] is True and rec["reestimate"] is None
+    assert rec["comparison"] is None and rec["captures"]["total"] <= 4
+    assert rec["sign_off"]["by"] == "operator" and rec["sign_off"]["verdict"] == "unchanged"
+    assert rec["sign_off"]["button"] == "Sign off: unchanged" and rec["sign_off"]["at_utc"]
+    assert rec["verification"]["previous"]["passed"] is True and "recalibrated" not in rec["verification"]
+    assert not (folder / "verification.json").exists()
+    assert (folder / "previous" / "calibration.json").read_bytes() == prev.read_bytes()
+    new, old = CalibrationResult.load_json(folder / "calibration.json"), CalibrationResult.load_json(prev)
+    assert new.diagnostics["recalibration"]["verdict"] == "unchanged"
+    assert new.method == old.method and (new.camera.K == old.camera.K).all()
+    assert (new.T_cam_proj == old.T_cam_proj).all() and (new.mirror.normal == old.mirror.normal).all()

@@ -70,7 +70,17 @@ def run(args) -> int:
     if isinstance(outcome, int):  # stopped part-way: resumable
         return outcome
     print(summary(outcome.record, folder, time.monotonic() - t0), flush=True)
-    return 0 if outcome.ok else 1
+    if not outcome.ok:
+        return 1
+    import sys
+
+    from app.commands._quality import EXIT_LOW_QUALITY, report_low_quality
+    from calib.trust import check_calibration
+
+    res = outcome.result  # the quality gate of the calibration written (computed where the file has none)
+    if not isinstance((res.diagnostics or {}).get("trust"), dict):
+        res = res.with_(diagnostics=dict(res.diagnostics or {}, trust=check_calibration(res).to_dict()))
+    return EXIT_LOW_QUALITY if report_low_quality(res, file=sys.stdout) else 0
 
 
 def run_on_rig(args, log):

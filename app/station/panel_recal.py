@@ -48,6 +48,7 @@ class RecalibrationPanel:
         self.rounds: list = []
         self.outcome = None
         self.error = None
+        self.sign_off = None
         self._accepted = threading.Event()
         self._thread = None
         g = panel.server.gui
@@ -74,13 +75,17 @@ class RecalibrationPanel:
     def accept(self) -> None:
         if self.stage == "verdict":
             self.machine.log(f"recalibration: verdict '{self.report.verdict}' accepted by the operator")
+            import datetime
+
+            self.sign_off = {"by": "operator", "button": self.h_accept.label, "verdict": self.report.verdict,
+                             "at_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
             self.stage = "remeasuring" if self.report.moved else "comparing"
             self.h_accept.visible = False
             self._accepted.set()
             self.update()
 
     # ---- the flow --------------------------------------------------------------------------------
-    def _on_stage(self, name, value) -> None:
+    def _on_stage(self, name, value) -> dict | None:
         self.now = ""
         if name == "verdict":
             self.report = value
@@ -89,6 +94,7 @@ class RecalibrationPanel:
             self.h_accept.visible = True
             self.update()
             self._accepted.wait()
+            return self.sign_off  # recorded in recalibration.json
         elif name == "reestimate":
             self.rounds.append(value)
         elif name == "done":
