@@ -405,7 +405,8 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
             re = reestimate(report.current, obs, moved)
             n = len(machine.manifest.captures)
             log(f"re-estimate of {', '.join(moved)} from {n} captures: " + (
-                "1-sigma targets reached" if re.reached else "; ".join(re.missing)))
+                "1-sigma targets reached" if re.reached else "; ".join(re.missing)) + (
+                "; " + "; ".join(re.floor) if re.floor else ""))
             stage("reestimate", re)
             if re.reached:
                 break

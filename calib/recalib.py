@@ -237,6 +237,9 @@ class Fit:
     names: tuple[str, ...] = ()  # the global parameters, named as in the joint's covariance (see _joint_names)
     cov_global: np.ndarray | None = None  # their covariance, board poses marginalised
     prior: "IntrinsicsPrior | None" = None
+    #: under a prior: block -> covariance of the free parts with the intrinsics held exactly (the part of
+    #: the 1-sigma that more captures lower; the rest is the previous intrinsics' uncertainty)
+    cov_data: dict | None = None
 
 
 def _joint_names(model: _Model) -> tuple[str, ...]:
@@ -340,10 +343,22 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
         k = model.size(p)
         cov[p] = cov_all[i:i + k, i:i + k]
         i += k
+    cov_data = None
+    if prior is not None:  # the free parts' covariance were the intrinsics known exactly: what captures lower
+        keep = np.r_[0:ng - n_prior, ng:len(x0)]
+        try:
+            cov_fixed = np.linalg.inv(info[np.ix_(keep, keep)])
+        except np.linalg.LinAlgError:
+            cov_fixed = np.linalg.pinv(info[np.ix_(keep, keep)])
+        cov_data, i = {}, 0
+        for p in model.free:
+            k = model.size(p)
+            cov_data[p] = cov_fixed[i:i + k, i:i + k]
+            i += k
     result = model.apply(blocks)
     rms = float(np.sqrt(np.mean(r**2)))
     return Fit(model.free, {p: np.asarray(blocks[p]) for p in model.blocks}, cov, result, s2, len(views), rms,
-               _joint_names(model), cov_all[:ng, :ng], prior)
+               _joint_names(model), cov_all[:ng, :ng], prior, cov_data)
 
 
 # ---- the previous calibration's covariance of each block --------------------------------------------
@@ -683,10 +698,14 @@ class Reestimate:
     missing: tuple[str, ...]  # targets not reached, as sentences
     intrinsics: str = "held"  # the mode used: "held" | "prior" (see reestimate)
     intrinsics_note: str = ""
+    #: under the prior: targets whose 1-sigma stays above the target only because of the previous
+    #: intrinsics' uncertainty (the captures' own share is below it: more captures cannot help), as sentences
+    floor: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         return {"parts": list(self.parts), "intrinsics": self.intrinsics, "intrinsics_note": self.intrinsics_note,
-                "sigma": self.sigma, "targets": self.targets, "reached": self.reached, "missing": list(self.missing)}
+                "sigma": self.sigma, "targets": self.targets, "reached": self.reached, "missing": list(self.missing),
+                "limited_by_previous_intrinsics": list(self.floor)}
 
 
 def _missing(p: str, s: dict, targets: dict, u: str) -> list[str]:
@@ -726,7 +745,7 @@ def reestimate(previous: CalibrationResult, obs: SessionObservations, parts, tar
         raise CalibrationError(f"unknown intrinsics mode '{intrinsics}' ({' or '.join(INTRINSICS_MODES)})")
     prior_from = prior_from or previous
     targets = {**targets_from(prior_from), **(targets or {})}
-    cur, sigma, missing, fits = previous, {}, [], []
+    cur, sigma, missing, fits, floor = previous, {}, [], [], []
     u = previous.units
     note = ""
     todo = [p for p in PARTS if p in parts]
@@ -756,13 +775,31 @@ def reestimate(previous: CalibrationResult, obs: SessionObservations, parts, tar
         for p in fit.delta:
             _, s = describe_change(p, fit.delta[p], fit.cov[p], u)
             sigma[_SIGMA_KEY.get(p, p)] = s
-            if p in PARTS:
-                missing += _missing(p, s, targets, u)
+            if p not in PARTS:
+                continue
+            over = _missing(p, s, targets, u)
+            if over and fit.cov_data is not None and p in fit.cov_data:
+                # the captures' own share: where it meets the target, the rest is the previous intrinsics'
+                # uncertainty (the prior), which no further capture of this part lowers
+                _, s_data = describe_change(p, fit.delta[p], fit.cov_data[p], u)
+                still = _missing(p, s_data, targets, u)
+                floor += [f"{m} (from the captures alone: within the target; the rest is the previous "
+                          "intrinsics' uncertainty)" for m in over if _same_quantity(m, still) is None]
+                over = [m for m in over if _same_quantity(m, still) is not None]
+            missing += over
     diag = dict(previous.diagnostics) if isinstance(previous.diagnostics, dict) else {}
     diag["recalibration"] = {"reestimated": todo, "intrinsics": intrinsics, "sigma": sigma}
     result = cur.with_(method=method, diagnostics=diag)
     result = _with_updated_uncertainty(result, prior_from, fits, intrinsics)
-    return Reestimate(result, tuple(todo), sigma, targets, not missing, tuple(missing), intrinsics, note)
+    return Reestimate(result, tuple(todo), sigma, targets, not missing, tuple(missing), intrinsics, note,
+                      tuple(floor))
+
+
+def _same_quantity(sentence: str, others: list[str]) -> str | None:
+    """The sentence of `others` about the same quantity as `sentence` (both from _missing: the text before
+    "1-sigma" names it), or None."""
+    name = sentence.split(" 1-sigma")[0]
+    return next((o for o in others if o.split(" 1-sigma")[0] == name), None)
 
 
 # ---- the recalibrated result's uncertainty ----------------------------------------------------------

@@ -307,6 +307,26 @@ def test_quality_gate_of_the_recalibrated_result_is_its_own():
     assert good.result.diagnostics["trust"]["passed"] and not good.result.diagnostics["trust"]["quality"]["low"]
 
 
+def test_prior_stops_where_more_captures_cannot_lower_the_1_sigma():
+    """Under the prior the pose's 1-sigma has a floor, the previous intrinsics' uncertainty: a target
+    between the captures' own share (what held intrinsics report) and the total is met as far as
+    captures can meet it (reached, the floor said), a target below the captures' own share is not."""
+    b, rep, held = _reestimated("projector", 8, 0, intrinsics="held")
+    sh = held.sigma["projector"]
+    o1 = observe(_session(b, 2, 2, 0), NOISE_PX, 7)
+    obs = merge_observations(o1, observe(_session(b, 8, 0, 1), NOISE_PX, 8))
+    total = reestimate(rep.current, obs, ("projector",), intrinsics="prior").sigma["projector"]
+    assert total["t_mm"] > 1.1 * sh["t_mm"] and total["rot_deg"] > 1.5 * sh["rot_deg"]
+    between = {"projector_t": (sh["t_mm"] + total["t_mm"]) / 2, "projector_rot_deg": (sh["rot_deg"] + total["rot_deg"]) / 2}
+    re = reestimate(rep.current, obs, ("projector",), targets=between, intrinsics="prior")
+    assert re.reached and not re.missing and len(re.floor) == 2
+    assert "projector rotation 1-sigma" in re.floor[0] + re.floor[1] and "previous intrinsics" in re.floor[0]
+    assert re.to_dict()["limited_by_previous_intrinsics"] == list(re.floor)
+    below = {"projector_t": 0.5 * sh["t_mm"], "projector_rot_deg": 0.5 * sh["rot_deg"]}
+    re = reestimate(rep.current, obs, ("projector",), targets=below, intrinsics="prior")
+    assert not re.reached and len(re.missing) == 2 and not re.floor
+
+
 def test_reestimate_says_which_target_is_not_reached_yet():
     b, rep = check("camera")
     re = reestimate(rep.current, observe(_session(b, 2, 2, 0), NOISE_PX, 7), rep.moved)
