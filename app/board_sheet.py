@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.boards import CharucoSpec
 from calib.errors import SpecError
+from calib.models.boards import CharucoSpec
 from calib.synthetic import BoardLayout
 
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}

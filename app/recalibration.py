@@ -17,13 +17,13 @@ from pathlib import Path
 
 from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target
 from app.station.station import Station
-from calib.boards import CharucoSpec
 from calib.errors import SessionError
-from calib.fileio import atomic_write_text
-from calib.observations import STEP_PROJECTOR, VIEW_DIRECT, VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.result import CalibrationResult
-from calib.session import MANIFEST, SessionStore
+from calib.formats.fileio import atomic_write_text
+from calib.formats.session import MANIFEST, SessionStore
+from calib.models.boards import CharucoSpec
+from calib.models.observations import STEP_PROJECTOR, VIEW_DIRECT, VIEW_MIRROR
+from calib.models.pattern import PatternSpec
+from calib.models.result import CalibrationResult
 
 PREVIOUS_DIR = "previous"
 RECALIBRATION_FILE = "recalibration.json"
@@ -304,7 +304,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         if on_stage is not None:
             return on_stage(name, value)
 
-    from calib.detect import detect_session
+    from calib.detection.detect import detect_session
     from calib.recalib import (
         RecalibrationRecord, check_rig, compare_calibrations, reestimate,
     )
@@ -450,7 +450,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     if resume:
         rec["resumed"] = True
     rec["sign_off"] = sign_off if isinstance(sign_off, dict) else None
-    from calib.result import _jsonable
+    from calib.models.result import _jsonable
 
     atomic_write_text(folder / RECALIBRATION_FILE, json.dumps(_jsonable(rec), indent=2) + "\n")
     state.update(verdict=report.verdict, ok=ok, previous_sha256=digest)

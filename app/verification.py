@@ -2,7 +2,7 @@
 
 For a camera pixel u the calibration predicts the curve of projector pixels that can light what u sees
 (calib.epipolar.epipolar_curve). The projector draws that curve as a bright stroke on the board; the
-camera sees it (through the mirror); calib.curve_detection finds the stroke's sub-pixel centre line;
+camera sees it (through the mirror); calib.detection.curves finds the stroke's sub-pixel centre line;
 the distance from u to it is the measurement. With a correct calibration the stroke passes through u
 whatever the board's pose.
 
@@ -39,11 +39,11 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from calib.curve_detection import CurveDetection, detect_projected_curve, distance_to_curve, lit_region, stripe_signal
+from calib.detection.curves import CurveDetection, detect_projected_curve, distance_to_curve, lit_region, stripe_signal
 from calib.epipolar import epipolar_curve, predicted_camera_curve
 from calib.errors import FormatError, ProcamError
-from calib.fileio import atomic_write_text
-from calib.result import CalibrationResult
+from calib.formats.fileio import atomic_write_text
+from calib.models.result import CalibrationResult
 
 SCHEMA = "procam-verification"
 VERSION = 1
@@ -205,7 +205,7 @@ class _Grabber:
 
 
 def _grey(img: np.ndarray) -> np.ndarray:
-    """(H, W) float32: the mean of the channels, as calib.curve_detection reads a BGR frame."""
+    """(H, W) float32: the mean of the channels, as calib.detection.curves reads a BGR frame."""
     a = np.asarray(img)
     return a.astype(np.float32).mean(axis=2) if a.ndim == 3 else a.astype(np.float32)
 
@@ -267,7 +267,7 @@ def measure_pixel(result: CalibrationResult, pixel, curve: np.ndarray, frame_on:
                   stroke_px: float, board_pose=None, roi: np.ndarray | None = None, signal=None) -> PixelCheck:
     """The measurement of verify_pixel on captured frames (pure: no devices). `roi`: where in the
     camera image this pixel's stroke is looked for (when other strokes share the frame); `signal`:
-    calib.curve_detection.stripe_signal of the frames, computed once for all strokes of the frame."""
+    calib.detection.curves.stripe_signal of the frames, computed once for all strokes of the frame."""
     pixel = (float(pixel[0]), float(pixel[1]))
     predicted = None
     if board_pose is not None:
@@ -565,8 +565,8 @@ def estimate_board_pose(image: np.ndarray, board, result: CalibrationResult) -> 
     """T_cam_board of the ChArUco `board` (CharucoSpec) in a camera image, with the calibration's camera
     model (and mirror: the board is then detected mirrored). None when the board is not found. Used
     for the predicted-curve overlay only; the measurement never depends on it."""
-    from calib.board_pose import solve_board_pose, usable_reason
-    from calib.detect import detect_board
+    from calib.detection.detect import detect_board
+    from calib.paper.board_pose import solve_board_pose, usable_reason
 
     img = np.clip(np.asarray(image), 0, 255).astype(np.uint8)
     obs = detect_board(img, board, mirrored=result.mirror is not None)
@@ -692,7 +692,7 @@ def verification_is_stale(report_file, calibration_file) -> bool | None:
 
 def _session_board(folder):
     """The projector board of the session in `folder`, or None when it cannot be read."""
-    from calib.session import SessionStore
+    from calib.formats.session import SessionStore
 
     try:
         return SessionStore.open(folder).manifest.projector_board

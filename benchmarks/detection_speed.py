@@ -1,5 +1,5 @@
 """Detection speed (and accuracy) on a simulated session: per-image time of each stage, and the wall
-time of calib.detect.detect_session with 1 and 2 worker processes.
+time of calib.detection.detect.detect_session with 1 and 2 worker processes.
 
     python benchmarks/detection_speed.py                      # 66 images at 1920x1080 (rendered once)
     python benchmarks/detection_speed.py --session DIR        # any session folder (e.g. procam simulate)
@@ -26,10 +26,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calib import detect as D  # noqa: E402
-from calib.camera import CameraModel  # noqa: E402
-from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL, VIEW_MIRROR  # noqa: E402
-from calib.session import SessionStore  # noqa: E402
+from calib.detection import detect as D  # noqa: E402
+from calib.formats.session import SessionStore  # noqa: E402
+from calib.models.camera import CameraModel  # noqa: E402
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL, VIEW_MIRROR  # noqa: E402
 
 
 def make_session(work: Path) -> Path:

@@ -164,8 +164,8 @@ def table_c(step_deg=15):
 
 
 def session_row(folder, grid):
-    from calib.result import CalibrationResult
-    from calib.session import SessionStore
+    from calib.formats.session import SessionStore
+    from calib.models.result import CalibrationResult
     from drivers.sim.rig import open_sim_rig
 
     man = SessionStore.open(folder).manifest

@@ -2,7 +2,7 @@
 
 For every rig (90, 136, 180 degrees through a mirror, and the direct control) and several noise draws,
 the same observations are calibrated by the paper's pipeline and by the joint refinement (started from
-it), and the paper's metrics (calib.metrics.compare) are averaged over the seeds. The observations are
+it), and the paper's metrics (calib.quality.metrics.compare) are averaged over the seeds. The observations are
 what a detector reports: Gaussian noise on every point and, by default, projected circles at the area
 centroids of their images (calib.synthetic.observe(circle_centroids=True)).
 
@@ -24,9 +24,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calib.joint import JointOptions, refine_joint  # noqa: E402
-from calib.metrics import compare  # noqa: E402
+from calib.joint.method import JointOptions, refine_joint  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
+from calib.quality.metrics import compare  # noqa: E402
 from calib.synthetic import make_direct_rig, make_rig, make_session, observe  # noqa: E402
 
 METRICS = [  # (PaperMetrics field, label, unit, format)

@@ -22,8 +22,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calib.metrics import PAPER_HEADLINE, compare  # noqa: E402
 from calib.pipeline import METHODS, calibrate_observations  # noqa: E402
+from calib.quality.metrics import PAPER_HEADLINE, compare  # noqa: E402
 from calib.synthetic import make_direct_rig, make_rig, make_session, observe  # noqa: E402
 
 COLUMNS = [("CamK", "cam_k_px", 2), ("CamD", "cam_d", 4), ("ProjK", "proj_k_px", 2), ("ProjD", "proj_d", 4),

@@ -4,7 +4,7 @@ For every simulator scenario and a few seeds: exact-geometry observations (calib
 bias, Gaussian pixel noise) of the full session (52 projector + 14 mirror views, or the scenario's plan)
 and of two thin sessions as the panel's shortest path (3 mirror + 6 projector views): "spread", the 6
 projector views spread evenly over the plan, and "first", its first 6. Each is calibrated with the joint
-method; prints (each 1-sigma scaled to 0.3 px of noise, as the gate compares them) the worst full-session value of every quality metric next to calib.trust.QualityThresholds,
+method; prints (each 1-sigma scaled to 0.3 px of noise, as the gate compares them) the worst full-session value of every quality metric next to calib.quality.trust.QualityThresholds,
 the thin sessions' metrics, their errors against the scenario's truth, and the quality codes of each run
 (every full session should have none, every thin one some).
 
@@ -20,13 +20,13 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from calib.metrics import compare  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
+from calib.quality.metrics import compare  # noqa: E402
+from calib.quality.trust import QualityThresholds, check_calibration  # noqa: E402
 from calib.synthetic import SyntheticSession, observe  # noqa: E402
-from calib.trust import QualityThresholds, check_calibration  # noqa: E402
 from drivers.sim.scenarios import get_scenario, scenario_names  # noqa: E402
 
-#: the quality gate's metrics: each 1-sigma scaled to 0.3 px of noise (calib.trust.check_quality)
+#: the quality gate's metrics: each 1-sigma scaled to 0.3 px of noise (calib.quality.trust.check_quality)
 METRICS = ("quality.t_mm", "quality.rot_deg", "quality.camera_intrinsics_px", "quality.projector_intrinsics_px",
            "quality.mirror_normal_deg", "quality.projection_camera_max_px", "quality.projection_projector_max_px")
 

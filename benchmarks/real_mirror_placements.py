@@ -22,8 +22,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calib.errors import CalibrationError  # noqa: E402
-from calib.metrics import compare  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
+from calib.quality.metrics import compare  # noqa: E402
 from calib.synthetic import SyntheticSession, observe  # noqa: E402
 from drivers.sim.scenarios import get_scenario  # noqa: E402
 

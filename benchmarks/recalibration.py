@@ -22,8 +22,8 @@ def procam(*args) -> tuple[int, float]:
 
 
 def errors(folder: Path) -> str:
-    from calib.metrics import compare
-    from calib.result import CalibrationResult
+    from calib.models.result import CalibrationResult
+    from calib.quality.metrics import compare
 
     if not (folder / "calibration.json").exists():
         return "(no calibration.json)"

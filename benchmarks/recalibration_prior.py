@@ -32,11 +32,11 @@ def subset(obs, ids: set):
 
 
 def evaluate(folder: Path, parts: tuple) -> dict:
-    from calib.detect import detect_session
-    from calib.metrics import compare
+    from calib.detection.detect import detect_session
+    from calib.formats.session import SessionStore
+    from calib.models.result import CalibrationResult
+    from calib.quality.metrics import compare
     from calib.recalib import reestimate
-    from calib.result import CalibrationResult
-    from calib.session import SessionStore
 
     prev = CalibrationResult.load_json(folder / "previous" / "calibration.json")
     gt = CalibrationResult.load_json(folder / "ground_truth.json")

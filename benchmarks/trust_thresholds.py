@@ -3,7 +3,7 @@
 For every simulator scenario and a few seeds: exact-geometry observations of the scenario's full session
 (calib.synthetic, no rendering: circle centroids as a blob detector sees them, Gaussian pixel noise),
 calibrated with both methods; prints the largest value of each trust metric over the runs, next to the
-limit of calib.trust.TrustThresholds, and every run that the check rejects (there should be none).
+limit of calib.quality.trust.TrustThresholds, and every run that the check rejects (there should be none).
 
     python benchmarks/trust_thresholds.py [--seeds 3] [--noise 0.3]
 """
@@ -18,8 +18,8 @@ from dataclasses import asdict
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from calib.pipeline import calibrate_observations  # noqa: E402
+from calib.quality.trust import TrustThresholds, check_calibration  # noqa: E402
 from calib.synthetic import SyntheticSession, observe  # noqa: E402
-from calib.trust import TrustThresholds, check_calibration  # noqa: E402
 from drivers.sim.scenarios import get_scenario, scenario_names  # noqa: E402
 
 

@@ -34,12 +34,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calib import projection_uncertainty as PU  # noqa: E402
-from calib.camera_calib import calibrate_camera  # noqa: E402
 from calib.errors import UntrustedCalibration  # noqa: E402
-from calib.joint import JointOptions  # noqa: E402
-from calib.metrics import compare, distortion_error_over_image  # noqa: E402
+from calib.joint.method import JointOptions  # noqa: E402
+from calib.paper.camera import calibrate_camera  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
+from calib.quality import projection_uncertainty as PU  # noqa: E402
+from calib.quality.metrics import compare, distortion_error_over_image  # noqa: E402
 from calib.synthetic import SyntheticSession, observe  # noqa: E402
 from drivers.sim.scenarios import get_scenario  # noqa: E402
 
@@ -165,9 +165,9 @@ def main() -> None:
         other_scenarios([n.strip() for n in args.other.split(",") if n.strip()], args.seeds, args.noise)
         return
     if args.sessions:
-        from calib.detect import detect_session
-        from calib.result import CalibrationResult
-        from calib.session import SessionStore
+        from calib.detection.detect import detect_session
+        from calib.formats.session import SessionStore
+        from calib.models.result import CalibrationResult
 
         folders = sorted(f for f in Path(args.sessions).iterdir() if (f / "session.json").exists())
         print(f"rendered sessions under {args.sessions}; distortion error over the image (px)")

@@ -4,13 +4,13 @@ Public names are re-exported here; modules are one per concern (camera model, bo
 observations, session format, result format) and one per pipeline stage.
 """
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
 from calib.errors import CalibrationError, FormatError, ProcamError, SessionError, SpecError
-from calib.observations import BoardObservation, MirrorView, ProjectorView, SessionObservations, Skipped
-from calib.pattern import PatternSpec
-from calib.result import CalibrationResult, MirrorPlane
-from calib.session import Capture, RigInfo, SessionManifest, SessionStore
+from calib.formats.session import Capture, RigInfo, SessionManifest, SessionStore
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.observations import BoardObservation, MirrorView, ProjectorView, SessionObservations, Skipped
+from calib.models.pattern import PatternSpec
+from calib.models.result import CalibrationResult, MirrorPlane
 
 __all__ = [
     "BoardObservation", "CalibrationError", "CalibrationResult", "CameraModel", "Capture", "CharucoSpec",

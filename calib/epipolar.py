@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.camera import CameraModel
-from calib.result import CalibrationResult
+from calib.models.camera import CameraModel
+from calib.models.result import CalibrationResult
 from calib.transforms import invert_T, transform_points
 
 #: Optical path length interval (metres) where a board can plausibly be: see the module docstring.

@@ -47,7 +47,7 @@ class DiskFullError(ProcamError, OSError):
 
 
 class UntrustedCalibration(CalibrationError):
-    """A calibration ran but its result cannot be trusted (calib.trust): `report` (a TrustReport) lists
+    """A calibration ran but its result cannot be trusted (calib.quality.trust): `report` (a TrustReport) lists
     the reasons, each with a stable code; `result` is the rejected CalibrationResult, kept for
     diagnosis only (never hand it on as a calibration)."""
 

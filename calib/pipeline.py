@@ -1,12 +1,12 @@
 """The calibration pipeline: observations (or a session folder) in, CalibrationResult out.
 
 Methods are registered by name in METHODS (name -> function(obs, camera, progress) -> CalibrationResult):
-"paper" is the method of Vanherck et al. (calib.paper), "joint" the paper's result refined by one joint
-maximum-likelihood adjustment (calib.joint). Every result passes the trust check (calib.trust) before
+"paper" is the method of Vanherck et al. (calib.paper.method), "joint" the paper's result refined by one joint
+maximum-likelihood adjustment (calib.joint.method). Every result passes the trust check (calib.quality.trust) before
 it is returned: an untrusted calibration raises UntrustedCalibration instead.
 
 `progress`, when given, is called as progress(done, total, label) (the same convention as
-calib.detect.detect_session); `label` names the stage.
+calib.detection.detect.detect_session); `label` names the stage.
 """
 
 from __future__ import annotations
@@ -19,13 +19,13 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from calib.camera import CameraModel
 from calib.errors import CalibrationError, FormatError, UntrustedCalibration
-from calib.joint import calibrate_joint
-from calib.observations import SessionObservations
-from calib.paper import Progress, calibrate_paper
-from calib.result import CalibrationResult
-from calib.trust import check_calibration
+from calib.joint.method import calibrate_joint
+from calib.models.camera import CameraModel
+from calib.models.observations import SessionObservations
+from calib.models.result import CalibrationResult
+from calib.paper.method import Progress, calibrate_paper
+from calib.quality.trust import check_calibration
 
 Method = Callable[[SessionObservations, "CameraModel | None", "Progress | None"], CalibrationResult]
 
@@ -33,7 +33,7 @@ Method = Callable[[SessionObservations, "CameraModel | None", "Progress | None"]
 METHODS: dict[str, Method] = {"paper": calibrate_paper, "joint": calibrate_joint}
 
 
-#: what calibrate_observations / calibrate_session do with the trust check (calib.trust): "check" raises
+#: what calibrate_observations / calibrate_session do with the trust check (calib.quality.trust): "check" raises
 #: UntrustedCalibration for a result that fails it; "accept" keeps the result with the reasons recorded
 #: in diagnostics["trust"] (an expert's override, `procam calibrate --accept-untrusted`); None skips it
 #: (benchmarks that study the methods themselves).
@@ -82,8 +82,8 @@ def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, wor
     `progress`) follows detection, `progress` the calibration stages. `detect_cache`: "use" (reuse
     the detections of earlier runs kept in the session folder), "refresh" or "off" (detect_session).
     `trust`: the trust check (TRUST_MODES); an untrusted result raises UntrustedCalibration."""
-    from calib.detect import detect_session
-    from calib.session import SessionStore
+    from calib.detection.detect import detect_session
+    from calib.formats.session import SessionStore
 
     store = SessionStore.open(folder)
     t0 = time.perf_counter()

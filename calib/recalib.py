@@ -47,11 +47,11 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from calib.board_pose import solve_board_pose
-from calib.camera import CameraModel
 from calib.errors import CalibrationError
-from calib.observations import BoardObservation, SessionObservations
-from calib.result import CalibrationResult, MirrorPlane
+from calib.models.camera import CameraModel
+from calib.models.observations import BoardObservation, SessionObservations
+from calib.models.result import CalibrationResult, MirrorPlane
+from calib.paper.board_pose import solve_board_pose
 from calib.transforms import make_T, rotation_angle_deg, transform_points
 
 PARTS = ("camera", "mirror", "projector")
@@ -243,7 +243,7 @@ class Fit:
 
 
 def _joint_names(model: _Model) -> tuple[str, ...]:
-    """The global parameters of `model` under the names of calib.joint's covariance (the projector's
+    """The global parameters of `model` under the names of calib.joint.method's covariance (the projector's
     rotation and the mirror's tilts in this module's own parametrisation: _updated_uncertainty converts)."""
     names = []
     for p in model.blocks:
@@ -806,8 +806,8 @@ def _same_quantity(sentence: str, others: list[str]) -> str | None:
 def _to_joint(fit: Fit, result: CalibrationResult) -> np.ndarray:
     """The Jacobian A of the joint's parametrisation with respect to this module's, at `result`
     (cov_joint = A cov A^T): rotation vector -> Gibbs vector (1/2); the mirror's tilts from this
-    module's tangent basis to calib.joint's at the new normal."""
-    from calib.joint import _tangent_basis as joint_basis
+    module's tangent basis to calib.joint.method's at the new normal."""
+    from calib.joint.method import _tangent_basis as joint_basis
 
     A = np.eye(len(fit.names))
     names = list(fit.names)
@@ -888,8 +888,8 @@ def _with_updated_uncertainty(result: CalibrationResult, previous: CalibrationRe
                           "note": "the re-fitted parameters' covariance from the recalibration's captures"
                                   + (" and the intrinsics prior" if intrinsics == "prior" else
                                      " with everything else held exact") + "; the rest the previous calibration's"}
-    from calib.projection_uncertainty import projection_uncertainty
-    from calib.trust import check_calibration
+    from calib.quality.projection_uncertainty import projection_uncertainty
+    from calib.quality.trust import check_calibration
 
     out = result.with_(uncertainty=u)
     if previous.projection_uncertainty is not None:

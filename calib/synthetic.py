@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
-from calib.observations import (
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.observations import (
     STEP_REAL_MIRROR,
     STEP_REAL_VIRTUAL,
     VIEW_DIRECT,
@@ -27,8 +27,8 @@ from calib.observations import (
     ProjectorView,
     SessionObservations,
 )
-from calib.pattern import PatternSpec
-from calib.result import CalibrationResult, MirrorPlane
+from calib.models.pattern import PatternSpec
+from calib.models.result import CalibrationResult, MirrorPlane
 from calib.transforms import invert_T, make_T, rotation_about, transform_points
 
 

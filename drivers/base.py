@@ -11,7 +11,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from calib.camera import CameraModel
+from calib.models.camera import CameraModel
 
 
 @dataclass(frozen=True)

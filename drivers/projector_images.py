@@ -15,7 +15,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from calib.errors import SpecError
-from calib.pattern import PatternSpec
+from calib.models.pattern import PatternSpec
 
 Size = tuple[int, int]  # (width, height)
 
@@ -58,7 +58,7 @@ def white(size: Size) -> np.ndarray:
 
 def pattern_image(spec: PatternSpec, size: Size, position: int) -> tuple[np.ndarray, np.ndarray]:
     """(image (H, W) uint8, points (N, 2)) of `spec` at pattern position `position` (0-based):
-    calib.pattern.PatternSpec.render, so detection and display agree on every point."""
+    calib.models.pattern.PatternSpec.render, so detection and display agree on every point."""
     w, h = _check_size(size)
     return spec.render(w, h, position)
 

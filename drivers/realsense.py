@@ -52,7 +52,7 @@ with the device still present raises DeviceTimeout. `reconnect(timeout_s)` (or `
 reopens the device when it is back and re-applies the manual exposure / gain and the emitter setting.
 
 Factory intrinsics: see `convert_intrinsics` and docs/DRIVERS.md for how each librealsense
-distortion model becomes an OpenCV-style calib.camera.CameraModel.
+distortion model becomes an OpenCV-style calib.models.camera.CameraModel.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from calib.camera import CameraModel
+from calib.models.camera import CameraModel
 from drivers.base import Frame
 from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 

@@ -8,8 +8,8 @@ of the sequential "paper" method and of the joint maximum-likelihood refinement.
     python examples/01_synthetic_paper_vs_joint.py
 """
 
-from calib.metrics import compare
 from calib.pipeline import calibrate_observations
+from calib.quality.metrics import compare
 from calib.synthetic import make_rig, make_session, observe
 
 rig = make_rig(angle_deg=136)

@@ -11,9 +11,9 @@ import tempfile
 from pathlib import Path
 
 from app.cli import main as procam
-from calib.metrics import compare
+from calib.models.result import CalibrationResult
 from calib.pipeline import calibrate_session
-from calib.result import CalibrationResult
+from calib.quality.metrics import compare
 
 out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(tempfile.mkdtemp()) / "session"
 procam(["simulate", "nonoverlap-136", "--out", str(out), "--seed", "3"])

@@ -9,8 +9,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from calib.metrics import compare
-from calib.observations import SessionObservations
+from calib.models.observations import SessionObservations
+from calib.quality.metrics import compare
 from calib.synthetic import make_direct_rig, make_rig, make_session, observe
 
 
@@ -196,7 +196,7 @@ def _shade(albedo, Xb, T_cam_board, rig, proj_img):
 
 def write_session(folder, ss, k: int = 2, projector_indices=None, mirror_indices=None):
     """Render a synthetic session into a session folder (SessionStore) and return the store."""
-    from calib.session import RigInfo, SessionManifest, SessionStore
+    from calib.formats.session import RigInfo, SessionManifest, SessionStore
 
     rig = ss.rig
     manifest = SessionManifest(

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.pattern import PatternSpec
+from calib.models.boards import CharucoSpec
+from calib.models.pattern import PatternSpec
 
 #: horizontal flip of a W-wide image as a pixel homography: x -> (W - 1) - x
 def flip_H(width: int) -> np.ndarray:

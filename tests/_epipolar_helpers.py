@@ -81,7 +81,7 @@ def stripe_frames(size=(640, 400), polyline=None, width_px=3.0, blur_px=0.8, alb
 def make_sim_session(folder, scenario: str = "nonoverlap-136", seed: int = 0, calibration=None, driver: str = "sim"):
     """A session folder as a simulated station session leaves it, without captures: session.json whose
     rig names the simulated scenario, plus `calibration` (a CalibrationResult) as calibration.json."""
-    from calib.session import RigInfo, SessionManifest, SessionStore
+    from calib.formats.session import RigInfo, SessionManifest, SessionStore
     from drivers.sim.scenarios import get_scenario
 
     sc = get_scenario(scenario, seed)

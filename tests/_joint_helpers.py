@@ -9,8 +9,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from calib.pattern import PatternSpec
-from calib.result import CalibrationResult, MirrorPlane
+from calib.models.pattern import PatternSpec
+from calib.models.result import CalibrationResult, MirrorPlane
 from calib.synthetic import d455_camera, make_direct_rig, make_rig, make_session, observe, portable_projector
 from calib.transforms import rotation_about
 

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.observations import VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.session import RigInfo, SessionManifest, SessionStore
+from calib.formats.session import RigInfo, SessionManifest, SessionStore
+from calib.models.boards import CharucoSpec
+from calib.models.observations import VIEW_MIRROR
+from calib.models.pattern import PatternSpec
 from calib.synthetic import make_rig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -152,7 +152,7 @@ def text_input(page, label: str):
 def tick_until_projector_captures(station, machine, n: int, max_ticks: int = 300) -> None:
     """Start a real-virtual session and let the station tick (the simulated operator moving the board)
     until `n` projector captures are taken, or `max_ticks` have passed."""
-    from calib.observations import STEP_PROJECTOR
+    from calib.models.observations import STEP_PROJECTOR
 
     machine.start_session()
     machine.choose_mirror_method("real-virtual")

@@ -17,10 +17,10 @@ from app.board_sheet import BlankArea, Sheet, Fill, board_rects, layout_sheet, s
 from app.cli import main
 from app.commands.board import PATTERN_SIZES, asset_files
 from app.sheet_writers import rasterise, sheet_pdf, sheet_svg
-from calib.boards import CharucoSpec
+from calib.detection.detect import detect_board
 from calib.errors import SpecError
-from calib.detect import detect_board
-from calib.pattern import PatternSpec
+from calib.models.boards import CharucoSpec
+from calib.models.pattern import PatternSpec
 from calib.synthetic import BoardLayout
 from drivers.projector_images import pattern_image
 from drivers.sim.scenarios import default_mirror_board, default_projector_board

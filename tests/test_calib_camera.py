@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from _calib_helpers import observations, rel_err, replace_obs, session
-from calib.board_pose import MIRROR_BOARD, solve_board_pose, view_object_points
-from calib.camera_calib import calibrate_camera
 from calib.errors import CalibrationError
-from calib.observations import BoardObservation, ProjectorView
+from calib.models.observations import BoardObservation, ProjectorView
+from calib.paper.board_pose import MIRROR_BOARD, solve_board_pose, view_object_points
+from calib.paper.camera import calibrate_camera
 from calib.transforms import transform_points
 
 
@@ -135,7 +135,7 @@ def test_zhang_statistics_equal_opencvs_extended_calibration(flags):
     principal point."""
     import cv2
 
-    from calib.board_pose import calibrate_zhang, zhang_closed_form, zhang_statistics
+    from calib.paper.board_pose import calibrate_zhang, zhang_closed_form, zhang_statistics
 
     flags = {0: 0, "fix_k3": cv2.CALIB_FIX_K3, "rational": cv2.CALIB_RATIONAL_MODEL}[flags]
     obs = observations("136", noise_px=0.1)
@@ -157,8 +157,8 @@ def test_zhang_statistics_equal_opencvs_extended_calibration(flags):
 def test_zhang_closed_form_finds_an_off_centre_principal_point():
     """A projector's principal point lies near its bottom edge; the closed form (used to start OpenCV's
     LM, whose own start fixes it at the image centre) recovers it exactly from noise-free planar views."""
-    from calib.board_pose import zhang_closed_form
-    from calib.camera import CameraModel
+    from calib.models.camera import CameraModel
+    from calib.paper.board_pose import zhang_closed_form
     from calib.transforms import T_from_rvec_tvec
 
     K = np.array([[2300.0, 0, 975.0], [0, 2300.0, 1010.0], [0, 0, 1]])
@@ -181,7 +181,7 @@ def test_zhang_restarts_only_when_a_gauss_newton_step_would_still_move_the_intri
     the minimum; calibrate_zhang then restarts only in the first case."""
     import cv2
 
-    from calib import board_pose as BP
+    from calib.paper import board_pose as BP
 
     obs = observations("136", noise_px=0.1)
     spec = obs.projector_board
@@ -213,8 +213,8 @@ def test_zhang_calibrates_a_projector_whose_principal_point_lies_outside_its_ima
     the image"); calibrate_zhang still recovers the intrinsics exactly from noise-free views."""
     import cv2
 
-    from calib.board_pose import calibrate_zhang, zhang_closed_form
-    from calib.camera import CameraModel
+    from calib.models.camera import CameraModel
+    from calib.paper.board_pose import calibrate_zhang, zhang_closed_form
     from calib.transforms import T_from_rvec_tvec
 
     K = np.array([[2300.0, 0, 975.0], [0, 2300.0, cy], [0, 0, 1]])

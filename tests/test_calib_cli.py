@@ -10,10 +10,10 @@ import pytest
 from _calib_helpers import write_session
 from app.cli import main
 from calib.errors import FormatError
-from calib.metrics import compare
+from calib.formats.session import RigInfo, SessionManifest, SessionStore
+from calib.models.result import CalibrationResult
 from calib.pipeline import load_camera_intrinsics
-from calib.result import CalibrationResult
-from calib.session import RigInfo, SessionManifest, SessionStore
+from calib.quality.metrics import compare
 from calib.synthetic import make_rig, make_session
 
 

@@ -5,8 +5,8 @@ import pytest
 
 from _calib_helpers import observations, replace_obs, session
 from calib.errors import CalibrationError
-from calib.mirror_calib import calibrate_mirror, fit_plane, ransac_plane
-from calib.observations import BoardObservation, MirrorView
+from calib.models.observations import BoardObservation, MirrorView
+from calib.paper.mirror import calibrate_mirror, fit_plane, ransac_plane
 
 
 def _angle_deg(a, b):

@@ -8,9 +8,9 @@ import pytest
 
 from _calib_helpers import metrics, observations, replace_obs, session
 from calib.errors import CalibrationError
-from calib.observations import Skipped
+from calib.models.observations import Skipped
+from calib.models.result import CalibrationResult
 from calib.pipeline import METHODS, calibrate_observations
-from calib.result import CalibrationResult
 
 
 @pytest.mark.parametrize("rig", ["90", "136", "180", "direct"])

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from _calib_helpers import observations, rel_err, replace_obs, session
-from calib.board_pose import solve_board_pose
 from calib.errors import CalibrationError
-from calib.observations import BoardObservation, ProjectorView
-from calib.projector_calib import calibrate_projector, pattern_points_on_board
+from calib.models.observations import BoardObservation, ProjectorView
+from calib.paper.board_pose import solve_board_pose
+from calib.paper.projector import calibrate_projector, pattern_points_on_board
 from calib.synthetic import projector_points_on_board
 from calib.transforms import FLIP_X, invert_T, rotation_angle_deg
 

@@ -19,12 +19,12 @@ from pathlib import Path
 
 import pytest
 
-import calib.detect
+import calib.detection.detect
 import calib.pipeline
 from app.cli import main
 from app.commands._progress import BARS, LINES, OFF, Progress, progress_mode
 from app.verification import VerificationReport, file_sha256, verification_is_stale
-from calib.result import CalibrationResult
+from calib.models.result import CalibrationResult
 
 SIM_ARGS = ["--per-position", "1", "--mirror-count", "3", "--quality", "live", "--workers", "1"]
 
@@ -49,15 +49,15 @@ def snapshot(folder: Path) -> dict[str, str]:
 
 @pytest.fixture
 def count_detection(monkeypatch):
-    """Counts calls of the detector (calib.pipeline imports detect_session from calib.detect at call time)."""
+    """Counts calls of the detector (calib.pipeline imports detect_session from calib.detection.detect at call time)."""
     calls = []
-    real = calib.detect.detect_session
+    real = calib.detection.detect.detect_session
 
     def counting(*a, **kw):
         calls.append(1)
         return real(*a, **kw)
 
-    monkeypatch.setattr(calib.detect, "detect_session", counting)
+    monkeypatch.setattr(calib.detection.detect, "detect_session", counting)
     return calls
 
 
@@ -333,12 +333,12 @@ def test_verification_json_names_the_image_of_its_pixels(tmp_path):
 
 # ---- unexpected exceptions (issue 13 item 9) ----------------------------------------------------------
 def test_unexpected_exception_is_one_line_with_a_traceback_file(sim_session, capsys, monkeypatch):
-    import calib.metrics
+    import calib.quality.metrics
 
     def broken(*a, **kw):
         raise RuntimeError("boom in compare")
 
-    monkeypatch.setattr(calib.metrics, "compare", broken)
+    monkeypatch.setattr(calib.quality.metrics, "compare", broken)
     rc = main(["evaluate", str(sim_session / "calibration.json"), str(sim_session / "ground_truth.json")])
     line = one_error_line(capsys.readouterr().err, "evaluate")
     assert rc == 2 and "unexpected RuntimeError: boom in compare" in line
@@ -353,7 +353,7 @@ def test_unexpected_exception_is_one_line_with_a_traceback_file(sim_session, cap
     def oserror(*a, **kw):
         raise OSError(errno.EIO, "Input/output error", "/some/file")
 
-    monkeypatch.setattr(calib.metrics, "compare", oserror)
+    monkeypatch.setattr(calib.quality.metrics, "compare", oserror)
     assert main(["evaluate", str(sim_session / "calibration.json"), str(sim_session / "ground_truth.json")]) == 2
     line = one_error_line(capsys.readouterr().err, "evaluate")
     assert "cannot access /some/file: Input/output error" in line
@@ -362,7 +362,7 @@ def test_unexpected_exception_is_one_line_with_a_traceback_file(sim_session, cap
     def interrupted(*a, **kw):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(calib.metrics, "compare", interrupted)
+    monkeypatch.setattr(calib.quality.metrics, "compare", interrupted)
     assert main(["evaluate", str(sim_session / "calibration.json"), str(sim_session / "ground_truth.json")]) == 130
     assert capsys.readouterr().err.strip() == "procam evaluate: interrupted"
 

@@ -12,16 +12,16 @@ from _detect_helpers import (
     render_board_scene,
     synthetic_homographies,
 )
-from calib.boards import CharucoSpec
-from calib.detect import (
+from calib.models.boards import CharucoSpec
+from calib.detection.detect import (
     DetectionFailure,
     detect_board,
     detect_pattern,
     detect_real_mirror,
     detect_real_virtual,
 )
-from calib.observations import STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, BoardObservation
-from calib.pattern import PatternSpec
+from calib.models.observations import STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, BoardObservation
+from calib.models.pattern import PatternSpec
 from calib.synthetic import make_session, observe
 
 SPEC = CharucoSpec(8, 6, "DICT_5X5_50", 50.0, 25.0)

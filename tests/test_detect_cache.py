@@ -8,11 +8,11 @@ from collections import Counter
 import numpy as np
 import pytest
 
-import calib.detect as D
-from calib import detect_cache
-from calib.detect import DetectionFailure, detect_session
-from calib.observations import BoardObservation, MirrorView
-from calib.session import SessionStore
+import calib.detection.detect as D
+from calib.detection import cache as detect_cache
+from calib.detection.detect import DetectionFailure, detect_session
+from calib.formats.session import SessionStore
+from calib.models.observations import BoardObservation, MirrorView
 from test_detect_session import session  # noqa: F401  (the module-scoped session fixture)
 
 
@@ -153,7 +153,7 @@ def test_unwritable_folder_still_detects_and_warns(store, monkeypatch):
 
 
 def test_detect_capture_keeps_exactly_what_calibration_would_detect(store, monkeypatch):
-    """The station detects each capture in the background as it is taken (calib.detect.detect_capture);
+    """The station detects each capture in the background as it is taken (calib.detection.detect.detect_capture);
     calibrating afterwards decodes and detects nothing, and gets the same observations as a fresh run."""
     st, ids = store
     present = [c.id for c in st.manifest.captures if st.image_path(c).exists()]

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from _detect_helpers import blank_region_proj_homography, board_homography, render_board_scene
-from calib.boards import CharucoSpec
-from calib.detect import detect_session
-from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL, VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.session import RigInfo, SessionManifest, SessionStore
+from calib.detection.detect import detect_session
+from calib.formats.session import RigInfo, SessionManifest, SessionStore
+from calib.models.boards import CharucoSpec
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL, VIEW_MIRROR
+from calib.models.pattern import PatternSpec
 
 SPEC = CharucoSpec(8, 6, "DICT_5X5_50", 50.0, 25.0)
 MSPEC = CharucoSpec(6, 5, "DICT_4X4_50", 30.0, 18.0)
@@ -99,7 +99,7 @@ def test_detect_session_keeps_good_captures_and_skips_bad_ones(session):
 
 
 def test_detect_session_inline_reads_each_image_once_and_matches_pool(session, monkeypatch):
-    import calib.detect as D
+    import calib.detection.detect as D
 
     store, _, _ = session
     pooled = detect_session(store, workers=2, cache="off")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from app.commands.simulate import simulate_session
-from calib.detect import detect_session
+from calib.detection.detect import detect_session
 from drivers.sim.scenarios import get_scenario
 from drivers.sim.scene_file import expected_points
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from calib.errors import SpecError
-from calib.pattern import PatternSpec
+from calib.models.pattern import PatternSpec
 from drivers import projector_images as pi
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from _drivers_helpers import run_python, screenshot, xvfb
-from calib.pattern import PatternSpec
+from calib.models.pattern import PatternSpec
 from drivers import projector_images as pi
 
 pytestmark = pytest.mark.display

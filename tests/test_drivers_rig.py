@@ -13,7 +13,7 @@ import pytest
 
 from _drivers_helpers import REPO, SoftwareRealSense, run_python, screenshot, xvfb
 from calib.errors import SpecError
-from calib.pattern import PatternSpec
+from calib.models.pattern import PatternSpec
 from drivers.base import CameraDriver, Operator, ProjectorDriver
 from drivers.errors import DeviceError
 from drivers.factory import STEPS, HumanOperator, default_rig_kind, open_rig

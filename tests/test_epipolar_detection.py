@@ -1,9 +1,9 @@
-"""Detection of a projected curve in camera images (calib.curve_detection) on synthetic stripe images."""
+"""Detection of a projected curve in camera images (calib.detection.curves) on synthetic stripe images."""
 
 import numpy as np
 import pytest
 
-from calib.curve_detection import detect_projected_curve, distance_to_curve, lit_region, stripe_signal
+from calib.detection.curves import detect_projected_curve, distance_to_curve, lit_region, stripe_signal
 from calib.epipolar import distance_to_polyline
 from tests._epipolar_helpers import checker_albedo, stripe_frames
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from calib.camera import CameraModel
+from calib.models.camera import CameraModel
 from calib.epipolar import (
     camera_curve_for_projector_pixel,
     camera_ray,
@@ -114,7 +114,7 @@ def test_depth_range_default_and_limits():
     # units: the same rig in metres gives the same curve
     T = np.array(res.T_cam_proj)
     T[:3, 3] /= 1000.0
-    from calib.result import MirrorPlane
+    from calib.models.result import MirrorPlane
 
     res_m = res.with_(T_cam_proj=T, mirror=MirrorPlane(res.mirror.normal, res.mirror.d / 1000.0), units="m")
     cm = epipolar_curve_samples(res_m, (640, 400))
@@ -126,7 +126,7 @@ def test_pixel_that_misses_the_mirror_gives_an_empty_curve():
     rig = make_rig(136)
     res = rig.ground_truth()
     # tilt the mirror so that it faces away from some pixels' rays: the plane is behind the camera
-    from calib.result import MirrorPlane
+    from calib.models.result import MirrorPlane
 
     away = res.with_(mirror=MirrorPlane(np.array([0.0, 0.0, 1.0]), 100.0))  # plane z = -100 mm
     assert camera_ray(away, (640, 400)) is None

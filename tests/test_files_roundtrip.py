@@ -8,13 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
 from calib.errors import FormatError, SessionError
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT, VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.result import CalibrationResult, MirrorPlane
-from calib.session import MANIFEST, Capture, RigInfo, SessionManifest, SessionStore
+from calib.formats.session import MANIFEST, Capture, RigInfo, SessionManifest, SessionStore
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT, VIEW_MIRROR
+from calib.models.pattern import PatternSpec
+from calib.models.result import CalibrationResult, MirrorPlane
 from calib.synthetic import d455_camera, make_rig, portable_projector
 
 PATTERN = PatternSpec.default_for(1280, 720)
@@ -177,7 +177,7 @@ def test_crash_between_image_and_manifest_leaves_an_orphan_that_is_ignored(tmp_p
 
 
 def test_crash_while_replacing_manifest_keeps_the_old_one(tmp_path, monkeypatch):
-    import calib.fileio as fileio
+    import calib.formats.fileio as fileio
 
     folder = tmp_path / "s"
     store = SessionStore.create(folder, _manifest(captures=()))

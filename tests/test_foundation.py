@@ -4,10 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
 from calib.errors import FormatError, SpecError
-from calib.pattern import PatternSpec
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.pattern import PatternSpec
 from calib.synthetic import d455_camera, make_direct_rig, make_rig, make_session, observe
 from calib.transforms import FLIP_X, invert_T, make_T, reflection_T, rotation_about, transform_points
 

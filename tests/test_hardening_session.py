@@ -17,14 +17,14 @@ import cv2
 import numpy as np
 import pytest
 
-import calib.fileio as fileio
+import calib.formats.fileio as fileio
 from app.station.machine import MIRROR_CAPTURE, Plan, RigCheck, SessionMachine
-from calib import detect_cache
-from calib.detect import detect_session
+from calib.detection import cache as detect_cache
+from calib.detection.detect import detect_session
 from calib.errors import DiskFullError, FormatError, SessionError
-from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
-from calib.session import MANIFEST, SessionStore
-from calib.session_lock import LOCK_FILE, read_holder
+from calib.formats.session import MANIFEST, SessionStore
+from calib.formats.session_lock import LOCK_FILE, read_holder
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
 from tests._station_helpers import REPO, TINY, Recorder, make_store, run_procam
 
 OK = [RigCheck("camera", True, "streaming"), RigCheck("projector", True, "up")]
@@ -167,7 +167,7 @@ def test_a_detection_cache_linked_outside_is_not_read_or_overwritten(tmp_path, o
 
 
 # ---- 4. one process per session folder ------------------------------------------------------------
-HOLD = ("import sys, time\nfrom calib.session import SessionStore\n"
+HOLD = ("import sys, time\nfrom calib.formats.session import SessionStore\n"
         "s = SessionStore.open(sys.argv[1], lock=True)\nprint('locked', flush=True)\ntime.sleep(120)\n")
 
 

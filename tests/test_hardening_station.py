@@ -31,7 +31,7 @@ from app.station.machine import ActionRefused, Plan
 from app.station.panel import DISCONNECT_TEXT, StationPanel
 from app.station.setup import RigRequest, create_session, make_machine, open_rig
 from app.station.station import Station, StationOptions
-from calib.observations import BoardObservation
+from calib.models.observations import BoardObservation
 from tests._station_helpers import StationProcess
 
 PROTOCOL = [f"viser-v{viser.__version__}"]

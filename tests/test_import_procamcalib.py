@@ -6,11 +6,11 @@ import pytest
 
 from _detect_helpers import blank_region_proj_homography, board_homography, render_board_scene
 from app.cli import main
-from calib.boards import CharucoSpec
-from calib.detect import detect_session
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT, VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.procamcalib import (
+from calib.detection.detect import detect_session
+from calib.models.boards import CharucoSpec
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT, VIEW_MIRROR
+from calib.models.pattern import PatternSpec
+from calib.formats.procamcalib import (
     RecordingError,
     detect_pattern_image,
     import_procamcalib,
@@ -18,7 +18,7 @@ from calib.procamcalib import (
     parse_pattern_folder_name,
     read_patterns,
 )
-from calib.session import SessionStore
+from calib.formats.session import SessionStore
 
 PROJ = (800, 600)
 PATTERN = PatternSpec("circles", 4, 9, spacing_px=22.0, radius_px=6.5, positions=3)
@@ -241,8 +241,8 @@ def test_simulated_recording_imports_and_calibrates(tmp_path):
     from dataclasses import replace
 
     from app.commands.simulate import simulate_session
-    from calib.metrics import compare
     from calib.pipeline import calibrate_session
+    from calib.quality.metrics import compare
     from drivers.sim.scenarios import get_scenario
 
     sc = replace(get_scenario("nonoverlap-136", seed=5), per_position=2, mirror_count=4)

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from _joint_helpers import ground_truth, observations, session
-from calib.conic import circle_boundary, circle_frame, ellipse_image_centre, polygon_centroid
-from calib.joint import JointOptions, build_problem, refine_joint
-from calib.metrics import compare
-from calib.pattern import PatternSpec
+from calib.joint.conic import circle_boundary, circle_frame, ellipse_image_centre, polygon_centroid
+from calib.joint.method import JointOptions, build_problem, refine_joint
+from calib.models.pattern import PatternSpec
+from calib.quality.metrics import compare
 from calib.synthetic import imaged_circle_centroids, projector_points_on_board
 from calib.transforms import rotation_about, transform_points
 
@@ -76,7 +76,7 @@ def test_conic_model_explains_the_observed_centroids():
     """At the true parameters the conic model predicts biased observations 6x better than the point
     model; with the 32-point centroid correction (the lens distortions' curvature across a blob),
     over 50x better."""
-    from calib.joint import _update_centroid_correction
+    from calib.joint.method import _update_centroid_correction
 
     kw = dict(pattern=BIG)
     obs = observations(circle_centroids=True, **kw)

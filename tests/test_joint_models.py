@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from _joint_helpers import ground_truth, observations, perturbed
-from calib.joint import JointOptions, refine_joint
-from calib.model_select import bic
+from calib.joint.method import JointOptions, refine_joint
+from calib.joint.model_select import bic
 
 STRONG_CAM = (-0.12, 0.09, 0.002, -0.0015, -0.04)
 STRONG_PROJ = (0.03, -0.05, 0.003, -0.002, 0.08)
@@ -76,7 +76,7 @@ def test_bic_penalises_parameters_and_floors_exact_fits():
 def test_chi2_survival_function_matches_scipy():
     from scipy.stats import chi2
 
-    from calib.model_select import chi2_sf
+    from calib.joint.model_select import chi2_sf
 
     for k in range(1, 13):
         for x in (1e-8, 0.01, 0.5, 1.0, 3.84, 7.8, 15.0, 40.0, 120.0, 400.0):
@@ -91,8 +91,8 @@ def test_a_prior_on_k3_shrinks_it_by_the_expected_fraction(solver):
     """The solver's zero-mean Gaussian prior (prob.prior, what the k3 shrinkage sets): with a precision equal
     to the data's own for k3, the estimate is halved (the quadratic model's identity: the prior moves k3 by
     var / (var + tau^2)) by both solvers, and the covariance's k3 variance is halved too."""
-    from calib.joint import build_problem, solve
-    from calib.uncertainty import marginal_covariance
+    from calib.joint.method import build_problem, solve
+    from calib.joint.uncertainty import marginal_covariance
 
     kw = dict(per_position=1)
     obs = observations(0.1, 6, **kw)

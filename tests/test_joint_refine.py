@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from _joint_helpers import ground_truth, observations, perturbed
-from calib.joint import JointOptions, build_problem, calibrate_joint, refine_joint
-from calib.metrics import compare
-from calib.observations import BoardObservation, ProjectorView
+from calib.joint.method import JointOptions, build_problem, calibrate_joint, refine_joint
+from calib.models.observations import BoardObservation, ProjectorView
+from calib.models.result import CalibrationResult
 from calib.pipeline import METHODS, calibrate_observations
-from calib.result import CalibrationResult
+from calib.quality.metrics import compare
 
 EXACT = JointOptions(pattern_model="point")
 
@@ -202,7 +202,7 @@ def test_jacobian_matches_finite_differences():
 def test_scipy_least_squares_reaches_the_same_optimum():
     """The default Levenberg-Marquardt (Schur complement) and scipy's least_squares (trf, sparse
     Jacobian, x_scale='jac') minimise the same problem to the same point; LM in fewer iterations."""
-    from calib.joint import solve
+    from calib.joint.method import solve
 
     kw = dict(per_position=1)
     obs = observations(0.1, 6, **kw)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from _joint_helpers import ground_truth, observations, parameter_errors, perturbed
-from calib.joint import JointOptions, build_problem, refine_joint, solve
-from calib.uncertainty import marginal_covariance
+from calib.joint.method import JointOptions, build_problem, refine_joint, solve
+from calib.joint.uncertainty import marginal_covariance
 
 
 @pytest.mark.parametrize("rig", ["136", "direct"])

@@ -5,7 +5,7 @@ only where there is a grid to draw."""
 import numpy as np
 
 from app.station.panel_uncertainty import NOT_COMPUTED, uncertainty_image, uncertainty_text
-from calib.projection_uncertainty import GRID, LARGE_SIGMA_PX, grid_pixels, large_regions
+from calib.quality.projection_uncertainty import GRID, LARGE_SIGMA_PX, grid_pixels, large_regions
 from calib.synthetic import make_rig
 
 

@@ -1,4 +1,4 @@
-"""Projection uncertainty over the image (calib.projection_uncertainty): the grid against a Monte-Carlo
+"""Projection uncertainty over the image (calib.quality.projection_uncertainty): the grid against a Monte-Carlo
 of the covariance, large where the session has no data, stored in calibration.json and read back."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from calib import projection_uncertainty as PU
 from calib.errors import FormatError
-from calib.joint import distort
+from calib.joint.method import distort
+from calib.models.result import CalibrationResult
 from calib.pipeline import calibrate_observations
-from calib.result import CalibrationResult
+from calib.quality import projection_uncertainty as PU
 from calib.synthetic import SyntheticSession, observe
 from drivers.sim.scenarios import get_scenario
 from tests._joint_helpers import observations

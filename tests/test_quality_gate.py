@@ -1,4 +1,4 @@
-"""The quality gate (calib/trust.py, the report's `quality` section; issue 15): a trusted calibration far
+"""The quality gate (calib/quality/trust.py, the report's `quality` section; issue 15): a trusted calibration far
 more uncertain than a full session is LOW QUALITY with its reasons, `procam calibrate` writes it and exits
 3; full sessions of several scenarios are not. Exact-geometry observations (calib.synthetic), no rendering,
 except one small rendered session for the command line."""
@@ -9,8 +9,8 @@ import json
 import pytest
 
 from calib.pipeline import calibrate_observations
+from calib.quality.trust import QUALITY_CODES, QualityThresholds, check_calibration, low_quality_lines
 from calib.synthetic import SyntheticSession, observe
-from calib.trust import QUALITY_CODES, QualityThresholds, check_calibration, low_quality_lines
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calib.errors import SpecError
-from calib.metrics import compare
+from calib.quality.metrics import compare
 from drivers.sim.bump import BUMP_PARTS, bump_scenario
 from drivers.sim.scenarios import get_scenario
 
@@ -75,7 +75,7 @@ def previous():
     sys.path.insert(0, str(Path(__file__).parent))
     from _joint_helpers import perturbed
 
-    from calib.joint import JointOptions, refine_joint
+    from calib.joint.method import JointOptions, refine_joint
 
     sc = get_scenario("nonoverlap-136", 0)
     obs = observe(_session(sc, 52, 14, 0), NOISE_PX, 1)
@@ -276,8 +276,8 @@ def test_prior_does_not_hide_a_refocus_and_falls_back_without_a_covariance():
 def inflated(prev, k: float):
     """`prev` with every 1-sigma k times larger (covariance k^2): trusted, but far more uncertain than a
     full session (the quality gate's LOW QUALITY), with its trust report and projection grids to match."""
-    from calib.projection_uncertainty import projection_uncertainty
-    from calib.trust import check_calibration
+    from calib.quality.projection_uncertainty import projection_uncertainty
+    from calib.quality.trust import check_calibration
 
     u = dict(prev.uncertainty)
     for dev in ("camera", "projector"):
@@ -398,7 +398,7 @@ def test_recalibrate_refuses_a_missing_previous_and_a_used_folder(tmp_path):
 @pytest.mark.slow
 def test_recalibrate_after_a_projector_bump_end_to_end(tmp_path):
     """A full simulated session, then `procam recalibrate --sim-bump projector` on it."""
-    from calib.result import CalibrationResult
+    from calib.models.result import CalibrationResult
     from calib.recalib import sha256_file
 
     full = tmp_path / "full"

@@ -13,10 +13,10 @@ from types import SimpleNamespace
 
 import pytest
 
-from calib.boards import CharucoSpec
 from calib.errors import SessionError
+from calib.formats.session import RigInfo, SessionManifest, SessionStore
+from calib.models.boards import CharucoSpec
 from calib.recalib import sha256_file
-from calib.session import RigInfo, SessionManifest, SessionStore
 from drivers.sim.scenarios import get_scenario
 
 

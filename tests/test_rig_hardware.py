@@ -170,7 +170,7 @@ def test_captures_through_the_driver_show_only_the_image_recorded_for_them(tmp_p
     from app.station.setup import RigRequest, create_session, make_machine, open_rig as open_station_rig
     from app.station.station import Station, StationOptions
     from app.verification import verify
-    from calib.observations import STEP_PROJECTOR
+    from calib.models.observations import STEP_PROJECTOR
 
     req = RigRequest("sim-realsense", "nonoverlap-136", 0)
     rig = open_station_rig(req, latency_ms=150.0)
@@ -208,8 +208,8 @@ def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
     assert man["state"]["rig_request"]["kind"] == "sim-realsense"
     settings = man["rig"]["camera_settings"]
     assert settings["driver"] == "realsense" and settings["emitter_enabled"] is False
-    from calib.metrics import compare
-    from calib.result import CalibrationResult
+    from calib.models.result import CalibrationResult
+    from calib.quality.metrics import compare
 
     m = compare(CalibrationResult.load_json(out / "calibration.json"),
                 CalibrationResult.load_json(out / "ground_truth.json"))

@@ -15,7 +15,7 @@ from app.station.machine import Plan
 from app.station.setup import RigRequest, create_session, make_machine, open_rig
 from app.station.station import Station, StationOptions
 from app.verification import _Grabber, verify
-from calib.observations import STEP_PROJECTOR
+from calib.models.observations import STEP_PROJECTOR
 from drivers.exposure import MAX_FRAMES, search_exposure
 from drivers.settle import apply_timing
 from drivers.sim.hardware import REFERENCE_EXPOSURE_US
@@ -266,7 +266,7 @@ def test_resume_reapplies_the_recorded_exposure_and_latency(tmp_path):
     rec = store.manifest.rig.camera_settings
     assert rig.projector.settle_s == pytest.approx(rec["projector"]["latency_ms"] / 1000.0, abs=1e-6)
     # a new process: fresh devices (auto exposure, emitter on, latency unknown), the session from disk
-    from calib.session import SessionStore
+    from calib.formats.session import SessionStore
 
     rig2 = open_rig(req, latency_ms=70.0)
     assert rig2.projector.settle_s == 0.0 and rig2.camera.settings_timeline.current["auto_exposure"]

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from _sim_helpers import blob_centroids, imaged_board_disc_centroid, imaged_circle_centroids
-from calib.camera import CameraModel
-from calib.detect import detect_board, detect_pattern, detect_real_mirror, detect_real_virtual
-from calib.pattern import PatternSpec
+from calib.detection.detect import detect_board, detect_pattern, detect_real_mirror, detect_real_virtual
+from calib.models.camera import CameraModel
+from calib.models.pattern import PatternSpec
 from calib.synthetic import BoardLayout, projector_points_on_board
 from calib.transforms import make_T, rotation_about, transform_points
 from drivers.sim.render import Mark, PlacedBoard, Renderer, RenderSettings, SceneState, layout_for
@@ -153,7 +153,7 @@ def test_circle_centroid_bias_is_rendered(sc_direct):
 
 
 def test_pattern_detection_matches_ground_truth(sc136):
-    """calib.detect finds the projected circles (in a mirrored view) where the exact geometry puts them."""
+    """calib.detection.detect finds the projected circles (in a mirrored view) where the exact geometry puts them."""
     rig = sc136.rig
     r = _renderer(sc136, RenderSettings(supersample=3))
     errs = []

@@ -5,7 +5,7 @@ its hardware-like timing is tested in tests/test_rig_timing.py."""
 import numpy as np
 import pytest
 
-from calib.detect import detect_board
+from calib.detection.detect import detect_board
 from calib.errors import ProcamError, SpecError
 from drivers.base import CameraDriver, Frame, Operator, ProjectorDriver
 from drivers.errors import DeviceError

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from calib.errors import SpecError
-from calib.result import CalibrationResult
+from calib.models.result import CalibrationResult
 from calib.synthetic import projector_points_on_board
 from calib.transforms import rotation_angle_deg, transform_points
 from drivers.sim.scenarios import DEFAULT_SCENARIO, get_scenario, list_scenarios

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from calib.detect import detect_board
-from calib.metrics import PAPER_HEADLINE, compare
-from calib.result import CalibrationResult
-from calib.session import SessionStore
+from calib.detection.detect import detect_board
+from calib.formats.session import SessionStore
+from calib.models.result import CalibrationResult
+from calib.quality.metrics import PAPER_HEADLINE, compare
 from drivers.sim.scenarios import get_scenario, list_scenarios
 
 

@@ -12,8 +12,8 @@ from app.station.autocapture import (
     pose_distance,
     pose_features,
 )
-from calib.boards import CharucoSpec
-from calib.observations import BoardObservation
+from calib.models.boards import CharucoSpec
+from calib.models.observations import BoardObservation
 from calib.synthetic import d455_camera
 from calib.transforms import make_T, rotation_about, transform_points
 

@@ -17,7 +17,7 @@ import pytest
 from playwright.sync_api import expect, sync_playwright
 
 from app.station.panel_results import RESULT_FILES
-from calib.session import SessionStore
+from calib.formats.session import SessionStore
 from tests._station_helpers import StationProcess, launch_chromium, text_input
 
 pytestmark = pytest.mark.browser

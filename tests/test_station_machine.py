@@ -20,8 +20,8 @@ from app.station.machine import (
     SessionMachine,
     Target,
 )
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
-from calib.session import SessionStore
+from calib.formats.session import SessionStore
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
 from calib.synthetic import d455_camera
 from tests._station_helpers import TINY, Recorder, make_store
 

@@ -67,7 +67,7 @@ def test_unchanged_signoff_from_the_panel(tmp_path):
     """`--sim-bump none`: the check ends "unchanged", the technician signs off with the button; what the
     sign-off writes: recalibration.json with the verdict and the operator's sign-off, calibration.json
     the previous calibration (verdict in its diagnostics, nothing re-estimated), no verification.json."""
-    from calib.result import CalibrationResult
+    from calib.models.result import CalibrationResult
     from tests.test_recalibrate import previous
 
     prev = tmp_path / "prev" / "calibration.json"

@@ -5,7 +5,7 @@ import numpy as np
 
 from app.station.autocapture import approximate_camera
 from app.station.rigview import rig_scene
-from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
 from calib.synthetic import make_rig, make_session, observe
 from calib.transforms import transform_points
 from tests._station_helpers import TINY, make_store

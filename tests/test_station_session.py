@@ -11,9 +11,9 @@ import cv2
 import pytest
 
 from app.station.machine import Plan
-from calib.metrics import compare
-from calib.result import CalibrationResult
-from calib.session import SessionStore
+from calib.formats.session import SessionStore
+from calib.models.result import CalibrationResult
+from calib.quality.metrics import compare
 from tests._station_helpers import popen_procam, run_procam
 
 

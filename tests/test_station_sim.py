@@ -8,8 +8,8 @@ import pytest
 from app.station.machine import CALIBRATION, ActionRefused, Plan
 from app.station.setup import RigRequest, create_session, make_machine, open_rig
 from app.station.station import Station, StationOptions
-from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
-from calib.session import SessionStore
+from calib.formats.session import SessionStore
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
 
 SMALL = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, min_projector_captures=6)
 
@@ -132,8 +132,8 @@ def test_small_session_calibrates_near_ground_truth(tmp_path, monkeypatch):
     import threading
     from collections import Counter
 
-    import calib.detect as D
-    from calib.metrics import compare
+    import calib.detection.detect as D
+    from calib.quality.metrics import compare
 
     detected = Counter()
     real = D._detect_job

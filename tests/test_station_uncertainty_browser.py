@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from playwright.sync_api import expect, sync_playwright
 
-from calib.projection_uncertainty import large_regions
+from calib.quality.projection_uncertainty import large_regions
 from tests._station_helpers import StationProcess, launch_chromium
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]

@@ -1,4 +1,4 @@
-"""The trust check (calib/trust.py): degenerate sessions fail with their reasons (stable codes), through
+"""The trust check (calib/quality/trust.py): degenerate sessions fail with their reasons (stable codes), through
 both methods, `procam calibrate` and the station; full simulated sessions of every scenario pass."""
 
 import dataclasses
@@ -9,11 +9,11 @@ import pytest
 
 from _calib_helpers import observations
 from calib.errors import CalibrationError, UntrustedCalibration
-from calib.observations import BoardObservation, ProjectorView
+from calib.models.observations import BoardObservation, ProjectorView
+from calib.models.result import CalibrationResult, MirrorPlane
 from calib.pipeline import calibrate_observations
-from calib.result import CalibrationResult, MirrorPlane
+from calib.quality.trust import CODES, TrustThresholds, check_calibration, radial_fold_fraction
 from calib.synthetic import SyntheticSession, make_rig, observe
-from calib.trust import CODES, TrustThresholds, check_calibration, radial_fold_fraction
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
@@ -104,7 +104,7 @@ def test_non_finite_observation_is_a_calibration_error(method, where):
 
 def test_refine_joint_reports_non_finite_instead_of_crashing():
     """NaN reaching the solver itself (not via the pipeline's input check) becomes a CalibrationError."""
-    from calib.joint import refine_joint
+    from calib.joint.method import refine_joint
 
     obs, _ = _with_nan("pattern")
     init = calibrate_observations(_normal(), "paper")
@@ -218,7 +218,7 @@ def test_accept_mode_keeps_the_result_with_its_reasons():
 @pytest.fixture
 def empty_session(tmp_path):
     """A session folder whose detection is replaced by given observations (no images to render)."""
-    from calib.session import RigInfo, SessionManifest, SessionStore
+    from calib.formats.session import RigInfo, SessionManifest, SessionStore
 
     obs = _normal()
     manifest = SessionManifest(rig=RigInfo(obs.camera_size, obs.projector_size, obs.view, driver="test"),
@@ -229,9 +229,9 @@ def empty_session(tmp_path):
 
 
 def _detect_returns(monkeypatch, obs):
-    import calib.detect
+    import calib.detection.detect
 
-    monkeypatch.setattr(calib.detect, "detect_session", lambda *a, **k: obs)
+    monkeypatch.setattr(calib.detection.detect, "detect_session", lambda *a, **k: obs)
 
 
 @pytest.mark.parametrize("method", ["paper", "joint"])

@@ -12,10 +12,10 @@ import sys
 import numpy as np
 import pytest
 
-from calib.camera_calib import calibrate_camera
-from calib.detect import detect_board, detect_real_mirror
-from calib.metrics import distortion_error_over_image
+from calib.detection.detect import detect_board, detect_real_mirror
+from calib.paper.camera import calibrate_camera
 from calib.pipeline import calibrate_observations
+from calib.quality.metrics import distortion_error_over_image
 from calib.synthetic import SyntheticSession, observe
 from calib.transforms import transform_points
 from drivers.sim.render import PlacedBoard, Renderer, RenderSettings, SceneState, layout_for

@@ -1,4 +1,4 @@
-"""The quality gate's exit status (calib.trust, "quality"): shared by `procam calibrate` and `procam session`.
+"""The quality gate's exit status (calib.quality.trust, "quality"): shared by `procam calibrate` and `procam session`.
 
 Exit codes of the commands: 0 good, 1 verification failed, 2 an error (or an untrusted result, not
 written), 3 a LOW QUALITY calibration (trusted and written, but far more uncertain than a full session)."""
@@ -12,7 +12,7 @@ EXIT_LOW_QUALITY = 3
 
 def report_low_quality(result, file=None) -> bool:
     """Print the low-quality reasons of a result (stderr by default); True when there were any."""
-    from calib.trust import low_quality_lines
+    from calib.quality.trust import low_quality_lines
 
     lines = low_quality_lines(result)
     if lines:

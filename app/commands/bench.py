@@ -2,7 +2,7 @@
 
 accuracy: for every scenario and seed, simulate a session (drivers.sim) into a temporary folder, detect
 once, calibrate with every method registered in calib.pipeline.METHODS (or --methods), compare with the
-ground truth (calib.metrics.compare) and print the paper's metrics beside its headline numbers, with the
+ground truth (calib.quality.metrics.compare) and print the paper's metrics beside its headline numbers, with the
 time each stage took.
 render: frames per second of the simulated camera per render mode (see benchmarks/render_speed.py).
 """
@@ -72,11 +72,11 @@ def accuracy_runs(scenarios, seeds: int, methods, quality: str = "session", keep
     from dataclasses import replace
 
     from app.commands.simulate import simulate_session
-    from calib.detect import detect_session
+    from calib.detection.detect import detect_session
     from calib.errors import ProcamError
-    from calib.metrics import compare, distortion_error_over_image
+    from calib.formats.session import SessionStore
     from calib.pipeline import calibrate_observations
-    from calib.session import SessionStore
+    from calib.quality.metrics import compare, distortion_error_over_image
     from drivers.sim.scenarios import get_scenario
 
     runs = []
@@ -120,7 +120,7 @@ def accuracy_runs(scenarios, seeds: int, methods, quality: str = "session", keep
                         continue
                     row["metrics"] = compare(res, gt).to_dict()
                     # mean distance over the image between where the estimated and the true distortion put
-                    # the same ray, both with the true K (calib.metrics.distortion_error_over_image)
+                    # the same ray, both with the true K (calib.quality.metrics.distortion_error_over_image)
                     row["metrics"]["cam_dist_img_px"] = distortion_error_over_image(res.camera, gt.camera)
                     row["metrics"]["proj_dist_img_px"] = distortion_error_over_image(res.projector, gt.projector)
                     row["timing_s"] = {k: v for k, v in (res.diagnostics or {}).get("timing_s", {}).items()
@@ -143,7 +143,7 @@ def _fmt(x, fmt):
 
 def accuracy_table(runs, seeds: int) -> str:
     """Mean over seeds of each metric, per scenario and method, with the paper's headline row."""
-    from calib.metrics import PAPER_HEADLINE
+    from calib.quality.metrics import PAPER_HEADLINE
 
     head = ["scenario", "method"] + [c[1] for c in COLUMNS] + ["skipped", "time s"]
     rows = [["paper (synthetic)", "paper"] + [_fmt(PAPER_HEADLINE.get(k), f) if k else "-" for _, _, f, k in COLUMNS]
@@ -244,7 +244,7 @@ def run_accuracy(args) -> int:
     print()
     print(timing_table(runs))
     if args.json:
-        from calib.fileio import atomic_write_text
+        from calib.formats.fileio import atomic_write_text
 
         from app.commands._outputs import write_error
 

@@ -67,7 +67,7 @@ def asset_files() -> dict[str, bytes]:
     mirror board, and the default circle pattern at its 13 positions at each default projector size."""
     from app.board_sheet import BlankArea
     from app.sheet_writers import png_bytes
-    from calib.pattern import PatternSpec
+    from calib.models.pattern import PatternSpec
     from calib.synthetic import BoardLayout
     from drivers.projector_images import pattern_images
     from drivers.sim.scenarios import default_mirror_board, default_projector_board
@@ -101,9 +101,9 @@ def _check_out(path: Path) -> None:
 
 
 def run(args) -> int:
-    from calib.boards import CharucoSpec
     from calib.errors import SpecError
-    from calib.fileio import atomic_write_bytes
+    from calib.formats.fileio import atomic_write_bytes
+    from calib.models.boards import CharucoSpec
 
     if args.assets:
         if args.board or args.out or args.blank_area or args.dpi is not None:

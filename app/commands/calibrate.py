@@ -94,8 +94,8 @@ def validate(args):
     """Every check that needs no detection: the session, the options, the intrinsics file, the outputs.
     Returns (session, camera model or None, JSON path, YAML path, note or None)."""
     from calib.errors import SessionError
+    from calib.formats.session import SessionStore
     from calib.pipeline import METHODS, load_camera_intrinsics
-    from calib.session import SessionStore
 
     from app.commands._outputs import check_output_file, result_paths
 
@@ -236,9 +236,9 @@ def _fmt_uncertainty(unc, units: str) -> list[str]:
 
 
 def _fmt_projection_uncertainty(pu) -> list[str]:
-    """Projection-uncertainty lines (calib.projection_uncertainty): median and max per device, and where
+    """Projection-uncertainty lines (calib.quality.projection_uncertainty): median and max per device, and where
     it is large; none when the result has no grids."""
-    from calib.projection_uncertainty import summary_line
+    from calib.quality.projection_uncertainty import summary_line
 
     out = [summary_line(pu, dev) for dev in ("camera", "projector")] if isinstance(pu, dict) else []
     return [line for line in out if line]

@@ -40,8 +40,8 @@ def _check_file(path: str, what: str, example: str) -> None:
 
 def run(args) -> int:
     from calib.errors import FormatError, SessionError
-    from calib.metrics import compare
-    from calib.result import CalibrationResult
+    from calib.models.result import CalibrationResult
+    from calib.quality.metrics import compare
 
     _check_file(args.result, "RESULT", "calibration.json")
     _check_file(args.ground_truth, "GROUND_TRUTH", "ground_truth.json")

@@ -34,9 +34,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from calib.boards import CharucoSpec
     from calib.errors import SpecError
-    from calib.procamcalib import import_procamcalib
+    from calib.formats.procamcalib import import_procamcalib
+    from calib.models.boards import CharucoSpec
 
     board = CharucoSpec.parse(args.board, units=args.units)
     mboard = CharucoSpec.parse(args.mirror_board, units=args.units) if args.mirror_board else None

@@ -75,7 +75,7 @@ def run(args) -> int:
     import sys
 
     from app.commands._quality import EXIT_LOW_QUALITY, report_low_quality
-    from calib.trust import check_calibration
+    from calib.quality.trust import check_calibration
 
     res = outcome.result  # the quality gate of the calibration written (computed where the file has none)
     if not isinstance((res.diagnostics or {}).get("trust"), dict):
@@ -139,7 +139,7 @@ def prepare(args, log):
     )
     from app.station.setup import DEFAULT_SCENARIO, RigRequest, default_rig_kind, open_rig, resume_request
     from calib.errors import SessionError
-    from calib.result import CalibrationResult
+    from calib.models.result import CalibrationResult
     from drivers.factory import is_simulated
 
     src = find_previous(args.previous)  # a clear error before any device is opened
@@ -157,7 +157,7 @@ def prepare(args, log):
         req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
         kind = req.kind
         if is_simulated(kind) and args.sim_bump is None:  # the same simulated world as before the stop
-            from calib.session import SessionStore
+            from calib.formats.session import SessionStore
 
             args.sim_bump = (SessionStore.open(folder).manifest.rig.camera_settings or {}).get("bump")
     elif folder.exists() and any(folder.iterdir()):
@@ -190,7 +190,7 @@ def open_recalibration(args, kind: str, rig, ctx, log):
     from app.recalibration import RECALIBRATION_PLAN, RecalibrationMachine, RecalibrationStation, check_rig_matches
     from app.station.setup import check_same_rig, create_session
     from app.station.station import StationOptions
-    from calib.session import SessionStore
+    from calib.formats.session import SessionStore
 
     req = ctx["req"]
     check_rig_matches(ctx["previous"], ctx["specs"], rig, req.scenario)
@@ -227,8 +227,8 @@ def summary(rec: dict, folder, elapsed_s: float) -> str:
     gt = load_ground_truth(folder)
     cal = Path(folder) / "calibration.json"
     if gt is not None and cal.exists():
-        from calib.metrics import compare
-        from calib.result import CalibrationResult
+        from calib.models.result import CalibrationResult
+        from calib.quality.metrics import compare
 
         mt = compare(CalibrationResult.load_json(cal), gt)
         lines.append(f"  vs ground truth: distance {mt.distance:.3f} {mt.units}, angle {mt.angle_deg:.4f} deg, CamK "

@@ -82,10 +82,10 @@ def open_session(args, log=print):
         DEFAULT_SCENARIO, RigRequest, check_same_rig, create_session, default_rig_kind, make_machine, open_rig,
         resume_request,
     )
-    from calib.boards import CharucoSpec
     from calib.errors import SessionError
-    from calib.observations import VIEW_DIRECT, VIEW_MIRROR
-    from calib.session import SessionStore
+    from calib.formats.session import SessionStore
+    from calib.models.boards import CharucoSpec
+    from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 
     if args.resume:
         folder = Path(args.resume)
@@ -155,7 +155,7 @@ def summary(machine, folder, elapsed_s: float) -> str:
         gt = load_ground_truth(folder)
         if gt is not None:
             try:
-                from calib.metrics import compare
+                from calib.quality.metrics import compare
 
                 mt = compare(res, gt)
                 lines.append(f"  vs ground truth: distance {mt.distance:.2f} {mt.units}, angle {mt.angle_deg:.3f} deg, "

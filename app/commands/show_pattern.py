@@ -46,7 +46,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from calib.pattern import PatternSpec
+    from calib.models.pattern import PatternSpec
     from drivers.errors import DeviceError
     from drivers.projector_window import ProjectorWindow, choose_projector_screen, list_screens, run_projector_loop
 

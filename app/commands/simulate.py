@@ -1,6 +1,6 @@
 """`procam simulate SCENARIO --out DIR`: render a complete capture session of a simulated rig.
 
-Writes DIR as a live capture would (session.json + images/*.png, via calib.session.SessionStore), plus
+Writes DIR as a live capture would (session.json + images/*.png, via calib.formats.session.SessionStore), plus
 DIR/ground_truth.json (the true calibration, CalibrationResult schema) and DIR/scene.json (the full
 scene: devices, mirror rectangle, board poses per capture, render settings).
 """
@@ -153,7 +153,7 @@ def _render_job(job: dict):
 def simulate_session(scenario, out, quality: str = "session", workers: int = 2, force: bool = False,
                      progress: bool = True):
     """Render the scenario's session into folder `out`; returns the SessionStore."""
-    from calib.session import RigInfo, SessionManifest, SessionStore
+    from calib.formats.session import RigInfo, SessionManifest, SessionStore
     from drivers.sim.rig import SimRig
 
     out = Path(out)
@@ -220,7 +220,7 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
         "captures": scene_caps,
         "verification_T_cam_board": scenario.verification_pose.tolist(),
     })
-    from calib.fileio import atomic_write_text
+    from calib.formats.fileio import atomic_write_text
 
     atomic_write_text(out / "scene.json", json.dumps(scene, indent=1) + "\n")
     return store

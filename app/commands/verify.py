@@ -160,8 +160,8 @@ def _sim_options(manifest, args) -> dict:
 def run(args) -> int:
     from app.verification import verify
     from calib.errors import SessionError
-    from calib.result import CalibrationResult
-    from calib.session import SessionStore
+    from calib.formats.session import SessionStore
+    from calib.models.result import CalibrationResult
 
     folder = Path(args.session)
     store = SessionStore.open(folder)

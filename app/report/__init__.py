@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from calib.fileio import atomic_write_text
+from calib.formats.fileio import atomic_write_text
 
 from .data import ReportError, gather
 

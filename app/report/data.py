@@ -1,11 +1,11 @@
 """What the report shows, gathered from a saved session: the calibration (calibration.json), the
-verification (verification.json, optional), the detections (detections.json, via calib.detect) and the
+verification (verification.json, optional), the detections (detections.json, via calib.detection.detect) and the
 per-point residuals recomputed from them.
 
 calibration.json keeps per-view RMS values and every point's residual *norm*, but not the residual
 vectors nor where in the image each point was. So the residuals are recomputed: the cached detections
 are re-read and projected with the calibrated model through the joint adjustment's own model
-(calib.joint.build_problem: the same corner, mirror and conic pattern-point models), with the board
+(calib.joint.method.build_problem: the same corner, mirror and conic pattern-point models), with the board
 poses of `diagnostics.board_poses` when the result holds them (joint method), else posed by PnP with the
 calibrated model. Points the adjustment rejected as outliers (`diagnostics.rejected`) and views it left
 out are kept apart: they are drawn, but not counted in the statistics.
@@ -21,14 +21,14 @@ import cv2
 import numpy as np
 
 from calib.errors import ProcamError, SessionError
-from calib.result import CalibrationResult
-from calib.session import SessionStore
+from calib.formats.session import SessionStore
+from calib.models.result import CalibrationResult
 from calib.transforms import invert_T
 
 CALIBRATION_FILE = "calibration.json"
 VERIFICATION_FILE = "verification.json"
 
-#: observation kinds of the camera residuals (calib.joint's names), in the order the report lists them
+#: observation kinds of the camera residuals (calib.joint.method's names), in the order the report lists them
 KINDS = ("board", "pattern", "mirror-real", "mirror-virtual")
 
 
@@ -207,8 +207,8 @@ def _dist_model(dist) -> str:
 
 def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Residuals:
     """Detections (from detections.json when it is current, else detected now) projected with `result`."""
-    from calib.detect import detect_session
-    from calib.joint import JointOptions, build_problem
+    from calib.detection.detect import detect_session
+    from calib.joint.method import JointOptions, build_problem
 
     obs = detect_session(store, workers=2, cache="use")
     diag = result.diagnostics if isinstance(result.diagnostics, dict) else {}
@@ -242,7 +242,7 @@ def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Resid
             source = "PnP (calibration.json's board poses are unreadable)"
     x = prob.x0()
     if prob.pattern_model == "conic":
-        from calib import joint
+        from calib.joint import method as joint
 
         correct = getattr(joint, "_update_centroid_correction", None)
         if correct is not None:
@@ -284,7 +284,7 @@ def _T(R, t) -> np.ndarray:
 
 
 def _plane_params(prob, T: np.ndarray) -> np.ndarray:
-    """(theta, a, b) of a board lying on the mirror (calib.joint's 3-DOF parametrisation) from its pose."""
+    """(theta, a, b) of a board lying on the mirror (calib.joint.method's 3-DOF parametrisation) from its pose."""
     n, d = prob.state.n, prob.state.d
     e1 = prob.plane_ref - (prob.plane_ref @ n) * n
     e1 /= np.linalg.norm(e1)

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from calib.camera import CameraModel
+from calib.models.camera import CameraModel
 
 STEP_COLOURS = {"projector": "#1f77b4", "mirror-real-virtual": "#ff7f0e", "mirror-real-mirror": "#2ca02c"}
 KIND_COLOURS = {"board": "#1f77b4", "pattern": "#d62728", "mirror-real": "#ff7f0e", "mirror-virtual": "#9467bd"}
@@ -86,7 +86,7 @@ def distortion_figure(devices: list[tuple[str, CameraModel]]) -> bytes:
 
 
 def projection_uncertainty_figure(devices: list[tuple[str, dict]], large_px: float) -> bytes:
-    """Heat maps of the projection-uncertainty grids (calib.projection_uncertainty), one per device, the
+    """Heat maps of the projection-uncertainty grids (calib.quality.projection_uncertainty), one per device, the
     cells above `large_px` outlined by a contour."""
     fig = Figure(figsize=(5.2 * len(devices), 3.6))
     for i, (name, g) in enumerate(devices):

@@ -203,8 +203,8 @@ The plot shows how far the model moves each pixel from where an ideal pinhole de
 
 
 def _projection_uncertainty(d: ReportData) -> str:
-    """The projection-uncertainty heat maps (calib.projection_uncertainty), when the result has them."""
-    from calib.projection_uncertainty import LARGE_SIGMA_PX, summary_line
+    """The projection-uncertainty heat maps (calib.quality.projection_uncertainty), when the result has them."""
+    from calib.quality.projection_uncertainty import LARGE_SIGMA_PX, summary_line
 
     pu = d.result.projection_uncertainty
     if not isinstance(pu, dict):

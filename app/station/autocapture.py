@@ -3,7 +3,7 @@ the board has been still for a moment, and its pose differs enough from the pose
 
 Also the live detection of one frame for a capture step (`detect_for_step`), the pose features used to
 compare poses (`pose_features`), and the pose-diversity bars the panel shows (`diversity_bars`).
-Pixel coordinates are in the original camera image (calib.detect maps mirrored views back).
+Pixel coordinates are in the original camera image (calib.detection.detect maps mirrored views back).
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_MIRROR, BoardObservation
-from calib.session import SessionManifest
+from calib.formats.session import SessionManifest
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_MIRROR, BoardObservation
 
 
 # ---- pose features ---------------------------------------------------------------------------------
@@ -130,7 +130,7 @@ class LiveDetection:
 def detect_for_step(image: np.ndarray, step: str | None, manifest: SessionManifest, camera: CameraModel,
                     frame_number: int = 0) -> LiveDetection:
     """Detect what `step` needs in one frame: never raises for a bad frame, reports why instead."""
-    from calib import detect as D
+    from calib.detection import detect as D
 
     t0 = time.perf_counter()
     size = (int(image.shape[1]), int(image.shape[0]))

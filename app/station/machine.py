@@ -23,11 +23,11 @@ from typing import Callable
 
 from transitions import Machine, MachineError
 
-from calib.camera import CameraModel
 from calib.errors import FormatError, ProcamError
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
-from calib.result import CalibrationResult
-from calib.session import MIRROR_METHODS, Capture, SessionStore
+from calib.formats.session import MIRROR_METHODS, Capture, SessionStore
+from calib.models.camera import CameraModel
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
+from calib.models.result import CalibrationResult
 
 CHECK_RIG = "check_rig"
 MIRROR_CAPTURE = "mirror_capture"
@@ -653,7 +653,7 @@ class SessionMachine:
             self.busy = None
             rms = ", ".join(f"{k} {v:.3f} px" for k, v in result.rms.items() if isinstance(v, (int, float)))
             self._log(f"calibrated ({rms})" if rms else "calibrated")
-            from calib.trust import low_quality_lines  # the quality gate: usable, but say why it is not good
+            from calib.quality.trust import low_quality_lines  # the quality gate: usable, but say why it is not good
 
             for line in low_quality_lines(result):
                 self._log(line)
@@ -751,7 +751,7 @@ class SessionMachine:
 
 
 def _keep_rejected(folder, work):
-    """work(); a calibration the trust check rejects (calib.trust) is kept as calibration.rejected.json
+    """work(); a calibration the trust check rejects (calib.quality.trust) is kept as calibration.rejected.json
     for diagnosis (never as calibration.json) before the error goes on to the panel with its reasons."""
     from calib.errors import UntrustedCalibration
 

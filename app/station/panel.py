@@ -78,7 +78,7 @@ from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane
 from app.station.panel_uncertainty import DEVICES as UNCERTAINTY_DEVICES
 from app.station.panel_uncertainty import INTRO as UNCERTAINTY_INTRO
 from app.station.panel_uncertainty import uncertainty_image, uncertainty_text
-from calib.observations import STEP_PROJECTOR
+from calib.models.observations import STEP_PROJECTOR
 
 LIVE_WIDTH = 640
 IMAGE_RATE_HZ = 25.0  # most live-image updates per second (one per new camera frame)

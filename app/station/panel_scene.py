@@ -9,7 +9,7 @@ import numpy as np
 
 from app.station.panel_live import image_plane, pixel_of_click
 from app.station.rigview import rig_scene
-from calib.observations import STEP_PROJECTOR
+from calib.models.observations import STEP_PROJECTOR
 
 IMAGE_PLANE_NAME = "/rig/camera_image"
 IMAGE_PLANE_DEPTH_M = 0.3  # in front of the camera, closer than the boards

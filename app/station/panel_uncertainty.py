@@ -1,9 +1,9 @@
 """The projection uncertainty of a calibration as the panel shows it: per device (camera, projector) a heat
 map of calibration.json's `projection_uncertainty` grid (how far a ray's pixel moves at 1 sigma, at each
-place of the image; calib.projection_uncertainty) with its colour scale in px, the median and the maximum,
+place of the image; calib.quality.projection_uncertainty) with its colour scale in px, the median and the maximum,
 and in plain words where it is large.
 
-The words come from calib.projection_uncertainty.summary_line (the rule `procam calibrate` prints: cells
+The words come from calib.quality.projection_uncertainty.summary_line (the rule `procam calibrate` prints: cells
 above LARGE_SIGMA_PX, named by corner and edge), the heat map from the report's figure
 (app.report.figures.projection_uncertainty_figure), so the panel, the summary and the report agree.
 
@@ -17,7 +17,7 @@ import math
 import cv2
 import numpy as np
 
-from calib.projection_uncertainty import LARGE_SIGMA_PX, summary_line
+from calib.quality.projection_uncertainty import LARGE_SIGMA_PX, summary_line
 
 DEVICES = ("camera", "projector")
 NOT_COMPUTED = ("Not computed for this calibration: the paper method gives no parameter covariance. The joint "

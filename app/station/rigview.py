@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calib.camera import CameraModel
-from calib.observations import STEP_PROJECTOR, VIEW_MIRROR
-from calib.result import CalibrationResult
-from calib.session import Capture, SessionManifest
+from calib.formats.session import Capture, SessionManifest
+from calib.models.camera import CameraModel
+from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
+from calib.models.result import CalibrationResult
 from calib.transforms import FLIP_X, transform_points
 
 UNIT_TO_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "in": 0.0254}

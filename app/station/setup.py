@@ -8,11 +8,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from app.station.machine import Plan, SessionMachine
-from calib.boards import CharucoSpec
 from calib.errors import SessionError
-from calib.observations import VIEW_DIRECT, VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.session import MANIFEST, RigInfo, SessionManifest, SessionStore
+from calib.formats.session import MANIFEST, RigInfo, SessionManifest, SessionStore
+from calib.models.boards import CharucoSpec
+from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
+from calib.models.pattern import PatternSpec
 
 GROUND_TRUTH_FILE = "ground_truth.json"
 VERIFICATION_FILE = "verification.json"
@@ -218,7 +218,7 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
 
 
 def load_ground_truth(folder):
-    from calib.result import CalibrationResult
+    from calib.models.result import CalibrationResult
 
     p = Path(folder) / GROUND_TRUTH_FILE
     return CalibrationResult.load_json(p) if p.exists() else None

@@ -42,9 +42,9 @@ from app.station.machine import (
     SessionMachine,
     Target,
 )
-from calib.detect import DetectionFailure, detect_capture
+from calib.detection.detect import DetectionFailure, detect_capture
 from calib.errors import ProcamError, SessionError, SpecError
-from calib.observations import STEP_PROJECTOR, VIEW_MIRROR
+from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
 from drivers.errors import DeviceDisconnected, DeviceError
 
@@ -537,7 +537,7 @@ class Station:
         return cap
 
     def _detect_in_background(self, capture_id: str) -> None:
-        """Detect a new capture from its file exactly as calibration will (calib.detect.detect_capture) in
+        """Detect a new capture from its file exactly as calibration will (calib.detection.detect.detect_capture) in
         a background thread, keeping the result in the session's detections.json. Calibrate then finds
         every image already detected, and a capture that calibration would leave out is reported now,
         while the operator can still retake it."""
@@ -850,8 +850,8 @@ class Station:
 
 
 def _low_quality_note(result) -> str:
-    """The instruction for a LOW QUALITY calibration (calib.trust's quality gate), "" when it is not."""
-    from calib.trust import QUALITY_CODES, low_quality_lines
+    """The instruction for a LOW QUALITY calibration (calib.quality.trust's quality gate), "" when it is not."""
+    from calib.quality.trust import QUALITY_CODES, low_quality_lines
 
     lines = low_quality_lines(result)
     if not lines:

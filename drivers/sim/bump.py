@@ -20,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 
 from calib.errors import SpecError
-from calib.result import MirrorPlane
+from calib.models.result import MirrorPlane
 from calib.synthetic import MirrorRect, SyntheticRig
 from calib.transforms import make_T, rotation_about
 

@@ -29,9 +29,9 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
-from calib.result import MirrorPlane
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.result import MirrorPlane
 from calib.synthetic import BoardLayout, MirrorRect
 from calib.transforms import invert_T
 

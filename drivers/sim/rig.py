@@ -20,9 +20,9 @@ import time
 
 import numpy as np
 
-from calib.camera import CameraModel
 from calib.errors import SpecError
-from calib.result import CalibrationResult
+from calib.models.camera import CameraModel
+from calib.models.result import CalibrationResult
 from calib.transforms import make_T, rotation_about, rotation_angle_deg
 from drivers.base import Frame
 from drivers.errors import DeviceError, DeviceTimeout

@@ -13,11 +13,11 @@ from functools import cached_property
 
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
 from calib.errors import SpecError
-from calib.pattern import PatternSpec
-from calib.result import CalibrationResult
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.pattern import PatternSpec
+from calib.models.result import CalibrationResult
 from calib.synthetic import (
     BoardLayout,
     SyntheticRig,

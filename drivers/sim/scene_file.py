@@ -9,11 +9,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
-from calib.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
-from calib.pattern import PatternSpec
-from calib.result import MirrorPlane
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
+from calib.models.pattern import PatternSpec
+from calib.models.result import MirrorPlane
 from calib.synthetic import SyntheticRig, projector_points_on_board
 from calib.transforms import transform_points
 

@@ -2,7 +2,7 @@
 
 In the spirit of mrcal's projection uncertainty (at infinite range). A device's intrinsics theta =
 (fx, fy, cx, cy, distortion coefficients) carry a covariance Cov (the joint adjustment's, board poses
-marginalised: calib.uncertainty). Take a pixel q of the image and the ray r(q) through it under the
+marginalised: calib.joint.uncertainty). Take a pixel q of the image and the ray r(q) through it under the
 estimated model, and project it back with perturbed intrinsics: q(theta) = K(theta) distort(r, theta).
 To first order a perturbation moves the pixels of the whole grid by J dtheta (J_q = dq/dtheta).
 
@@ -22,14 +22,14 @@ covered: systematic detection errors are not (docs/JOINT.md).
 
 Entry point: `projection_uncertainty(result)` -> the dict stored as calibration.json's
 "projection_uncertainty" (None when the result carries no covariance, e.g. the paper method).
-`pixel_jacobian` is shared with the coverage-aware model selection (calib.model_select).
+`pixel_jacobian` is shared with the coverage-aware model selection (calib.joint.model_select).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from calib.camera import CameraModel
+from calib.models.camera import CameraModel
 
 METHOD = ("rotation-compensated first-order propagation: sigma(q) = sqrt(max eig(C_q)), C = P J Cov J^T P over "
           "the grid, J the derivative of the pixel of the ray through q with respect to fx, fy, cx, cy and the free "

@@ -1,4 +1,4 @@
-"""Distortion model selection per device: none / k1 / k1k2 / 5coef / rational (calib.joint_solver.DIST_MODELS).
+"""Distortion model selection per device: none / k1 / k1k2 / 5coef / rational (calib.joint.solver.DIST_MODELS).
 
 The paper always uses 5 coefficients. Starting from that, a device's model is
 
@@ -44,9 +44,9 @@ import math
 
 import numpy as np
 
-from calib.camera import CameraModel
-from calib.joint_solver import DIST_MODELS, SELECTION_MODELS, normal_blocks, solve
-from calib.projection_uncertainty import grid_pixels, motion_fields
+from calib.joint.solver import DIST_MODELS, SELECTION_MODELS, normal_blocks, solve
+from calib.models.camera import CameraModel
+from calib.quality.projection_uncertainty import grid_pixels, motion_fields
 
 
 def chi2_sf(x: float, k: int) -> float:
@@ -140,7 +140,7 @@ def coverage_choice(prob, S, g, rss0, theta0, sigma2, dev: str, chosen: tuple[st
     image): MSE_m = max(B_m - (V_ref - V_m), 0) + V_m, where B_m is the mean squared pixel difference
     over the image between model m's and the chosen model's solutions, V the mean over the image of the
     projection variance (trace of the 2x2 covariance of a ray's pixel, the part a rotation of the device
-    would absorb removed: calib.projection_uncertainty), and V_ref - V_m the variance of that difference
+    would absorb removed: calib.quality.projection_uncertainty), and V_ref - V_m the variance of that difference
     for nested least-squares models. A coefficient the data do not constrain where the image is used
     adds variance there (V) and is dropped unless the bias it removes (B) is larger.
     The simpler model is taken only when its MSE is below (1 - COVERAGE_MARGIN) times the chosen one's.
@@ -251,7 +251,7 @@ def select_models(prob, options) -> dict:
     auto = {"camera": options.camera_model == "auto" and not prob.fix_camera,
             "projector": options.projector_model == "auto"}
     base = prob.state.copy()
-    prob.prior = {}  # calib.joint_solver.prior_terms: the k3 shrinkage's priors, set at the end
+    prob.prior = {}  # calib.joint.solver.prior_terms: the k3 shrinkage's priors, set at the end
     priors = {}
     if not any(auto.values()):
         for dev in ("camera", "projector"):

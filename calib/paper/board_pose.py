@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
-from calib.observations import BoardObservation
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.observations import BoardObservation
 from calib.transforms import T_from_rvec_tvec, rvec_tvec_from_T, transform_points
 
 #: F_b: the board-frame mirror x -> -x (as a 4x4 transform). Numerically the same matrix as FLIP_X.

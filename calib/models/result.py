@@ -9,7 +9,7 @@ calibration.json keys (other tools read them; keep their meaning):
   method, rms (per stage, pixels), per_view (residuals), skipped (images and why),
   uncertainty (1-sigma values, see README), diagnostics (free-form, per stage)
   projection_uncertainty: per-device grids of the 1-sigma pixel motion of a ray over the image
-          (calib.projection_uncertainty; null when the method gives no covariance; absent in older files)
+          (calib.quality.projection_uncertainty; null when the method gives no covariance; absent in older files)
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.camera import CameraModel
 from calib.errors import FormatError
-from calib.fileio import atomic_write_text
+from calib.formats.fileio import atomic_write_text
+from calib.models.camera import CameraModel
 
 SCHEMA = "procam-calibration"
 VERSION = 1

@@ -119,7 +119,7 @@ class PatternSpec:
 
     def find(self, gray: np.ndarray) -> np.ndarray | None:
         """Run OpenCV's grid finder on an (unmirrored) grayscale image of the pattern as drawn (bright
-        circles on dark); (N, 2) or None. Robust detection in camera images lives in calib.detect."""
+        circles on dark); (N, 2) or None. Robust detection in camera images lives in calib.detection.detect."""
         if self.kind == "circles":
             ok, pts = cv2.findCirclesGrid(255 - gray, self.pattern_size, flags=cv2.CALIB_CB_ASYMMETRIC_GRID)
         else:

@@ -1,7 +1,7 @@
 """Stage 1: the camera's intrinsics (Zhang's method via cv2.calibrateCamera) from the session's own
 images: every ChArUco view, direct and through the mirror, in one calibration.
 
-A board seen through the mirror is a rigid view of the mirrored board (calib.board_pose), so its
+A board seen through the mirror is a rigid view of the mirrored board (calib.paper.board_pose), so its
 corners enter the same calibrateCamera call with object points (-x, y, 0) and their ORIGINAL pixel
 coordinates; the intrinsics that come out are those of the real camera, no flipping needed.
 
@@ -18,12 +18,12 @@ from types import MappingProxyType
 import cv2
 import numpy as np
 
-from calib.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, solve_board_pose,
+from calib.paper.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, solve_board_pose,
                               usable_reason, view_object_points, zhang_flags)
-from calib.boards import CharucoSpec
-from calib.camera import CameraModel
 from calib.errors import CalibrationError
-from calib.observations import BoardObservation, SessionObservations
+from calib.models.boards import CharucoSpec
+from calib.models.camera import CameraModel
+from calib.models.observations import BoardObservation, SessionObservations
 from calib.transforms import T_from_rvec_tvec, transform_points
 
 #: Fewer usable board views than this and the camera cannot be calibrated from the session.
@@ -77,7 +77,7 @@ def calibrate_camera(obs: SessionObservations, camera: CameraModel | None = None
     Views with too few corners are skipped (reported in `skipped`). With `reject_outlier_views`, a view
     whose RMS is far above the others' (> max(5 x median, 2 px)) is dropped and the calibration
     rerun once: such a view is almost always a misdetection. With `reject_outlier_points`, single corners
-    beyond calib.board_pose.outlier_limit (max(6 x median, 2 px)) are then dropped, worst first, and the
+    beyond calib.paper.board_pose.outlier_limit (max(6 x median, 2 px)) are then dropped, worst first, and the
     calibration rerun (counts in per_view[...]["n_rejected_points"])."""
     W, H = obs.camera_size
     if camera is not None and (camera.width, camera.height) != (W, H):

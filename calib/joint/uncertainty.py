@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.joint_solver import normal_blocks, prior_terms
+from calib.joint.solver import normal_blocks, prior_terms
 
 
 def _sym_inv(A: np.ndarray) -> np.ndarray:

@@ -1,11 +1,11 @@
-"""The least-squares machinery of the joint adjustment (calib.joint), shared with the distortion-model
-selection (calib.model_select) and the covariance (calib.uncertainty): the distortion-model table, the
+"""The least-squares machinery of the joint adjustment (calib.joint.method), shared with the distortion-model
+selection (calib.joint.model_select) and the covariance (calib.joint.uncertainty): the distortion-model table, the
 weighted normal equations in block form (board poses eliminated by the Schur complement), robust
 losses by reweighting, and Levenberg-Marquardt.
 
 Everything here works on any `prob` object with JointProblem's interface (x0, residuals,
 jacobian_blocks, poses, pose_ndof, pose_start, pose_sum, row_pose, n_global, n_params, set_state,
-rebase); it imports nothing from calib.joint, so the dependency is one-way: joint_solver <- model_select,
+rebase); it imports nothing from calib.joint.method, so the dependency is one-way: joint_solver <- model_select,
 uncertainty <- joint <- pipeline.
 """
 
@@ -26,7 +26,7 @@ DIST_MODELS = {
     "rational": (0, 1, 2, 3, 4, 5, 6, 7),
 }
 MODEL_NAMES = tuple(DIST_MODELS)
-#: the candidates of the BIC / LRT selection (calib.model_select); "4coef" (k1, k2, p1, p2: OpenCV's
+#: the candidates of the BIC / LRT selection (calib.joint.model_select); "4coef" (k1, k2, p1, p2: OpenCV's
 #: CALIB_FIX_K3) is reached only by the coverage criterion, which steps down from a model with k3
 SELECTION_MODELS = ("none", "k1", "k1k2", "5coef", "rational")
 
@@ -119,7 +119,7 @@ def require_finite(what: str, *arrays) -> None:
 
 def prior_terms(prob) -> tuple[np.ndarray, np.ndarray]:
     """(indices, precisions) of the zero-mean Gaussian priors on global parameters that `prob.prior`
-    ({global parameter name: precision in whitened-residual units}, set by calib.model_select's k3
+    ({global parameter name: precision in whitened-residual units}, set by calib.joint.model_select's k3
     shrinkage; absent or empty: none) puts on the current parametrisation. A prior adds
     precision * x^2 to the cost: its normal equations gain the precision on the diagonal."""
     prior = getattr(prob, "prior", None) or {}

@@ -1,6 +1,6 @@
 """The paper's sequential method (Vanherck et al. 2025): camera (Zhang, all board views) -> mirror plane
 (RANSAC plane fit) -> projector (Zhang on board points, then stereo with fixed intrinsics, chained
-through the mirror). calib.pipeline registers it as the "paper" method; calib.joint starts from it.
+through the mirror). calib.pipeline registers it as the "paper" method; calib.joint.method starts from it.
 
 `progress`, when given, is called as progress(done, total, label); `label` names the stage.
 """
@@ -12,13 +12,13 @@ from typing import Callable
 
 import numpy as np
 
-from calib.camera import CameraModel
-from calib.camera_calib import CameraCalibration, calibrate_camera
 from calib.errors import CalibrationError
-from calib.mirror_calib import MirrorCalibration, calibrate_mirror
-from calib.observations import VIEW_MIRROR, SessionObservations
-from calib.projector_calib import ProjectorCalibration, calibrate_projector
-from calib.result import CalibrationResult
+from calib.models.camera import CameraModel
+from calib.models.observations import VIEW_MIRROR, SessionObservations
+from calib.models.result import CalibrationResult
+from calib.paper.camera import CameraCalibration, calibrate_camera
+from calib.paper.mirror import MirrorCalibration, calibrate_mirror
+from calib.paper.projector import ProjectorCalibration, calibrate_projector
 
 Progress = Callable[[int, int, str], None]
 

@@ -23,8 +23,8 @@ global parameter plus six for all board poses together). The solver is Levenberg
 board poses eliminated by the Schur complement (solver="scipy": scipy's least_squares, trf, sparse
 Jacobian, x_scale='jac'): a robust pass (soft-L1), outlier rejection, then the plain squared loss on
 the inliers (the maximum-likelihood estimate under Gaussian pixel noise), distortion model selection
-(calib.model_select) and the covariance (calib.uncertainty). The solver itself (normal equations, LM)
-is calib.joint_solver; non-finite numbers or a failed linear algebra there become a CalibrationError
+(calib.joint.model_select) and the covariance (calib.joint.uncertainty). The solver itself (normal equations, LM)
+is calib.joint.solver; non-finite numbers or a failed linear algebra there become a CalibrationError
 (code "non_finite" / "solve_failed"), which calibrate_joint reports as an UntrustedCalibration.
 """
 
@@ -36,16 +36,16 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from calib import model_select, uncertainty
-from calib.camera import CameraModel
 from calib.errors import CalibrationError, UntrustedCalibration
-from calib.joint_solver import DIST_MODELS, MODEL_NAMES, _RowSums, solve
-from calib.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
-from calib.paper import calibrate_paper
-from calib.projection_uncertainty import projection_uncertainty
-from calib.result import CalibrationResult, MirrorPlane
+from calib.joint import model_select, uncertainty
+from calib.joint.solver import DIST_MODELS, MODEL_NAMES, _RowSums, solve
+from calib.models.camera import CameraModel
+from calib.models.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
+from calib.models.result import CalibrationResult, MirrorPlane
+from calib.paper.method import calibrate_paper
+from calib.quality.projection_uncertainty import projection_uncertainty
+from calib.quality.trust import TrustReason, check_calibration
 from calib.transforms import FLIP_X, make_T
-from calib.trust import TrustReason, check_calibration
 
 PATTERN_MODELS = ("auto", "point", "conic")
 
@@ -57,7 +57,7 @@ _KIND_NAMES = {0: "board", 1: "mirror-real", 2: "mirror-virtual", 3: "pattern"}
 class JointOptions:
     """Options of refine_joint (all have sensible defaults).
 
-    camera_model / projector_model: "auto" (selected per device, calib.model_select) or one of
+    camera_model / projector_model: "auto" (selected per device, calib.joint.model_select) or one of
     DIST_MODELS. pattern_model: "conic" models a projected circle's observation as the centre of its
     imaged conic (what a centroid detector measures), "point" as the image of its centre; "auto" =
     conic for circle patterns, point for chessboards. loss / noise_px: robust loss of the first pass
@@ -72,9 +72,9 @@ class JointOptions:
     hundredths of a sigma, and the Gauss-Newton step after it by far less: results agree with
     tol=1e-9 to 1e-7 sigma, one Jacobian fewer per solve). coverage: after the BIC / LRT choice, step a
     device's model down when the coefficients it drops are not constrained where the image is used
-    (calib.model_select: the mean squared projection error over the image, bias + variance). shrinkage:
+    (calib.joint.model_select: the mean squared projection error over the image, bias + variance). shrinkage:
     with coverage, a kept k3 is pulled toward 0 by a zero-mean Gaussian prior whose width is set from the
-    data (calib.model_select.shrinkage_prior), instead of kept or dropped whole."""
+    data (calib.joint.model_select.shrinkage_prior), instead of kept or dropped whole."""
 
     camera_model: str = "auto"
     projector_model: str = "auto"
@@ -388,7 +388,7 @@ class JointProblem:
 
         Conic: the circle of radius rho around q maps to the undistorted projector plane as the ellipse
         {x_u + rho A u}, then by the board-plane homography H into the camera; with P = H[:, :2] rho A
-        and c = H (x_u, 1) the dual conic's centre is (P P_z - c c_z) (calib.conic)."""
+        and c = H (x_u, 1) the dual conic's centre is (P P_z - c c_z) (calib.joint.conic)."""
         p = self.p
         if len(p["q"]) == 0:
             return np.zeros((0, 3))
@@ -782,7 +782,7 @@ def _update_centroid_correction(prob: JointProblem, x: np.ndarray, n_boundary: i
     conic model exact to second order in the distortion's variation across a blob."""
     if prob.pattern_model != "conic" or len(prob.p["q"]) == 0:
         return
-    from calib.conic import circle_boundary, polygon_centroid
+    from calib.joint.conic import circle_boundary, polygon_centroid
 
     m = prob.unpack(x)
     q = prob.p["q"]
@@ -875,7 +875,7 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     tick("joint.uncertainty", t0)
 
     result = _make_result(obs, init, prob, x, rejected, left_out, selection, unc, solves, timing)
-    if unc is not None:  # the 1-sigma pixel motion over each device's image (calib.projection_uncertainty)
+    if unc is not None:  # the 1-sigma pixel motion over each device's image (calib.quality.projection_uncertainty)
         result = result.with_(projection_uncertainty=projection_uncertainty(result))
     timing["joint.total"] = round(time.perf_counter() - t_start, 4)
     return result

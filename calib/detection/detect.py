@@ -1,6 +1,6 @@
 """Detection stage: ChArUco boards and projected patterns in camera images -> SessionObservations.
 
-Entry function: `detect_session(store)` (its results kept in detections.json: calib.detect_cache).
+Entry function: `detect_session(store)` (its results kept in detections.json: calib.detection.cache).
 Everything else is a pure function on numpy images.
 
 Mirrored views (seen through the mirror) are detected in the horizontally flipped image and the points
@@ -20,10 +20,10 @@ from functools import lru_cache, wraps
 import cv2
 import numpy as np
 
-from calib import detect_cache
-from calib.boards import CharucoSpec
+from calib.detection import cache as detect_cache
 from calib.errors import SessionError
-from calib.observations import (
+from calib.models.boards import CharucoSpec
+from calib.models.observations import (
     STEP_PROJECTOR,
     STEP_REAL_MIRROR,
     STEP_REAL_VIRTUAL,
@@ -35,7 +35,7 @@ from calib.observations import (
     SessionObservations,
     Skipped,
 )
-from calib.pattern import PatternSpec
+from calib.models.pattern import PatternSpec
 
 
 # ---- helpers ---------------------------------------------------------------------------------------
@@ -788,7 +788,7 @@ class _Job:
     board: CharucoSpec
     pattern: PatternSpec | None
     camera_size: tuple[int, int]
-    cached: dict | None = None  # this capture's detections.json entry, if any (calib.detect_cache)
+    cached: dict | None = None  # this capture's detections.json entry, if any (calib.detection.cache)
     hash_image: bool = True  # the image's SHA-1 is needed (the cache is not off)
     refused: str | None = None  # why the image is not read at all (its path leads out of the session folder)
 
@@ -913,7 +913,7 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
     reason. `progress(done, total, capture_id)` is called after each capture.
 
     `cache`: "use" takes the results of earlier runs from the session's detections.json for captures
-    whose image, job and detector are unchanged (calib.detect_cache) and writes the file back;
+    whose image, job and detector are unchanged (calib.detection.cache) and writes the file back;
     "refresh" detects every image and writes the file; "off" neither reads nor writes it."""
     if cache not in ("use", "refresh", "off"):
         raise ValueError(f"cache must be 'use', 'refresh' or 'off', not {cache!r}")

@@ -17,8 +17,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from calib.camera import CameraModel
-from calib.result import CalibrationResult
+from calib.models.camera import CameraModel
+from calib.models.result import CalibrationResult
 from calib.transforms import rotation_angle_deg
 
 #: The paper's headline numbers on its synthetic scenes (circle grid, non-overlapping fields of view,

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.boards import CharucoSpec
-from calib.pattern import PatternSpec
+from calib.models.boards import CharucoSpec
+from calib.models.pattern import PatternSpec
 
 STEP_PROJECTOR = "projector"
 STEP_REAL_VIRTUAL = "mirror-real-virtual"
@@ -32,7 +32,7 @@ def _ro(a, shape_tail, dtype=float):
 @dataclass(frozen=True)
 class DetectionFailure:
     """Why a detection failed, in plain words ("board not found", "pattern partial: 30 of 36 points").
-    Returned (never raised) by calib.detect and kept in the detection cache (calib.detect_cache)."""
+    Returned (never raised) by calib.detection.detect and kept in the detection cache (calib.detection.cache)."""
 
     reason: str
 

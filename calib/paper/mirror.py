@@ -1,7 +1,7 @@
 """Stage 2: the mirror plane, from its own images (both methods of the paper).
 
 Real-virtual: one image shows the board directly and in the mirror. PnP of the real board (direct)
-and of the virtual board (mirrored object points, calib.board_pose) gives the 3D corners of both in the
+and of the virtual board (mirrored object points, calib.paper.board_pose) gives the 3D corners of both in the
 camera frame; the midpoint of a real corner and its virtual twin (same id) lies on the mirror, and
 their difference is parallel to the normal.
 
@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.board_pose import MIN_CORNERS, solve_board_pose, usable_reason
-from calib.camera import CameraModel
 from calib.errors import CalibrationError
-from calib.observations import STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, SessionObservations
-from calib.result import MirrorPlane
+from calib.models.camera import CameraModel
+from calib.models.observations import STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, SessionObservations
+from calib.models.result import MirrorPlane
+from calib.paper.board_pose import MIN_CORNERS, solve_board_pose, usable_reason
 
 #: Default RANSAC inlier threshold as a fraction of the mirror board's square length.
 THRESHOLD_SQUARES = 0.1

@@ -2,7 +2,7 @@
 
 Per projector view:
   1. the board pose from its ChArUco corners (PnP with the camera's intrinsics; through the mirror the
-     pose of the virtual board, calib.board_pose);
+     pose of the virtual board, calib.paper.board_pose);
   2. the camera pixels of the projected pattern mapped onto the board plane EXACTLY: each pixel's ray
      (lens distortion undone by CameraModel.rays) meets the plane of the board as seen (the virtual
      board for a mirrored view), and the hit point is un-mirrored into board coordinates;
@@ -26,12 +26,12 @@ from types import MappingProxyType
 import cv2
 import numpy as np
 
-from calib.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, point_residuals, solve_board_pose,
+from calib.paper.board_pose import (MIN_CORNERS, BoardPose, calibrate_zhang, outlier_limit, point_residuals, solve_board_pose,
                               usable_reason, zhang_flags)
-from calib.camera import CameraModel
 from calib.errors import CalibrationError
-from calib.observations import VIEW_DIRECT, VIEW_MIRROR, ProjectorView, SessionObservations
-from calib.result import MirrorPlane
+from calib.models.camera import CameraModel
+from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR, ProjectorView, SessionObservations
+from calib.models.result import MirrorPlane
 from calib.transforms import FLIP_X, T_from_rvec_tvec, invert_T, make_T, rotation_angle_deg, transform_points
 
 #: Fewer usable projector views than this and the projector cannot be calibrated.
@@ -84,7 +84,7 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
     """Calibrate the projector (intrinsics and T_cam_proj) from the projector views of `obs`.
 
     With `reject_outliers`, pattern points whose projector residual after Zhang exceeds
-    calib.board_pose.outlier_limit (max(6 x median, 2 px)) are dropped, worst first, and Zhang rerun (a misdetected circle
+    calib.paper.board_pose.outlier_limit (max(6 x median, 2 px)) are dropped, worst first, and Zhang rerun (a misdetected circle
     otherwise drags the intrinsics by tens of pixels); the counts are in per_view / diagnostics."""
     mirrored = obs.view == VIEW_MIRROR
     if obs.view not in (VIEW_MIRROR, VIEW_DIRECT):

@@ -11,9 +11,9 @@ The layout it reads (described in issue 2):
 - consecutive recording images share a pattern: images / patterns of them each.
 - an optional mirror folder: name starting with "M" = real-virtual images, "F" = real-mirror images.
 
-The result is an ordinary session folder (calib.session), written through SessionStore: images are
+The result is an ordinary session folder (calib.formats.session), written through SessionStore: images are
 copied losslessly (decoded and re-encoded as PNG with every pixel and bit depth kept; equal colour
-channels stored once, as calib.session does), each projector
+channels stored once, as calib.formats.session does), each projector
 capture records the projector pixels of the pattern it showed.
 """
 
@@ -28,11 +28,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.boards import CharucoSpec
 from calib.errors import ProcamError
-from calib.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT, VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.session import RigInfo, SessionManifest, SessionStore
+from calib.formats.session import RigInfo, SessionManifest, SessionStore
+from calib.models.boards import CharucoSpec
+from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT, VIEW_MIRROR
+from calib.models.pattern import PatternSpec
 
 
 class RecordingError(ProcamError):
@@ -107,7 +107,7 @@ def _white_only(img: np.ndarray) -> np.ndarray:
 def detect_pattern_image(image: np.ndarray, cols: int, rows: int) -> tuple[np.ndarray, float, float] | None:
     """(points (N, 2) in PatternSpec order, spacing_px, radius_px) of the white asymmetric circle grid
     drawn in a projector image, or None when the grid is not found."""
-    from calib.detect import DetectionFailure, detect_pattern
+    from calib.detection.detect import DetectionFailure, detect_pattern
 
     gray = _white_only(image)
     probe = PatternSpec("circles", cols, rows, spacing_px=10.0, radius_px=1.0, positions=1)

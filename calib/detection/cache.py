@@ -9,12 +9,12 @@ An entry is used only when all of these still hold; otherwise that capture is de
 - the image is the same: the SHA-1 of the PNG file's bytes;
 - the job is the same: step, mirrored or not, board and pattern specs, camera size (`job_key`).
 
-Images are hashed from the bytes calib.detect read through SessionStore.image_path, which refuses a
+Images are hashed from the bytes calib.detection.detect read through SessionStore.image_path, which refuses a
 path leading out of the session folder; the cache file itself is read only when it is a plain file in
 the folder (a link is ignored with a warning, never followed).
 
 The file is a cache, not a record: a missing, unreadable or malformed one is ignored (with a warning
-naming the problem) and rewritten; it is written atomically (calib.fileio) and only holds detection
+naming the problem) and rewritten; it is written atomically (calib.formats.fileio) and only holds detection
 results, so deleting it loses nothing. Layout: docs/FORMATS.md.
 """
 
@@ -30,8 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.fileio import atomic_write_text
-from calib.observations import BoardObservation, DetectionFailure, MirrorView
+from calib.formats.fileio import atomic_write_text
+from calib.models.observations import BoardObservation, DetectionFailure, MirrorView
 
 CACHE_FILE = "detections.json"
 FORMAT = "procam-detections"

@@ -19,8 +19,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from calib.camera import CameraModel
-from calib.projection_uncertainty import large_regions, where_max
+from calib.models.camera import CameraModel
+from calib.quality.projection_uncertainty import large_regions, where_max
 from calib.transforms import invert_T
 
 #: length units of a session -> millimetres (limits on lengths are stated in mm)
@@ -67,7 +67,7 @@ class TrustThresholds:
     condition_max: float = 1e8  # of the correlation matrix of the geometric parameters (not distortion)
 
 
-#: quality codes (calib.trust's `quality` section: low quality, not failure)
+#: quality codes (calib.quality.trust's `quality` section: low quality, not failure)
 QUALITY_CODES = {
     "quality_pose_translation": "the projector's position is far more uncertain than a full session's",
     "quality_pose_rotation": "the projector's orientation is far more uncertain than a full session's",

@@ -11,7 +11,7 @@ image of the circle's centre (docs/GEOMETRY.md, "Circles are not points"). Two w
   boundary mapped point by point through a full model (distortion included) it is the reference.
 
 Everything here is plain numpy arithmetic without abs/max/comparisons, so it can be evaluated with
-complex numbers (complex-step derivatives in calib.joint).
+complex numbers (complex-step derivatives in calib.joint.method).
 """
 
 from __future__ import annotations

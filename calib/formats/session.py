@@ -18,7 +18,7 @@ Everything in a session folder is untrusted (it may come from someone else): a c
 be `images/NAME.png`, and the store never reads, hashes, writes or deletes a file whose path leads out
 of the folder (a link in images/ pointing elsewhere is refused for reading; deleting a capture removes
 the link, never what it points to). Non-finite numbers (NaN, Infinity, 1e400) are refused anywhere in
-the manifest. A store opened for writing holds the folder's lock (calib.session_lock).
+the manifest. A store opened for writing holds the folder's lock (calib.formats.session_lock).
 """
 
 from __future__ import annotations
@@ -34,13 +34,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.boards import CharucoSpec
 from calib.errors import FormatError, SessionError
-from calib.fileio import atomic_write_bytes
-from calib.observations import STEP_PROJECTOR, STEPS, VIEW_DIRECT, VIEW_MIRROR
-from calib.pattern import PatternSpec
-from calib.session_lock import SessionLock
-from calib.session_lock import acquire as _acquire_lock
+from calib.formats.fileio import atomic_write_bytes
+from calib.formats.session_lock import SessionLock
+from calib.formats.session_lock import acquire as _acquire_lock
+from calib.models.boards import CharucoSpec
+from calib.models.observations import STEP_PROJECTOR, STEPS, VIEW_DIRECT, VIEW_MIRROR
+from calib.models.pattern import PatternSpec
 
 FORMAT = "procam-session"
 VERSION = 1
@@ -300,7 +300,7 @@ class SessionStore:
     """A session folder. Every mutation writes its image(s) first, then the manifest, atomically; the
     in-memory manifest changes only once the write succeeded.
 
-    A store that writes holds the folder's lock (calib.session_lock): `create` and `open(lock=True)` take
+    A store that writes holds the folder's lock (calib.formats.session_lock): `create` and `open(lock=True)` take
     it at once, a store opened to read takes it at its first write (and refuses to write if session.json
     changed on disk since it was read). `close()` (or the end of a `with` block) gives it back."""
 

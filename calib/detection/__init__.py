@@ -1,0 +1,9 @@
+"""Detection: camera images in, points out (pure functions on numpy images).
+
+  detect  ChArUco boards and projected patterns -> SessionObservations; entry `detect_session`
+  cache   the detection results kept in the session folder (detections.json)
+  curves  a projected curve (a bright stroke) in a camera image, for the epipolar verification
+
+Nothing is re-exported: `import calib.detection.curves` must not load OpenCV's board detection
+machinery, and `calib.detection.detect.detect_session` says where the code is.
+"""

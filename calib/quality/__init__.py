@@ -1,0 +1,10 @@
+"""How good is a calibration result.
+
+  trust                   is it trustworthy, without ground truth (absurd parameters, residuals,
+                          uncertainty far beyond a full session's, ill-conditioning) and the quality
+                          gate; entry `check_calibration`, run on every result by calib.pipeline
+  projection_uncertainty  how far a ray's pixel moves at 1 sigma, over each device's image
+  metrics                 the paper's metrics of a result against ground truth
+
+Nothing is re-exported.
+"""
