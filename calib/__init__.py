@@ -1,7 +1,12 @@
 """Calibration core: pure computation plus its explicit readers and writers.
 
-Public names are re-exported here; modules are one per concern (camera model, boards, pattern,
-observations, session format, result format) and one per pipeline stage.
+Subpackages by concern (each __init__ lists its modules): models (camera model, boards, pattern,
+observations, result), detection (images -> points), paper (the published method, one module per
+stage), joint (the joint maximum-likelihood method), quality (trust check, projection uncertainty,
+metrics against ground truth), formats (session folder, atomic writes, importers). At the top:
+errors, transforms, epipolar (epipolar geometry of a calibrated rig), pipeline (the method registry
+and entry), recalib (on-site recalibration) and synthetic (rigs with exact ground truth).
+The names most code needs are re-exported here. Layout: docs/CONVENTIONS.md, "Where things are".
 """
 
 from calib.errors import CalibrationError, FormatError, ProcamError, SessionError, SpecError

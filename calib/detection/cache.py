@@ -3,9 +3,9 @@ decoded and detected once: calibrating it again (another method, another camera 
 retake) detects only the captures that are new or changed.
 
 An entry is used only when all of these still hold; otherwise that capture is detected again:
-- the detector is the same: the SHA-1 of the detection modules' source (detect, detect_cache, boards,
-  pattern, observations) and OpenCV's version (`detector_fingerprint`; any change to that code
-  invalidates every entry);
+- the detector is the same: the SHA-1 of the detection modules' source (`_DETECTION_MODULES`:
+  detect, cache, boards, pattern, observations) and OpenCV's version (`detector_fingerprint`; any
+  change to that code invalidates every entry);
 - the image is the same: the SHA-1 of the PNG file's bytes;
 - the job is the same: step, mirrored or not, board and pattern specs, camera size (`job_key`).
 
@@ -21,6 +21,7 @@ results, so deleting it loses nothing. Layout: docs/FORMATS.md.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import warnings
@@ -38,16 +39,18 @@ FORMAT = "procam-detections"
 VERSION = 1
 
 
-#: the modules whose code decides what detection returns (their source is fingerprinted)
-_DETECTION_SOURCES = ("detect.py", "detect_cache.py", "boards.py", "pattern.py", "observations.py")
+#: the modules whose code decides what detection returns (their source is fingerprinted), by dotted
+#: name so that the file is found wherever the module lives
+_DETECTION_MODULES = ("calib.detection.detect", "calib.detection.cache", "calib.models.boards",
+                      "calib.models.pattern", "calib.models.observations")
 
 
 @lru_cache(maxsize=1)
 def detector_fingerprint() -> str:
-    """Identifies the detection code: SHA-1 of the sources of _DETECTION_SOURCES and OpenCV's version."""
+    """Identifies the detection code: SHA-1 of the sources of _DETECTION_MODULES and OpenCV's version."""
     h = hashlib.sha1(cv2.__version__.encode())
-    for name in _DETECTION_SOURCES:
-        h.update(Path(__file__).with_name(name).read_bytes())
+    for name in _DETECTION_MODULES:
+        h.update(Path(importlib.util.find_spec(name).origin).read_bytes())
     return h.hexdigest()
 
 

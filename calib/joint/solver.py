@@ -5,8 +5,8 @@ losses by reweighting, and Levenberg-Marquardt.
 
 Everything here works on any `prob` object with JointProblem's interface (x0, residuals,
 jacobian_blocks, poses, pose_ndof, pose_start, pose_sum, row_pose, n_global, n_params, set_state,
-rebase); it imports nothing from calib.joint.method, so the dependency is one-way: joint_solver <- model_select,
-uncertainty <- joint <- pipeline.
+rebase); it imports nothing from calib.joint.method, so the dependency is one-way: solver <- model_select,
+uncertainty <- method <- calib.pipeline.
 """
 
 from __future__ import annotations
