@@ -307,6 +307,16 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
             if lids is not None and lstrict > 0 and len(lids) > n:
                 corners, ids, n = lc, lids, len(lids)
                 x0 = y0 = 0
+        if n < spec.n_corners:
+            # camera images are gamma-encoded, not linear in light: where a marker's cells are a pixel or
+            # two wide, the pixels that mix black and white encode brighter than the light they received
+            # and the black cells fade. A linearised copy decodes them again (docs/SIMULATOR.md,
+            # "Photometric realism"); the corners are still refined in the image itself (an X-junction
+            # stays point-symmetric under any monotone tone curve, so they do not move).
+            region = img if (x0, y0) == (0, 0) else search
+            lc, lids, lmarkers, lstrict = _charuco_in(cv2.LUT(region, _LINEARISE_LUT), spec)
+            if lids is not None and len(lids) > n:
+                corners, ids, markers, strict, n = lc, lids, lmarkers, lstrict, len(lids)
         if n == 0 and len(markers) == 0:
             return DetectionFailure("board not found")
         if n < min_corners:
@@ -324,6 +334,9 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
 
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+
+#: 8-bit level -> level linear in light, for a camera with the usual video encoding (gamma about 2.2)
+_LINEARISE_LUT = np.clip(np.round(255.0 * (np.arange(256) / 255.0) ** 2.2), 0, 255).astype(np.uint8)
 
 
 _MIN_REFINE_MARGIN_PX = 3.5
