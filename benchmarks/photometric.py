@@ -85,7 +85,7 @@ def circle_truth(sc, T, pts_px) -> tuple[np.ndarray, np.ndarray]:
     return centre, conic
 
 
-def circle_bias(scenario_name: str, seeds: int, effects) -> dict:
+def circle_bias(scenario_name: str, seeds: int, effects, quality: str = "session") -> dict:
     """effect -> {'centre': errors, 'conic': errors, 'shift': errors vs the neutral detection} (px arrays)."""
     out = {e: {"centre": [], "conic": [], "shift": [], "failed": 0} for e in effects}
     for seed in range(seeds):
@@ -93,8 +93,10 @@ def circle_bias(scenario_name: str, seeds: int, effects) -> dict:
         rig = sc.rig
         W, H = rig.projector.size
         mirrored = sc.view == VIEW_MIRROR
+        ss = 1 if quality == "live" else 3
         renderers = {e: Renderer(rig.camera, rig.projector, rig.T_cam_proj, rig.mirror, rig.mirror_rect,
-                                 settings_for(sc, e).without_noise()) for e in set(effects) | {"none"}}
+                                 replace(settings_for(sc, e).without_noise(), supersample=ss))
+                     for e in set(effects) | {"none"}}
         poses = sc.projector_poses[:: sc.per_position]  # one pose per pattern position
         for pos, T in poses:
             img_p, pts = sc.pattern.render(W, H, pos)
@@ -187,6 +189,8 @@ def main() -> None:
                     help="effects whose sessions are calibrated (the slow part: one session per effect and seed)")
     ap.add_argument("--no-calib", action="store_true", help="skip the calibration of rendered sessions")
     ap.add_argument("--no-verify", action="store_true", help="skip the epipolar verification")
+    ap.add_argument("--quality", choices=("session", "live"), default="session",
+                    help="render quality of the circle-centre part (live: 1 sample per pixel, as the station captures)")
     a = ap.parse_args()
     effects = list(dict.fromkeys(a.effects))
     sc = get_scenario(a.scenario)
@@ -195,8 +199,8 @@ def main() -> None:
           f"{st.projector_black_level}, aperture {st.projector_aperture_mm} mm focused at {st.projector_focus_mm} mm, "
           f"vignetting {st.vignetting_corner} at the corners, camera gamma {st.camera_gamma}, ambient {st.ambient}")
     t0 = time.perf_counter()
-    bias = circle_bias(a.scenario, a.seeds, effects)
-    print(f"circle centres: {time.perf_counter() - t0:.0f} s", flush=True)
+    bias = circle_bias(a.scenario, a.seeds, effects, a.quality)
+    print(f"circle centres ({a.quality} quality): {time.perf_counter() - t0:.0f} s", flush=True)
     calib = {}
     if not a.no_calib:
         t0 = time.perf_counter()

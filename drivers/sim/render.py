@@ -325,8 +325,9 @@ class Renderer:
         self.mirror_rect = mirror_rect
         self.settings = settings or RenderSettings()
         self._static: dict = {}
-        self._proj_cache: tuple | None = None
-        self._defocus_cache: dict = {}
+        # the last few projector images' light pyramids and defocused copies: (image, key, levels,
+        # {(level, k): blurred}); a hardware-like frame blends the images shown during its exposure
+        self._proj_cache: list = []
         self._vignetting: tuple | None = None
 
     # ---- static (per camera / supersampling) data ------------------------------------------------
@@ -392,8 +393,9 @@ class Renderer:
             return None
         st = st or self.settings
         key = (float(st.projector_gamma), float(st.projector_black_level))
-        if self._proj_cache is not None and self._proj_cache[0] is image and self._proj_cache[2] == key:
-            return self._proj_cache[1]
+        for entry in self._proj_cache:
+            if entry[0] is image and entry[1] == key:
+                return entry[2]
         img = np.asarray(image)
         if img.ndim == 3:
             img = img.astype(np.float32).mean(axis=2)
@@ -412,18 +414,18 @@ class Renderer:
         while min(levels[-1].shape) > 64 and len(levels) < 6:
             # pyrDown: output pixel i is centred on input pixel 2 i, so q_level = q / 2^level exactly
             levels.append(cv2.pyrDown(levels[-1]))
-        self._proj_cache = (image, levels, key)
-        self._defocus_cache = {}
+        self._proj_cache = [(image, key, levels, {})] + self._proj_cache[:3]
         return levels
 
     def _defocused(self, levels, level: int, k: int) -> np.ndarray:
         """Pyramid `level` blurred by DEFOCUS_SIGMAS[k] (in that level's pixels), cached per image."""
         if k == 0:
             return levels[level]
-        hit = self._defocus_cache.get((level, k))
+        cache = next((entry[3] for entry in self._proj_cache if entry[2] is levels), {})
+        hit = cache.get((level, k))
         if hit is None:
             hit = cv2.GaussianBlur(levels[level], (0, 0), DEFOCUS_SIGMAS[k], borderType=cv2.BORDER_CONSTANT)
-            self._defocus_cache[(level, k)] = hit
+            cache[(level, k)] = hit
         return hit
 
     # ---- rendering -------------------------------------------------------------------------------
