@@ -59,8 +59,9 @@ def settings_for(scenario, effect: str):
     full = scenario.render
     st = full.photometrically_neutral()
     st = replace(st, **{f: getattr(full, f) for f in EFFECTS[effect]})
-    if effect == "ambient x2":
-        st = replace(st, ambient=2 * full.ambient)
+    if effect == "ambient x2":  # twice the room light for the projector's, at the same brightness
+        # (as the camera's exposure would keep it: the lit board is not saturated)
+        st = replace(st, ambient=2 * full.ambient * 2 / 3, projector_gain=full.projector_gain * 2 / 3)
     return st
 
 

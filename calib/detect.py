@@ -590,7 +590,8 @@ def _local_contrast(crop: np.ndarray) -> np.ndarray:
 
 def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> np.ndarray:
     """Intensity-weighted centroid of each blob in a disc that excludes its neighbours; the background
-    (median of the disc's rim) is subtracted. On anti-aliased blobs this is the blob's area centroid."""
+    (a plane fitted to the disc's rim) is subtracted. On anti-aliased blobs this is the blob's area
+    centroid."""
     n = len(pts)
     if n == 0:
         return pts.copy()
@@ -616,8 +617,21 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> 
     Rs = R[sel, None, None]
     inside = rr <= Rs
     rim = inside & (rr > Rs - 1.5)
-    bg = np.array([np.median(win[j][rim[j]]) if rim[j].any() else np.nan for j in range(len(sel))])
-    wgt = np.where(inside, win - bg[:, None, None], 0.0)
+    # the background under the blob: a plane fitted to the rim, not a constant. A brightness gradient
+    # across the window (vignetting, the projector's and the room's light fall-off) would otherwise weigh
+    # one side of the window more: 0.01-0.06 px of systematic shift towards the brighter side, enough to
+    # move the projector's focal length and principal point (docs/SIMULATOR.md, "Photometric realism")
+    dx = (X - pts[sel, 0, None, None]).astype(np.float64) * np.ones_like(win)
+    dy = (Y - pts[sel, 1, None, None]).astype(np.float64) * np.ones_like(win)
+    basis = np.stack([np.ones_like(win), dx, dy], axis=-1) * rim[..., None]  # (m, k, k, 3), zero off the rim
+    A = np.einsum("mijp,mijq->mpq", basis, basis)
+    b = np.einsum("mijp,mij->mp", basis, win)
+    plane = np.full((len(sel), 3), np.nan)
+    solvable = np.linalg.matrix_rank(A) == 3
+    if solvable.any():
+        plane[solvable] = np.linalg.solve(A[solvable], b[solvable][..., None])[..., 0]
+    bg = plane[:, 0, None, None] + plane[:, 1, None, None] * dx + plane[:, 2, None, None] * dy
+    wgt = np.where(inside, win - bg, 0.0)
     wgt[wgt < 0] = 0.0
     s = wgt.sum(axis=(1, 2))
     with np.errstate(invalid="ignore", divide="ignore"):
