@@ -590,8 +590,8 @@ def _local_contrast(crop: np.ndarray) -> np.ndarray:
 
 def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> np.ndarray:
     """Intensity-weighted centroid of each blob in a disc that excludes its neighbours; the background
-    (a plane fitted to the disc's rim) is subtracted. On anti-aliased blobs this is the blob's area
-    centroid."""
+    (the median of the disc's rim, sloped as the background around all the blobs) is subtracted. On
+    anti-aliased blobs this is the blob's area centroid."""
     n = len(pts)
     if n == 0:
         return pts.copy()
@@ -617,20 +617,18 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> 
     Rs = R[sel, None, None]
     inside = rr <= Rs
     rim = inside & (rr > Rs - 1.5)
-    # the background under the blob: a plane fitted to the rim, not a constant. A brightness gradient
-    # across the window (vignetting, the projector's and the room's light fall-off) would otherwise weigh
-    # one side of the window more: 0.01-0.06 px of systematic shift towards the brighter side, enough to
-    # move the projector's focal length and principal point (docs/SIMULATOR.md, "Photometric realism")
+    # the background under each blob is its rim's level plus the local slope of the background, not a
+    # constant: a brightness gradient across the window (vignetting, the projector's and the room's light
+    # fall-off) would otherwise weigh one side of the window more, 0.01-0.06 px of systematic shift
+    # towards the brighter side, enough to move the projector's focal length and principal point
+    # (docs/SIMULATOR.md, "Photometric realism"). The slope comes from one smooth (quadratic) surface
+    # fitted to all the rims together: a plane per rim would add more noise than the slope removes.
     dx = (X - pts[sel, 0, None, None]).astype(np.float64) * np.ones_like(win)
     dy = (Y - pts[sel, 1, None, None]).astype(np.float64) * np.ones_like(win)
-    basis = np.stack([np.ones_like(win), dx, dy], axis=-1) * rim[..., None]  # (m, k, k, 3), zero off the rim
-    A = np.einsum("mijp,mijq->mpq", basis, basis)
-    b = np.einsum("mijp,mij->mp", basis, win)
-    plane = np.full((len(sel), 3), np.nan)
-    solvable = np.linalg.matrix_rank(A) == 3
-    if solvable.any():
-        plane[solvable] = np.linalg.solve(A[solvable], b[solvable][..., None])[..., 0]
-    bg = plane[:, 0, None, None] + plane[:, 1, None, None] * dx + plane[:, 2, None, None] * dy
+    gx, gy = _background_slopes(win, rim, X * np.ones_like(win), Y * np.ones_like(win), pts[sel])
+    ramp = gx[:, None, None] * dx + gy[:, None, None] * dy
+    bg = np.array([np.median((win[j] - ramp[j])[rim[j]]) if rim[j].any() else np.nan for j in range(len(sel))])
+    bg = bg[:, None, None] + ramp
     wgt = np.where(inside, win - bg, 0.0)
     wgt[wgt < 0] = 0.0
     s = wgt.sum(axis=(1, 2))
@@ -643,6 +641,32 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> 
     out[sel[ok], 0] = cx[ok]
     out[sel[ok], 1] = cy[ok]
     return out
+
+
+def _background_slopes(win, rim, X, Y, centres) -> tuple[np.ndarray, np.ndarray]:
+    """The background's gradient (levels per pixel, x and y) at each blob centre, from a quadratic
+    surface fitted to the rim pixels of all the blobs (one refit without the rim pixels more than
+    3 sigma off). Zero when there are too few blobs for a surface."""
+    m = len(centres)
+    zero = (np.zeros(m), np.zeros(m))
+    if m < 6 or not rim.any():
+        return zero
+    c0 = centres.mean(axis=0)
+    scale = max(float(np.ptp(centres, axis=0).max()), 1.0)
+    u, v, val = (X[rim] - c0[0]) / scale, (Y[rim] - c0[1]) / scale, win[rim]
+    A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+    keep = np.ones(len(val), bool)
+    for _ in range(2):
+        coef, *_ = np.linalg.lstsq(A[keep], val[keep], rcond=None)
+        res = val - A @ coef
+        mad = 1.4826 * np.median(np.abs(res[keep]))
+        keep = np.abs(res) <= max(3.0 * mad, 1e-9)
+        if keep.sum() < 12:
+            return zero
+    cu, cv = (centres[:, 0] - c0[0]) / scale, (centres[:, 1] - c0[1]) / scale
+    gx = (coef[1] + 2 * coef[3] * cu + coef[4] * cv) / scale
+    gy = (coef[2] + coef[4] * cu + 2 * coef[5] * cv) / scale
+    return gx, gy
 
 
 def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi):
