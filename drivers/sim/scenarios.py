@@ -65,7 +65,7 @@ def default_render(focus_mm: float = 0.0) -> RenderSettings:
 
 # photometric defaults (justified in docs/SIMULATOR.md "Photometric realism")
 PROJECTOR_GAMMA = 2.2  # a projector's standard picture mode follows the sRGB / BT.709 display curve
-PROJECTOR_BLACK_LEVEL = 0.002  # 500:1 on/off contrast, a portable DLP projector with its lens flare
+PROJECTOR_BLACK_LEVEL = 0.002  # 500:1 on/off contrast: a small DLP projector with its lens flare
 PROJECTOR_APERTURE_MM = 7.0  # f 12.4 mm (2304 px at a 5.4 um DMD pitch) at f/1.8
 VIGNETTING_CORNER = 0.6  # a wide (90 deg) lens' fall-off after the image processor's partial correction
 CAMERA_GAMMA = 2.2  # the D455 colour stream is gamma-encoded video, not linear raw
