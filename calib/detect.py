@@ -313,10 +313,15 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
             # and the black cells fade. A linearised copy decodes them again (docs/SIMULATOR.md,
             # "Photometric realism"); the corners are still refined in the image itself (an X-junction
             # stays point-symmetric under any monotone tone curve, so they do not move).
-            region = img if (x0, y0) == (0, 0) else search
-            lc, lids, lmarkers, lstrict = _charuco_in(cv2.LUT(region, _LINEARISE_LUT), spec)
-            if lids is not None and len(lids) > n:
-                corners, ids, markers, strict, n = lc, lids, lmarkers, lstrict, len(lids)
+            # (the region where the board was looked for first, then the whole image)
+            regions = [(img, 0, 0)] if search is img else [(search, *roi[:2]), (img, 0, 0)]
+            for region, ox, oy in regions:
+                lc, lids, lmarkers, lstrict = _charuco_in(cv2.LUT(region, _LINEARISE_LUT), spec)
+                if lids is not None and len(lids) > n:
+                    corners, ids, markers, strict, n = lc, lids, lmarkers, lstrict, len(lids)
+                    x0, y0 = ox, oy
+                if n == spec.n_corners:
+                    break
         if n == 0 and len(markers) == 0:
             return DetectionFailure("board not found")
         if n < min_corners:
