@@ -19,6 +19,7 @@ from calib.models.observations import STEP_PROJECTOR
 from drivers.exposure import MAX_FRAMES, search_exposure
 from drivers.settle import apply_timing
 from drivers.sim.hardware import REFERENCE_EXPOSURE_US
+from drivers.sim.render import decode_gamma
 from drivers.sim.rig import open_sim_rig
 
 PERIOD_US = 1e6 / 60.0
@@ -130,14 +131,17 @@ def test_banding_for_an_exposure_off_the_refresh_period_only():
         t = time.monotonic()
         cam.set_manual_exposure(exposure_us, 1.0)
         f = [f for f in _frames(rig, 6) if f.exposure_start_s >= t + 1 / 30.0][-1]
-        return f.image[:, :, 0].astype(float), f.meta["banding_amplitude"]
+        # the ratios below are ratios of light: undo the camera's tone curve (docs/SIMULATOR.md)
+        lin = 255.0 * decode_gamma(f.image[:, :, 0].astype(np.float32) / 255.0, rig.settings.camera_gamma)
+        return lin.astype(float), f.meta["banding_amplitude"]
 
     ref, amp_ref = rows(PERIOD_US)
     lit = ref > 0.6 * ref.max()  # the board where the projector lights it
     assert lit.sum() > 2000 and amp_ref == 0.0
 
     def row_ratio_spread(img):
-        assert img[lit].max() < 254  # not saturated: the ratio is the exposure's
+        # not saturated (below level 254): the ratio is the exposure's
+        assert img[lit].max() < 255.0 * decode_gamma(np.float32(254 / 255), rig.settings.camera_gamma)
         r = np.where(lit, img / np.maximum(ref, 1), np.nan)
         ok = lit.sum(axis=1) > 20
         per_row = np.nanmean(r[ok], axis=1)

@@ -307,6 +307,21 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
             if lids is not None and lstrict > 0 and len(lids) > n:
                 corners, ids, n = lc, lids, len(lids)
                 x0 = y0 = 0
+        if n < spec.n_corners:
+            # camera images are gamma-encoded, not linear in light: where a marker's cells are a pixel or
+            # two wide, the pixels that mix black and white encode brighter than the light they received
+            # and the black cells fade. A linearised copy decodes them again (docs/SIMULATOR.md,
+            # "Photometric realism"); the corners are still refined in the image itself (an X-junction
+            # stays point-symmetric under any monotone tone curve, so they do not move).
+            # (the region where the board was looked for first, then the whole image)
+            regions = [(img, 0, 0)] if search is img else [(search, *roi[:2]), (img, 0, 0)]
+            for region, ox, oy in regions:
+                lc, lids, lmarkers, lstrict = _charuco_in(cv2.LUT(region, _LINEARISE_LUT), spec)
+                if lids is not None and len(lids) > n:
+                    corners, ids, markers, strict, n = lc, lids, lmarkers, lstrict, len(lids)
+                    x0, y0 = ox, oy
+                if n == spec.n_corners:
+                    break
         if n == 0 and len(markers) == 0:
             return DetectionFailure("board not found")
         if n < min_corners:
@@ -324,6 +339,9 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
 
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+
+#: 8-bit level -> level linear in light, for a camera with the usual video encoding (gamma about 2.2)
+_LINEARISE_LUT = np.clip(np.round(255.0 * (np.arange(256) / 255.0) ** 2.2), 0, 255).astype(np.uint8)
 
 
 _MIN_REFINE_MARGIN_PX = 3.5
@@ -577,7 +595,8 @@ def _local_contrast(crop: np.ndarray) -> np.ndarray:
 
 def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> np.ndarray:
     """Intensity-weighted centroid of each blob in a disc that excludes its neighbours; the background
-    (median of the disc's rim) is subtracted. On anti-aliased blobs this is the blob's area centroid."""
+    (the median of the disc's rim, sloped as the background around all the blobs) is subtracted. On
+    anti-aliased blobs this is the blob's area centroid."""
     n = len(pts)
     if n == 0:
         return pts.copy()
@@ -603,8 +622,19 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> 
     Rs = R[sel, None, None]
     inside = rr <= Rs
     rim = inside & (rr > Rs - 1.5)
-    bg = np.array([np.median(win[j][rim[j]]) if rim[j].any() else np.nan for j in range(len(sel))])
-    wgt = np.where(inside, win - bg[:, None, None], 0.0)
+    # the background under each blob is its rim's level plus the local slope of the background, not a
+    # constant: a brightness gradient across the window (vignetting, the projector's and the room's light
+    # fall-off) would otherwise weigh one side of the window more, 0.01-0.06 px of systematic shift
+    # towards the brighter side, enough to move the projector's focal length and principal point
+    # (docs/SIMULATOR.md, "Photometric realism"). The slope comes from one smooth (quadratic) surface
+    # fitted to all the rims together: a plane per rim would add more noise than the slope removes.
+    dx = (X - pts[sel, 0, None, None]).astype(np.float64) * np.ones_like(win)
+    dy = (Y - pts[sel, 1, None, None]).astype(np.float64) * np.ones_like(win)
+    gx, gy = _background_slopes(win, rim, X * np.ones_like(win), Y * np.ones_like(win), pts[sel])
+    ramp = gx[:, None, None] * dx + gy[:, None, None] * dy
+    bg = np.array([np.median((win[j] - ramp[j])[rim[j]]) if rim[j].any() else np.nan for j in range(len(sel))])
+    bg = bg[:, None, None] + ramp
+    wgt = np.where(inside, win - bg, 0.0)
     wgt[wgt < 0] = 0.0
     s = wgt.sum(axis=(1, 2))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -616,6 +646,32 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> 
     out[sel[ok], 0] = cx[ok]
     out[sel[ok], 1] = cy[ok]
     return out
+
+
+def _background_slopes(win, rim, X, Y, centres) -> tuple[np.ndarray, np.ndarray]:
+    """The background's gradient (levels per pixel, x and y) at each blob centre, from a quadratic
+    surface fitted to the rim pixels of all the blobs (one refit without the rim pixels more than
+    3 sigma off). Zero when there are too few blobs for a surface."""
+    m = len(centres)
+    zero = (np.zeros(m), np.zeros(m))
+    if m < 6 or not rim.any():
+        return zero
+    c0 = centres.mean(axis=0)
+    scale = max(float(np.ptp(centres, axis=0).max()), 1.0)
+    u, v, val = (X[rim] - c0[0]) / scale, (Y[rim] - c0[1]) / scale, win[rim]
+    A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+    keep = np.ones(len(val), bool)
+    for _ in range(2):
+        coef, *_ = np.linalg.lstsq(A[keep], val[keep], rcond=None)
+        res = val - A @ coef
+        mad = 1.4826 * np.median(np.abs(res[keep]))
+        keep = np.abs(res) <= max(3.0 * mad, 1e-9)
+        if keep.sum() < 12:
+            return zero
+    cu, cv = (centres[:, 0] - c0[0]) / scale, (centres[:, 1] - c0[1]) / scale
+    gx = (coef[1] + 2 * coef[3] * cu + coef[4] * cv) / scale
+    gy = (coef[2] + coef[4] * cu + 2 * coef[5] * cv) / scale
+    return gx, gy
 
 
 def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi):

@@ -59,10 +59,23 @@ class RenderSettings:
     read_noise_dn: float = 0.0  # read noise sigma in 8-bit levels, 0 = off
     electrons_per_dn: float = 0.0  # shot noise: photo-electrons per 8-bit level, 0 = off
     quantize: bool = True  # 8-bit output (False: float32 levels, for tests)
+    # photometric realism (docs/SIMULATOR.md "Photometric realism"); each value here switches it off
+    projector_gamma: float = 1.0  # light = level ** gamma (level in [0, 1] of the projector's image)
+    projector_black_level: float = 0.0  # light of a projector pixel at level 0, fraction of full white
+    projector_aperture_mm: float = 0.0  # lens aperture diameter: defocus blur away from the focus; 0 = pinhole
+    projector_focus_mm: float = 0.0  # distance (along the projector's axis) in focus; 0 = reference_distance_mm
+    vignetting_corner: float = 1.0  # relative irradiance at the farthest image corner (cos^4-shaped fall-off)
+    camera_gamma: float = 1.0  # the camera's encoding: level ~ light ** (1 / gamma), BT.709-like toe
 
     def __post_init__(self):
         if int(self.supersample) < 1:
             raise ValueError("supersample must be >= 1")
+        if not (self.projector_gamma > 0 and self.camera_gamma >= 1.0):
+            raise ValueError("projector_gamma must be > 0 and camera_gamma >= 1")
+        if not (0.0 <= self.projector_black_level < 1.0 and 0.0 < self.vignetting_corner <= 1.0):
+            raise ValueError("projector_black_level must be in [0, 1) and vignetting_corner in (0, 1]")
+        if not (self.projector_aperture_mm >= 0 and self.projector_focus_mm >= 0):
+            raise ValueError("projector_aperture_mm and projector_focus_mm must be >= 0")
 
     @classmethod
     def for_quality(cls, quality: str, **overrides) -> "RenderSettings":
@@ -77,6 +90,78 @@ class RenderSettings:
 
     def without_noise(self) -> "RenderSettings":
         return replace(self, blur_sigma_px=0.0, read_noise_dn=0.0, electrons_per_dn=0.0)
+
+    def photometrically_neutral(self) -> "RenderSettings":
+        """The same settings with every photometric-realism effect off (the renderer before issue 18)."""
+        return replace(self, projector_gamma=1.0, projector_black_level=0.0, projector_aperture_mm=0.0,
+                       projector_focus_mm=0.0, vignetting_corner=1.0, camera_gamma=1.0)
+
+
+# ---- photometric curves ---------------------------------------------------------------------------
+_TOE_OFFSET = 0.099  # BT.709's offset: with exponent 0.45 this is exactly the BT.709 curve
+
+
+def encode_gamma(light: np.ndarray, gamma: float) -> np.ndarray:
+    """A camera's tone curve: relative light in [0, 1] -> relative level, V = (1 + a) L^(1/gamma) - a
+    above a threshold and a straight line through 0 below it, joined with the same value and slope
+    (BT.709's construction; gamma = 1 / 0.45 gives BT.709). gamma = 1 returns `light` unchanged."""
+    if gamma == 1.0:
+        return light
+    p = 1.0 / gamma
+    a = _TOE_OFFSET
+    t = (a / ((1 + a) * (1 - p))) ** (1 / p)
+    slope = (1 + a) * p * t ** (p - 1)
+    L = np.asarray(light, np.float32)
+    hi = np.float32(1 + a) * np.power(np.maximum(L, np.float32(t)), np.float32(p)) - np.float32(a)
+    return np.where(L < t, np.float32(slope) * L, hi).astype(np.float32)
+
+
+_LUT_STEPS = 256  # linear levels per 8-bit level in the encoding table
+
+
+@lru_cache(maxsize=4)
+def _encode_lut(gamma: float) -> np.ndarray:
+    """uint8 output level of each linear level k / _LUT_STEPS (0..255): the tone curve and the 8-bit
+    rounding as one table. A pixel lands within 1/512 of a linear level of its exact value, so it differs
+    from the exact rounding by one level only right at a rounding threshold (under 2 % of pixels in the
+    steepest part of the curve, near black, where the noise is several levels)."""
+    lin = np.arange(255 * _LUT_STEPS + 1, dtype=np.float32) / np.float32(255 * _LUT_STEPS)
+    out = np.clip(255.0 * encode_gamma(lin, gamma) + 0.5, 0, 255).astype(np.uint8)
+    out.setflags(write=False)
+    return out
+
+
+def decode_gamma(level: np.ndarray, gamma: float) -> np.ndarray:
+    """The inverse of encode_gamma: relative level -> relative light."""
+    if gamma == 1.0:
+        return level
+    p = 1.0 / gamma
+    a = _TOE_OFFSET
+    t = (a / ((1 + a) * (1 - p))) ** (1 / p)
+    slope = (1 + a) * p * t ** (p - 1)
+    V = np.asarray(level, np.float32)
+    hi = np.power((np.maximum(V, np.float32(slope * t)) + np.float32(a)) / np.float32(1 + a), np.float32(gamma))
+    return np.where(V < slope * t, V / np.float32(slope), hi).astype(np.float32)
+
+
+def defocus_sigma_px(depth_mm, aperture_mm: float, focus_mm: float, f_px: float):
+    """Thin-lens defocus of a projector focused at `focus_mm`: the circle of confusion of a point at
+    `depth_mm` (along the axis) has diameter aperture * f * |1/depth - 1/focus| in image pixels; the
+    returned Gaussian sigma is that of a uniform disc of this diameter (diameter / 4)."""
+    return np.float32(aperture_mm * f_px / 4.0) * np.abs(np.float32(1.0) / depth_mm - np.float32(1.0 / focus_mm))
+
+
+def vignetting_map(camera: CameraModel, corner: float) -> np.ndarray:
+    """Relative irradiance per pixel, (H, W) float32: 1 on the optical axis, cos^4 of the ray's angle
+    rescaled so that the farthest image corner receives `corner` (a lens whose cos^4 fall-off the
+    image processor partly corrects keeps this shape with a smaller depth)."""
+    nx, ny = normalized_grid(camera, 1)
+    c4 = 1.0 / (1.0 + nx.astype(np.float64) ** 2 + ny.astype(np.float64) ** 2) ** 2  # cos^4 of the angle
+    W, H = camera.size
+    ends = _undistort_exact(camera, np.array([[0.0, 0.0], [W - 1.0, 0.0], [0.0, H - 1.0], [W - 1.0, H - 1.0]]))
+    c4_corner = float((1.0 / (1.0 + (ends ** 2).sum(axis=1)) ** 2).min())
+    v = 1.0 - (1.0 - corner) * (1.0 - c4) / (1.0 - c4_corner)
+    return np.maximum(v, 0.0).astype(np.float32)
 
 
 # ---- scene state ----------------------------------------------------------------------------------
@@ -255,7 +340,10 @@ class Renderer:
         self.mirror_rect = mirror_rect
         self.settings = settings or RenderSettings()
         self._static: dict = {}
-        self._proj_cache: tuple | None = None
+        # the last few projector images' light pyramids and defocused copies: (image, key, levels,
+        # {(level, k): blurred}); a hardware-like frame blends the images shown during its exposure
+        self._proj_cache: list = []
+        self._vignetting: tuple | None = None
 
     # ---- static (per camera / supersampling) data ------------------------------------------------
     def _static_for(self, s: int) -> dict:
@@ -313,26 +401,52 @@ class Renderer:
         self._static_for(int(self.settings.supersample))
 
     # ---- projector image pyramid ---------------------------------------------------------------------
-    def _projector_levels(self, image) -> list[np.ndarray] | None:
+    def _projector_levels(self, image, st: RenderSettings | None = None) -> list[np.ndarray] | None:
+        """The projector's light (relative to full white) as a pyrDown pyramid: its image's levels
+        through the projector's response (gamma, black level). None: the projector is off (dark)."""
         if image is None:
             return None
-        if self._proj_cache is not None and self._proj_cache[0] is image:
-            return self._proj_cache[1]
+        st = st or self.settings
+        key = (float(st.projector_gamma), float(st.projector_black_level))
+        for entry in self._proj_cache:
+            if entry[0] is image and entry[1] == key:
+                return entry[2]
         img = np.asarray(image)
+        gamma, black = key
         if img.ndim == 3:
             img = img.astype(np.float32).mean(axis=2)
-        if img.dtype == np.uint8:
+        if img.dtype == np.uint8 and (gamma != 1.0 or black > 0):
+            # the response of each of the 256 levels, looked up (the same numbers, faster)
+            lut = np.power(np.arange(256, dtype=np.float32) / np.float32(255.0), np.float32(gamma))
+            img = np.take(np.float32(black) + np.float32(1.0 - black) * lut, img)
+            gamma, black = 1.0, 0.0
+        elif img.dtype == np.uint8:
             img = img.astype(np.float32) / 255.0
         img = np.ascontiguousarray(img, np.float32)
         if img.shape != (self.projector.height, self.projector.width):
             raise ValueError(f"projector image is {img.shape[1]}x{img.shape[0]}, the projector is "
                              f"{self.projector.width}x{self.projector.height}")
+        if gamma != 1.0:
+            img = np.power(np.clip(img, 0.0, 1.0), np.float32(gamma))
+        if black > 0:
+            img = np.float32(black) + np.float32(1.0 - black) * img
         levels = [img]
         while min(levels[-1].shape) > 64 and len(levels) < 6:
             # pyrDown: output pixel i is centred on input pixel 2 i, so q_level = q / 2^level exactly
             levels.append(cv2.pyrDown(levels[-1]))
-        self._proj_cache = (image, levels)
+        self._proj_cache = [(image, key, levels, {})] + self._proj_cache[:3]
         return levels
+
+    def _defocused(self, levels, level: int, k: int) -> np.ndarray:
+        """Pyramid `level` blurred by DEFOCUS_SIGMAS[k] (in that level's pixels), cached per image."""
+        if k == 0:
+            return levels[level]
+        cache = next((entry[3] for entry in self._proj_cache if entry[2] is levels), {})
+        hit = cache.get((level, k))
+        if hit is None:
+            hit = cv2.GaussianBlur(levels[level], (0, 0), DEFOCUS_SIGMAS[k], borderType=cv2.BORDER_CONSTANT)
+            cache[(level, k)] = hit
+        return hit
 
     # ---- rendering -------------------------------------------------------------------------------
     def render(self, state: SceneState, rng: np.random.Generator | None = None,
@@ -343,7 +457,7 @@ class Renderer:
         return self.finish(img, st, rng)
 
     def finish(self, img: np.ndarray, st: RenderSettings, rng: np.random.Generator | None = None) -> np.ndarray:
-        """Blur, noise and quantisation of a linear image in 8-bit levels."""
+        """Blur, noise, the camera's tone curve and quantisation of a linear image in 8-bit levels."""
         if st.blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), st.blur_sigma_px)
         if st.read_noise_dn > 0 or st.electrons_per_dn > 0:
@@ -353,6 +467,13 @@ class Renderer:
             else:
                 sigma = np.float32(st.read_noise_dn)
             img = img + sigma * rng.standard_normal(img.shape, dtype=np.float32)
+        if st.camera_gamma != 1.0:
+            # the image processor encodes the sensor's linear signal (noise included) before 8 bits
+            if st.quantize:  # encoding and quantisation in one table lookup (1/256-level steps)
+                idx = np.clip(img * np.float32(_LUT_STEPS) + np.float32(0.5), 0, 255 * _LUT_STEPS).astype(np.int32)
+                return cv2.cvtColor(_encode_lut(float(st.camera_gamma))[idx], cv2.COLOR_GRAY2BGR)
+            img = np.float32(255.0) * encode_gamma(np.minimum(img, np.float32(255.0)) / np.float32(255.0),
+                                                   st.camera_gamma)
         if not st.quantize:
             return img
         g = np.clip(img + 0.5, 0, 255).astype(np.uint8)  # round half up, clipped
@@ -365,7 +486,7 @@ class Renderer:
         static = self._static_for(s)
         img = (static["bg"] * np.float32(255.0)).copy()
         depth = np.full(img.shape, np.inf, np.float32)
-        levels = self._projector_levels(state.projector_image)
+        levels = self._projector_levels(state.projector_image, st)
         mir = static["mirror"]
         if mir is not None:
             y0, y1, x0, x1 = mir["box"]
@@ -385,6 +506,11 @@ class Renderer:
         if s > 1:
             H, W = self.camera.height, self.camera.width
             img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)  # exact s x s box average
+        if st.vignetting_corner < 1.0:
+            # the lens passes less light off axis: irradiance on the sensor, before blur and noise
+            if self._vignetting is None or self._vignetting[0] != st.vignetting_corner:
+                self._vignetting = (st.vignetting_corner, vignetting_map(self.camera, st.vignetting_corner))
+            img = img * self._vignetting[1]
         return img
 
     def _board_box(self, T_view: np.ndarray, layout: BoardLayout, shape, s: int):
@@ -501,7 +627,11 @@ class Renderer:
         f = np.float32(2.0 ** -level)
         qx[bad] = -1e6
         qy[bad] = -1e6
-        v = cv2.remap(levels[level], qx * f, qy * f, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        mx, my = qx * f, qy * f
+        if st.projector_aperture_mm > 0:
+            v = self._defocused_lookup(levels, level, mx, my, Z, bad, st, float(f))
+        else:
+            v = cv2.remap(levels[level], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         gain = np.float32(st.projector_gain)
         if st.projector_falloff:
             R2 = X * X + Y * Y + Z * Z
@@ -509,3 +639,40 @@ class Renderer:
             # cos(incidence) = dist_p / |X|, irradiance ~ cos / |X|^2
             v = v * (np.float32(dist_p) * D0 * D0 / (R2 * np.sqrt(R2)))
         return gain * v
+
+    def _defocused_lookup(self, levels, level: int, mx, my, Z, bad, st: RenderSettings, f: float):
+        """The projector's light at level-pixel coordinates (mx, my), blurred by the thin-lens defocus
+        of each point's depth Z: interpolated between copies of the level blurred at DEFOCUS_SIGMAS."""
+        focus = st.projector_focus_mm or st.reference_distance_mm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sig = defocus_sigma_px(Z, st.projector_aperture_mm, focus, self.projector.fx) * np.float32(f)
+        sig = np.where(bad | ~np.isfinite(sig), np.float32(0.0), np.minimum(sig, np.float32(DEFOCUS_SIGMAS[-1])))
+        lo, hi = float(sig.min()), float(sig.max())
+        grid = DEFOCUS_SIGMAS
+        if hi - lo < 0.1:  # nearly one blur over the whole board: one lookup
+            k = int(np.searchsorted(grid, 0.5 * (lo + hi)))
+            k = min(k, len(grid) - 1)
+            if k > 0 and (grid[k] - 0.5 * (lo + hi)) > (0.5 * (lo + hi) - grid[k - 1]):
+                k -= 1
+            return cv2.remap(self._defocused(levels, level, k), mx, my, cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        k0 = max(int(np.searchsorted(grid, lo, side="right")) - 1, 0)
+        k1 = min(int(np.searchsorted(grid, hi, side="left")), len(grid) - 1)
+        out = np.zeros(mx.shape, np.float32)
+        for k in range(k0, k1 + 1):
+            # hat weight of grid point k (linear interpolation in sigma between neighbours)
+            w = np.ones(mx.shape, np.float32)
+            if k > 0:
+                w = np.where(sig < grid[k], np.clip((sig - grid[k - 1]) / np.float32(grid[k] - grid[k - 1]), 0, 1), w)
+            if k < len(grid) - 1:
+                w = np.where(sig > grid[k], np.clip((grid[k + 1] - sig) / np.float32(grid[k + 1] - grid[k]), 0, 1), w)
+            if not np.any(w > 0):
+                continue
+            v = cv2.remap(self._defocused(levels, level, k), mx, my, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+            out += w * v
+        return out
+
+
+# defocus blur of the projector's light is interpolated between copies blurred by these sigmas (level px)
+DEFOCUS_SIGMAS = (0.0, 0.4, 0.8, 1.2, 1.6, 2.4, 3.2, 4.8, 6.4, 9.6, 12.8, 19.2, 25.6)

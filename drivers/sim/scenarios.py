@@ -52,9 +52,23 @@ def default_mirror_board() -> CharucoSpec:
     return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 13.2, "mm")
 
 
-def default_render() -> RenderSettings:
-    """A plausible camera: slight optical blur, read noise and shot noise (about 2 levels at mid-grey)."""
-    return RenderSettings(blur_sigma_px=0.5, read_noise_dn=0.8, electrons_per_dn=40.0)
+def default_render(focus_mm: float = 0.0) -> RenderSettings:
+    """A plausible camera and projector: slight optical blur, read noise and shot noise (about 2 levels
+    at mid-grey), and the photometric realism of docs/SIMULATOR.md: the projector's gamma 2.2 and black
+    level 1/500, its lens (7 mm aperture) focused at `focus_mm` (0: the renderer's reference distance),
+    the camera's BT.709-like tone curve (gamma 2.2) and vignetting to 0.6 in the image corners."""
+    return RenderSettings(blur_sigma_px=0.5, read_noise_dn=0.8, electrons_per_dn=40.0,
+                          projector_gamma=PROJECTOR_GAMMA, projector_black_level=PROJECTOR_BLACK_LEVEL,
+                          projector_aperture_mm=PROJECTOR_APERTURE_MM, projector_focus_mm=float(focus_mm),
+                          vignetting_corner=VIGNETTING_CORNER, camera_gamma=CAMERA_GAMMA)
+
+
+# photometric defaults (justified in docs/SIMULATOR.md "Photometric realism")
+PROJECTOR_GAMMA = 2.2  # a projector's standard picture mode follows the sRGB / BT.709 display curve
+PROJECTOR_BLACK_LEVEL = 0.002  # 500:1 on/off contrast: a small DLP projector with its lens flare
+PROJECTOR_APERTURE_MM = 7.0  # f 12.4 mm (2304 px at a 5.4 um DMD pitch) at f/1.8
+VIGNETTING_CORNER = 0.6  # a wide (90 deg) lens' fall-off after the image processor's partial correction
+CAMERA_GAMMA = 2.2  # the D455 colour stream is gamma-encoded video, not linear raw
 
 
 @dataclass(frozen=True, eq=False)
@@ -242,7 +256,7 @@ def _mirrored(name, description, angle_deg=136.0, projector=None, kind="circles"
     layout = BoardLayout(default_projector_board())
     pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height, kind=kind)
     return Scenario(name, description, rig, layout, default_mirror_board(), pattern, method, thickness_mm,
-                    default_render(), seed)
+                    default_render(rig.projector_distance_mm), seed)
 
 
 def _direct(seed=0) -> Scenario:
@@ -250,7 +264,7 @@ def _direct(seed=0) -> Scenario:
     layout = BoardLayout(default_projector_board())
     pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height)
     return Scenario("direct", "overlapping control: camera and projector side by side, no mirror", rig, layout,
-                    None, pattern, None, 0.0, default_render(), seed)
+                    None, pattern, None, 0.0, default_render(rig.projector_distance_mm), seed)
 
 
 _BUILDERS = {

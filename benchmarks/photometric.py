@@ -1,0 +1,253 @@
+"""Photometric realism (issue 18): what each effect of the renderer does to the projected-circle centres,
+to the calibration and to the epipolar verification.
+
+    python benchmarks/photometric.py [--seeds 2] [--scenario nonoverlap-136] [--effects ...] [--no-calib]
+
+For each effect alone (added to a photometrically neutral renderer: linear projector and camera, no
+black level, no defocus, no vignetting), all together (the scenario's default) and none:
+
+- circle centres: the scenario's 13 pattern positions (one board pose each) per seed, rendered at session
+  quality without noise (blur and 8-bit quantisation kept), detected by calib.detect as a session is;
+  each detected centre against the true projection of the circle's centre (`centre`), against the
+  area centroid of the circle's exact image (`conic`: what the joint method's conic model predicts),
+  and against the same circle detected in the neutral image (`shift`: the effect alone);
+- calibration: full sessions rendered with noise (simulate, detect, joint method), errors against the
+  ground truth: distance mm, angle deg, projector K px (mean over seeds);
+- verification: `app.verification.verify` with the ground truth at the scenario's verification pose:
+  the mean distance in projector px, and the stroke's measured scale (camera px per projector px)
+  relative to the neutral renderer's, mean and worst |ratio - 1| over the checked pixels.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from calib.detect import detect_board, detect_pattern  # noqa: E402
+from calib.observations import VIEW_MIRROR  # noqa: E402
+from calib.synthetic import projector_points_on_board  # noqa: E402
+from calib.transforms import transform_points  # noqa: E402
+from drivers.sim.render import PlacedBoard, Renderer, SceneState  # noqa: E402
+from drivers.sim.scenarios import get_scenario  # noqa: E402
+
+#: effect name -> the RenderSettings fields it takes from the scenario's default (realistic) settings
+EFFECTS = {
+    "none": (),
+    "projector gamma": ("projector_gamma",),
+    "camera gamma": ("camera_gamma",),
+    "projector black level": ("projector_black_level",),
+    "projector defocus": ("projector_aperture_mm", "projector_focus_mm"),
+    "vignetting": ("vignetting_corner",),
+    "ambient x2": (),
+    "all (default)": ("projector_gamma", "camera_gamma", "projector_black_level", "projector_aperture_mm",
+                      "projector_focus_mm", "vignetting_corner"),
+}
+
+#: calibrated by default: the effects that move circle centres measurably, none and all
+CALIB_EFFECTS = ("none", "projector gamma", "camera gamma", "projector defocus", "vignetting", "all (default)")
+
+
+def settings_for(scenario, effect: str):
+    full = scenario.render
+    st = full.photometrically_neutral()
+    st = replace(st, **{f: getattr(full, f) for f in EFFECTS[effect]})
+    if effect == "ambient x2":  # twice the room light for the projector's, at the same brightness
+        # (as the camera's exposure would keep it: the lit board is not saturated)
+        st = replace(st, ambient=2 * full.ambient * 2 / 3, projector_gain=full.projector_gain * 2 / 3)
+    return st
+
+
+def _polygon_centroid(poly: np.ndarray) -> np.ndarray:
+    x, y = poly[:, 0], poly[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    a = cross.sum() / 2.0
+    return np.array([((x + xn) * cross).sum() / (6 * a), ((y + yn) * cross).sum() / (6 * a)])
+
+
+def circle_truth(sc, T, pts_px) -> tuple[np.ndarray, np.ndarray]:
+    """(projections of the circle centres, area centroids of the circles' exact images), camera px."""
+    rig = sc.rig
+    S = rig.S() if rig.mirror is not None else np.eye(4)
+    Xb = projector_points_on_board(rig, T, pts_px)
+    centre = rig.camera.project(transform_points(S @ T, Xb))
+    a = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    ring = np.column_stack([np.cos(a), np.sin(a)]) * sc.pattern.radius_px
+    conic = np.array([_polygon_centroid(rig.camera.project(transform_points(S @ T, projector_points_on_board(rig, T, c + ring))))
+                      for c in pts_px])
+    return centre, conic
+
+
+def circle_bias(scenario_name: str, seeds: int, effects, quality: str = "session") -> dict:
+    """effect -> {'centre': errors, 'conic': errors, 'shift': errors vs the neutral detection} (px arrays)."""
+    out = {e: {"centre": [], "conic": [], "shift": [], "failed": 0} for e in effects}
+    for seed in range(seeds):
+        sc = get_scenario(scenario_name, seed)
+        rig = sc.rig
+        W, H = rig.projector.size
+        mirrored = sc.view == VIEW_MIRROR
+        ss = 1 if quality == "live" else 3
+        renderers = {e: Renderer(rig.camera, rig.projector, rig.T_cam_proj, rig.mirror, rig.mirror_rect,
+                                 replace(settings_for(sc, e).without_noise(), supersample=ss))
+                     for e in set(effects) | {"none"}}
+        poses = sc.projector_poses[:: sc.per_position]  # one pose per pattern position
+        for pos, T in poses:
+            img_p, pts = sc.pattern.render(W, H, pos)
+            centre, conic = circle_truth(sc, T, pts)
+            state = SceneState((PlacedBoard(sc.layout, T),), img_p)
+            found = {}
+            for e in set(effects) | {"none"}:
+                img = renderers[e].render(state)
+                board = detect_board(img, sc.projector_board, mirrored)
+                det = None
+                if not hasattr(board, "reason"):
+                    det = detect_pattern(img, sc.pattern, mirrored, board, sc.projector_board)
+                found[e] = None if det is None or hasattr(det, "reason") else np.asarray(det, float)
+            for e in effects:
+                d = found[e]
+                if d is None:
+                    out[e]["failed"] += 1
+                    continue
+                out[e]["centre"].append(np.linalg.norm(d - centre, axis=1))
+                out[e]["conic"].append(np.linalg.norm(d - conic, axis=1))
+                if found["none"] is not None:
+                    out[e]["shift"].append(np.linalg.norm(d - found["none"], axis=1))
+    for e in effects:
+        for k in ("centre", "conic", "shift"):
+            out[e][k] = np.concatenate(out[e][k]) if out[e][k] else np.array([np.nan])
+    return out
+
+
+def calibration_errors(scenario_name: str, seeds: int, effects, workers: int = 2, log=print) -> dict:
+    """effect -> list of (distance mm, angle deg, projector K px) per seed (None for a failed session)."""
+    from app.commands.simulate import simulate_session
+    from calib.detect import detect_session
+    from calib.errors import ProcamError
+    from calib.metrics import compare
+    from calib.pipeline import calibrate_observations
+    from calib.session import SessionStore
+
+    out = {e: [] for e in effects}
+    with tempfile.TemporaryDirectory(prefix="procam-photometric-") as tmp:
+        for e in effects:
+            for seed in range(seeds):
+                sc = get_scenario(scenario_name, seed)
+                sc = replace(sc, render=settings_for(sc, e))
+                folder = Path(tmp) / f"{e.replace(' ', '_')}-{seed}"
+                t0 = time.perf_counter()
+                simulate_session(sc, folder, quality="session", workers=workers, force=True, progress=False)
+                obs = detect_session(SessionStore.open(folder), workers, cache="refresh")
+                try:
+                    res = calibrate_observations(obs, "joint")
+                except ProcamError as err:
+                    log(f"  {e}, seed {seed}: calibration FAILED: {err}")
+                    out[e].append(None)
+                    continue
+                m = compare(res, sc.ground_truth())
+                out[e].append((m.distance, m.angle_deg, m.proj_k_px))
+                log(f"  {e}, seed {seed}: {m.distance:.3f} mm, {m.angle_deg:.4f} deg, ProjK {m.proj_k_px:.3f} px "
+                    f"({len(obs.skipped)} skipped; {time.perf_counter() - t0:.0f} s)")
+    return out
+
+
+def verification(scenario_name: str, effects) -> dict:
+    """effect -> (mean distance proj px, per-pixel scales {pixel: scale}), ground truth, seed 0."""
+    from app.verification import verify
+    from drivers.sim.rig import open_sim_rig
+
+    out = {}
+    for e in effects:
+        sc = get_scenario(scenario_name, 0)
+        rig = open_sim_rig(scenario_name, 0, quality="session", ideal=True, **settings_for(sc, e).to_dict())
+        try:
+            rig.camera.start()
+            rep = verify(rig.camera, rig.projector, rig.operator, rig.ground_truth())
+        finally:
+            rig.close()
+        scales = {tuple(np.round(c.pixel, 1)): c.scale for c in rep.checks if c.scale}
+        out[e] = (rep.mean_proj_px, scales)
+    return out
+
+
+def _fmt(v, f="{:.3f}"):
+    return "-" if v is None or not np.isfinite(v) else f.format(v)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="nonoverlap-136")
+    ap.add_argument("--seeds", type=int, default=2, help="seeds for the circle centres and the calibration")
+    ap.add_argument("--effects", nargs="+", default=list(EFFECTS), choices=list(EFFECTS))
+    ap.add_argument("--calib-effects", nargs="+", default=list(CALIB_EFFECTS), choices=list(EFFECTS),
+                    help="effects whose sessions are calibrated (the slow part: one session per effect and seed)")
+    ap.add_argument("--no-calib", action="store_true", help="skip the calibration of rendered sessions")
+    ap.add_argument("--no-verify", action="store_true", help="skip the epipolar verification")
+    ap.add_argument("--quality", choices=("session", "live"), default="session",
+                    help="render quality of the circle-centre part (live: 1 sample per pixel, as the station captures)")
+    a = ap.parse_args()
+    effects = list(dict.fromkeys(a.effects))
+    sc = get_scenario(a.scenario)
+    st = sc.render
+    print(f"{a.scenario}, seeds 0-{a.seeds - 1}; defaults: projector gamma {st.projector_gamma}, black level "
+          f"{st.projector_black_level}, aperture {st.projector_aperture_mm} mm focused at {st.projector_focus_mm} mm, "
+          f"vignetting {st.vignetting_corner} at the corners, camera gamma {st.camera_gamma}, ambient {st.ambient}")
+    t0 = time.perf_counter()
+    bias = circle_bias(a.scenario, a.seeds, effects, a.quality)
+    print(f"circle centres ({a.quality} quality): {time.perf_counter() - t0:.0f} s", flush=True)
+    calib = {}
+    if not a.no_calib:
+        t0 = time.perf_counter()
+        calib = calibration_errors(a.scenario, a.seeds, [e for e in a.calib_effects if e in effects])
+        print(f"calibration: {time.perf_counter() - t0:.0f} s", flush=True)
+    ver = {}
+    if not a.no_verify:
+        t0 = time.perf_counter()
+        ver = verification(a.scenario, list(dict.fromkeys(["none"] + effects)))
+        print(f"verification: {time.perf_counter() - t0:.0f} s", flush=True)
+
+    print()
+    print("| effect | centre bias px mean / max | vs conic centroid px mean / max | shift vs none px mean / max "
+          "| distance mm | angle deg | ProjK px | verification proj px | stroke scale vs none mean / worst % |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for e in effects:
+        b = bias[e]
+        cells = [e]
+        for k in ("centre", "conic", "shift"):
+            cells.append(f"{_fmt(np.nanmean(b[k]))} / {_fmt(np.nanmax(b[k]))}")
+        if b["failed"]:
+            cells[-1] += f" ({b['failed']} views not detected)"
+        runs = [r for r in calib.get(e, []) if r is not None]
+        if runs:
+            m = np.mean(np.array(runs), axis=0)
+            cells += [_fmt(m[0]), _fmt(m[1], "{:.4f}"), _fmt(m[2])]
+            if len(runs) < len(calib[e]):
+                cells[-1] += f" ({len(calib[e]) - len(runs)} failed)"
+        else:
+            cells += ["-", "-", "-"]
+        if e in ver:
+            mean_proj, scales = ver[e]
+            ref = ver["none"][1]
+            ratios = []
+            for p, sc_p in scales.items():  # the neutral check at the nearest pixel (the grids differ a little)
+                q = min(ref, key=lambda r: np.hypot(r[0] - p[0], r[1] - p[1]), default=None)
+                if q is not None and np.hypot(q[0] - p[0], q[1] - p[1]) < 15.0:
+                    ratios.append(sc_p / ref[q] - 1.0)
+            ratios = np.array(ratios)
+            cells.append(_fmt(mean_proj))
+            cells.append(f"{_fmt(100 * np.abs(ratios).mean(), '{:.1f}')} / {_fmt(100 * np.abs(ratios).max(), '{:.1f}')}"
+                         if len(ratios) else "-")
+        else:
+            cells += ["-", "-"]
+        print("| " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()
