@@ -7,7 +7,7 @@ For each effect alone (added to a photometrically neutral renderer: linear proje
 black level, no defocus, no vignetting), all together (the scenario's default) and none:
 
 - circle centres: the scenario's 13 pattern positions (one board pose each) per seed, rendered at session
-  quality without noise (blur and 8-bit quantisation kept), detected by calib.detect as a session is;
+  quality without noise (blur and 8-bit quantisation kept), detected by calib.detection.detect as a session is;
   each detected centre against the true projection of the circle's centre (`centre`), against the
   area centroid of the circle's exact image (`conic`: what the joint method's conic model predicts),
   and against the same circle detected in the neutral image (`shift`: the effect alone);
@@ -31,8 +31,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calib.detect import detect_board, detect_pattern  # noqa: E402
-from calib.observations import VIEW_MIRROR  # noqa: E402
+from calib.detection.detect import detect_board, detect_pattern  # noqa: E402
+from calib.models.observations import VIEW_MIRROR  # noqa: E402
 from calib.synthetic import projector_points_on_board  # noqa: E402
 from calib.transforms import transform_points  # noqa: E402
 from drivers.sim.render import PlacedBoard, Renderer, SceneState  # noqa: E402
@@ -129,11 +129,11 @@ def circle_bias(scenario_name: str, seeds: int, effects, quality: str = "session
 def calibration_errors(scenario_name: str, seeds: int, effects, workers: int = 2, log=print) -> dict:
     """effect -> list of (distance mm, angle deg, projector K px) per seed (None for a failed session)."""
     from app.commands.simulate import simulate_session
-    from calib.detect import detect_session
+    from calib.detection.detect import detect_session
     from calib.errors import ProcamError
-    from calib.metrics import compare
+    from calib.formats.session import SessionStore
     from calib.pipeline import calibrate_observations
-    from calib.session import SessionStore
+    from calib.quality.metrics import compare
 
     out = {e: [] for e in effects}
     with tempfile.TemporaryDirectory(prefix="procam-photometric-") as tmp:
