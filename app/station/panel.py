@@ -147,7 +147,8 @@ class StationPanel(ControlsMixin):
         self._plane_s = 0.0
         self._report_key = None
         self.report_lock = threading.Lock()  # one report.html written at a time (auto and Download)
-        self.server.gui.configure_theme(control_width="large", control_layout="fixed", show_share_button=False)
+        self.server.gui.configure_theme(control_width="large", show_share_button=False)
+        self.server.gui.main_panel.dock_right()  # viser 1.1's replacement of control_layout="fixed"
         self.server.scene.set_up_direction("-y")
         ic = self.server.initial_camera  # behind and above the camera, looking at the rig (metres)
         ic.up = (0.0, -1.0, 0.0)
