@@ -101,3 +101,25 @@ def test_a_simulated_session_records_the_response_and_detection_uses_it(tmp_path
     malformed = centres({**recorded, "response": {"model": "bt709", "gamma": "2.2; rm -rf"}})
     assert np.array_equal(malformed, without)
     assert np.abs(with_response - without).max() > 0.001
+
+
+def test_the_rig_check_records_the_response_of_a_camera_that_knows_it(tmp_path):
+    """A session whose manifest has no (or a malformed) response, e.g. written before the field existed:
+    the station's rig check records the simulated camera's own tone curve; a camera without `response()`
+    (the RealSense) leaves it unrecorded."""
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.station import Station
+    from calib.formats.session import SessionStore
+
+    req = RigRequest("sim", "nonoverlap-136", 0)
+    rig = open_rig(req, latency_ms=0.0)
+    plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+    store = create_session(tmp_path / "s", rig, req, plan)
+    settings = dict(store.manifest.rig.camera_settings)
+    assert recorded_response(settings) == CameraResponse("bt709", rig.camera.response()["gamma"])
+    store.update(rig=replace(store.manifest.rig, camera_settings={**settings, "response": {"model": 7}}))
+    checks = {c.name: c for c in Station(rig, make_machine(store, rig, plan)).check_rig()}
+    assert checks["camera response"].ok and "bt709" in checks["camera response"].detail
+    recorded = SessionStore.open(tmp_path / "s").manifest.rig.camera_settings
+    assert recorded_response(recorded) == CameraResponse("bt709", 2.2)
