@@ -123,3 +123,23 @@ def test_the_rig_check_records_the_response_of_a_camera_that_knows_it(tmp_path):
     assert checks["camera response"].ok and "bt709" in checks["camera response"].detail
     recorded = SessionStore.open(tmp_path / "s").manifest.rig.camera_settings
     assert recorded_response(recorded) == CameraResponse("bt709", 2.2)
+
+
+@pytest.mark.parametrize("gamma", [2.2, 1.0])
+def test_the_response_measured_through_exposure_control_is_the_sim_cameras(gamma):
+    """drivers.exposure.measure_response on the simulated camera (hardware-like: noise, flicker, frames
+    a change applies to late), the projector's white on the board: the renderer's own gamma."""
+    from drivers.exposure import measure_response
+    from drivers.sim.rig import open_sim_rig
+
+    rig = open_sim_rig("nonoverlap-136", 0, quality="live", camera_gamma=gamma, latency_ms=0.0)
+    try:
+        rig.camera.start()
+        rig.operator.request_pose("verification", None, 0)
+        W, H = rig.projector.size
+        rig.projector.wait_presented(rig.projector.show(np.full((H, W), 255, np.uint8)))
+        fit = measure_response(rig.camera, rig.projector.refresh_hz)
+    finally:
+        rig.close()
+    assert fit.gamma == pytest.approx(gamma, abs=0.05)
+    assert parse_response(fit.camera_settings()["response"]) == CameraResponse("bt709", fit.gamma)
