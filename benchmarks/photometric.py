@@ -32,6 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calib.detection.detect import detect_board, detect_pattern  # noqa: E402
+from calib.detection.response import CameraResponse  # noqa: E402
 from calib.models.observations import VIEW_MIRROR  # noqa: E402
 from calib.synthetic import projector_points_on_board  # noqa: E402
 from calib.transforms import transform_points  # noqa: E402
@@ -86,8 +87,10 @@ def circle_truth(sc, T, pts_px) -> tuple[np.ndarray, np.ndarray]:
     return centre, conic
 
 
-def circle_bias(scenario_name: str, seeds: int, effects, quality: str = "session") -> dict:
-    """effect -> {'centre': errors, 'conic': errors, 'shift': errors vs the neutral detection} (px arrays)."""
+def circle_bias(scenario_name: str, seeds: int, effects, quality: str = "session", response: bool = True) -> dict:
+    """effect -> {'centre': errors, 'conic': errors, 'shift': errors vs the neutral detection} (px arrays).
+    `response`: the detector knows the camera's tone curve, as a session that records it (the simulated
+    rig's do: calib.detection.response)."""
     out = {e: {"centre": [], "conic": [], "shift": [], "failed": 0} for e in effects}
     for seed in range(seeds):
         sc = get_scenario(scenario_name, seed)
@@ -109,7 +112,9 @@ def circle_bias(scenario_name: str, seeds: int, effects, quality: str = "session
                 board = detect_board(img, sc.projector_board, mirrored)
                 det = None
                 if not hasattr(board, "reason"):
-                    det = detect_pattern(img, sc.pattern, mirrored, board, sc.projector_board)
+                    gamma = float(renderers[e].settings.camera_gamma)
+                    det = detect_pattern(img, sc.pattern, mirrored, board, sc.projector_board,
+                                         CameraResponse("bt709", gamma) if response else None)
                 found[e] = None if det is None or hasattr(det, "reason") else np.asarray(det, float)
             for e in effects:
                 d = found[e]
@@ -126,8 +131,13 @@ def circle_bias(scenario_name: str, seeds: int, effects, quality: str = "session
     return out
 
 
-def calibration_errors(scenario_name: str, seeds: int, effects, workers: int = 2, log=print) -> dict:
-    """effect -> list of (distance mm, angle deg, projector K px) per seed (None for a failed session)."""
+def calibration_errors(scenario_name: str, seeds: int, effects, workers: int = 2, log=print, small_live: bool = False,
+                       response: bool = True) -> dict:
+    """effect -> list of (distance mm, angle deg, projector K px) per seed (None for a failed session).
+    `small_live`: 26 projector + 4 mirror views rendered at live quality (as the station captures;
+    tests/test_import_procamcalib.py's session) instead of the scenario's session at session quality.
+    `response`: the session records the camera's tone curve (as `procam simulate` does), else it is
+    removed from the manifest before detection (the detector as it was without it)."""
     from app.commands.simulate import simulate_session
     from calib.detection.detect import detect_session
     from calib.errors import ProcamError
@@ -141,9 +151,17 @@ def calibration_errors(scenario_name: str, seeds: int, effects, workers: int = 2
             for seed in range(seeds):
                 sc = get_scenario(scenario_name, seed)
                 sc = replace(sc, render=settings_for(sc, e))
+                if small_live:
+                    sc = replace(sc, per_position=2, mirror_count=4)
                 folder = Path(tmp) / f"{e.replace(' ', '_')}-{seed}"
                 t0 = time.perf_counter()
-                simulate_session(sc, folder, quality="session", workers=workers, force=True, progress=False)
+                simulate_session(sc, folder, quality="live" if small_live else "session", workers=workers, force=True,
+                                 progress=False)
+                store = SessionStore.open(folder)
+                if not response:
+                    rig = store.manifest.rig
+                    store.update(rig=replace(rig, camera_settings={k: v for k, v in rig.camera_settings.items()
+                                                                   if k != "response"}))
                 obs = detect_session(SessionStore.open(folder), workers, cache="refresh")
                 try:
                     res = calibrate_observations(obs, "joint")
@@ -192,6 +210,10 @@ def main() -> None:
     ap.add_argument("--no-verify", action="store_true", help="skip the epipolar verification")
     ap.add_argument("--quality", choices=("session", "live"), default="session",
                     help="render quality of the circle-centre part (live: 1 sample per pixel, as the station captures)")
+    ap.add_argument("--small-live", action="store_true",
+                    help="calibrate small live-quality sessions (26 projector + 4 mirror views) instead of full ones")
+    ap.add_argument("--no-response", action="store_true",
+                    help="the detector without the camera's recorded tone curve (centroids on encoded levels)")
     a = ap.parse_args()
     effects = list(dict.fromkeys(a.effects))
     sc = get_scenario(a.scenario)
@@ -200,12 +222,13 @@ def main() -> None:
           f"{st.projector_black_level}, aperture {st.projector_aperture_mm} mm focused at {st.projector_focus_mm} mm, "
           f"vignetting {st.vignetting_corner} at the corners, camera gamma {st.camera_gamma}, ambient {st.ambient}")
     t0 = time.perf_counter()
-    bias = circle_bias(a.scenario, a.seeds, effects, a.quality)
+    bias = circle_bias(a.scenario, a.seeds, effects, a.quality, not a.no_response)
     print(f"circle centres ({a.quality} quality): {time.perf_counter() - t0:.0f} s", flush=True)
     calib = {}
     if not a.no_calib:
         t0 = time.perf_counter()
-        calib = calibration_errors(a.scenario, a.seeds, [e for e in a.calib_effects if e in effects])
+        calib = calibration_errors(a.scenario, a.seeds, [e for e in a.calib_effects if e in effects],
+                                   small_live=a.small_live, response=not a.no_response)
         print(f"calibration: {time.perf_counter() - t0:.0f} s", flush=True)
     ver = {}
     if not a.no_verify:

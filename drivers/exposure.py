@@ -133,3 +133,87 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
     tolerance = max(1e-3, 0.5 * float(e_step or 0.0) / period_us + 1e-9)
     return ExposureChoice(exp, gain, periods, bool(whole and abs(periods - round(periods)) <= tolerance), lvl, sat,
                           frames)
+
+
+# ---- the camera's response (tone curve) -----------------------------------------------------------------
+@dataclass(frozen=True)
+class ResponseFit:
+    """The camera's tone curve fitted from frames at a bracket of gains: `gamma` of the BT.709-shaped
+    model (calib.detection.response), `rms` the fit's residual (relative light), `bins` pixel groups used."""
+
+    gamma: float
+    rms: float
+    bins: int
+    frames: int
+
+    def camera_settings(self) -> dict:
+        """The manifest's rig.camera_settings key."""
+        return {"response": {"model": "bt709", "gamma": round(float(self.gamma), 3)}}
+
+
+def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0, 5.66, 8.0),
+                     wait_frames: int = WAIT_FRAMES, timeout_s: float = 3.0) -> ResponseFit:
+    """Measure the camera's tone curve while a steady light (the projector's white) lights the scene:
+    one whole refresh period of exposure, frames at a bracket of gains (x the lowest gain; the sensor's
+    signal is proportional to exposure x gain before the tone curve), pixels grouped by their level in a
+    first frame (groups of dim pixels, whose light the bracket multiplies up to 8x), each group's mean
+    level at each gain, and the gamma whose inverse makes those levels proportional to the gain. Only
+    the simulated camera is verified (tests/test_camera_response.py); a real camera's black level and
+    gain steps are not modelled. Raises DeviceError when the scene has too few dim pixels or levels."""
+    from calib.detection.response import CameraResponse
+
+    lim = camera.exposure_limits()
+    e_lo, e_hi, _ = lim["exposure_us"]
+    g_lo, g_hi, _ = lim["gain"]
+    if not refresh_hz or refresh_hz <= 0:
+        raise DeviceError(f"the projector's refresh rate is unknown ({refresh_hz}): cannot measure the response")
+    exposure = float(np.clip(1e6 / float(refresh_hz), e_lo, e_hi))
+    last = camera.get_frame(timeout_s).frame_number
+    frames = 1
+
+    def frame_at(gain):
+        nonlocal last, frames
+        t_set = time.monotonic()
+        applied = camera.set_manual_exposure(exposure, gain)
+        after = 0
+        while after < max(1, int(wait_frames)):
+            f = camera.get_frame(timeout_s, newer_than=last)
+            last = f.frame_number
+            frames += 1
+            if f.exposure_start_s is None or f.exposure_start_s >= t_set:
+                after += 1
+            elif frames > 10 * len(gains) * max(1, int(wait_frames)):
+                raise DeviceError("the camera delivers no frame exposed after the gain change")
+        a = np.asarray(f.image)
+        return float(applied["gain"]), (a if a.ndim == 2 else a[:, :, 1]).astype(np.float64)
+
+    g0, first = frame_at(g_lo * gains[0])  # groups the pixels; its own noise stays out of the levels below
+    shots = [frame_at(float(np.clip(g_lo * g, g_lo, g_hi))) for g in gains]
+    edges = np.arange(8.0, 64.0, 4.0)
+    groups = [(first >= lo) & (first < lo + 4.0) for lo in edges]
+    groups = [m for m in groups if m.sum() >= 200]
+    if len(groups) < 3:
+        raise DeviceError("too few dim pixels in view to measure the camera's response: light the board with "
+                          "the projector's white and keep part of the room in view")
+    levels = np.array([[img[m].mean() for _, img in shots] for m in groups])  # (groups, gains)
+    rel = np.array([g for g, _ in shots]) / shots[0][0]
+    use = levels < 245.0
+    if use.sum() < 2 * len(groups):
+        raise DeviceError("the camera's response could not be measured: the image saturates at the lowest gains")
+
+    def misfit(gamma):
+        light = CameraResponse("bt709", gamma).decode(levels / 255.0)
+        res = []
+        for b in range(len(groups)):
+            x, y = rel[use[b]], light[b, use[b]]
+            scale = (x @ y) / (x @ x)  # this group's light at the lowest gain
+            res.append(y / (scale * x) - 1.0)
+        r = np.concatenate(res)
+        return float(np.sqrt((r * r).mean()))
+
+    grid = np.arange(1.0, 3.5001, 0.01)
+    costs = [misfit(g) for g in grid]
+    # near gamma 1 the model's straight toe covers the whole dim range: gammas up to ~1.15 fit a linear
+    # camera equally well, so the smallest gamma that fits about as well as the best is taken
+    k = int(np.argmax(np.asarray(costs) <= 1.1 * min(costs) + 1e-4))
+    return ResponseFit(float(round(grid[k], 2)), float(costs[k]), len(groups), frames)

@@ -251,6 +251,7 @@ class Station:
 
     def _timing_checks(self, cam, proj, man, recorded, timing, settings, checks) -> list[RigCheck]:
         from drivers.base import ExposureControl
+        from calib.detection.response import recorded_response
         from drivers.settle import recorded_exposure, recorded_latency_s
 
         if isinstance(cam, ExposureControl):
@@ -276,6 +277,14 @@ class Station:
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("camera exposure", False, f"could not be set: {e}"))
                 return checks
+        response = getattr(cam, "response", None)  # a camera that knows its tone curve (the simulated one);
+        if callable(response) and recorded_response(recorded) is None:  # the RealSense's is not measured yet
+            try:
+                settings["response"] = response()
+                checks.append(RigCheck("camera response", True,
+                                       "tone curve {model}, gamma {gamma:g} recorded".format(**settings["response"])))
+            except (DeviceError, ProcamError) as e:
+                checks.append(RigCheck("camera response", False, f"could not be read: {e}"))
         if hasattr(proj, "settle_s"):
             try:
                 latency_s = recorded_latency_s(recorded)

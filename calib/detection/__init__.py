@@ -2,6 +2,7 @@
 
   detect  ChArUco boards and projected patterns -> SessionObservations; entry `detect_session`
   cache   the detection results kept in the session folder (detections.json)
+  response  the camera's recorded tone curve and its inverse (linearised levels for circle centroids)
   curves  a projected curve (a bright stroke) in a camera image, for the epipolar verification
 
 Nothing is re-exported: `import calib.detection.curves` must not load OpenCV's board detection

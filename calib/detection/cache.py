@@ -54,10 +54,13 @@ def detector_fingerprint() -> str:
     return h.hexdigest()
 
 
-def job_key(step: str, mirrored: bool, board, pattern, camera_size) -> str:
-    """What a capture's detection depends on besides its image and the detector."""
+def job_key(step: str, mirrored: bool, board, pattern, camera_size, response=None) -> str:
+    """What a capture's detection depends on besides its image and the detector (`response`: the
+    camera's recorded tone curve, calib.detection.response; absent from the key when not recorded)."""
     spec = {"step": step, "mirrored": bool(mirrored), "board": board.to_dict(),
             "pattern": None if pattern is None else pattern.to_dict(), "camera_size": list(camera_size)}
+    if response is not None:
+        spec["response"] = response.to_dict()
     return hashlib.sha1(json.dumps(spec, sort_keys=True).encode()).hexdigest()
 
 

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from calib.detection import cache as detect_cache
+from calib.detection.response import CameraResponse, recorded_response
 from calib.errors import SessionError
 from calib.models.boards import CharucoSpec
 from calib.models.observations import (
@@ -593,10 +594,11 @@ def _local_contrast(crop: np.ndarray) -> np.ndarray:
     return _stretch(diff)
 
 
-def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> np.ndarray:
+def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray, lut: np.ndarray | None = None) -> np.ndarray:
     """Intensity-weighted centroid of each blob in a disc that excludes its neighbours; the background
     (the median of the disc's rim, sloped as the background around all the blobs) is subtracted. On
-    anti-aliased blobs this is the blob's area centroid."""
+    anti-aliased blobs this is the blob's area centroid. `lut` (256 levels -> light, the inverse of the
+    camera's recorded tone curve, calib.detection.response) weighs pixels by the light they received."""
     n = len(pts)
     if n == 0:
         return pts.copy()
@@ -617,7 +619,10 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray) -> 
     sel = np.nonzero(inside_img)[0]
     X = xi[sel, None, None] + off[None, None, :]  # (m, 1, k)
     Y = yi[sel, None, None] + off[None, :, None]  # (m, k, 1)
-    win = gray[Y, X].astype(np.float64)  # (m, k, k)
+    # weights in light, not in encoded levels, when the camera's response is known: a tone curve reshapes
+    # a blurred circle's profile, and noise in the dark toe is amplified, which the positive-part clip below
+    # turns into a pull towards the window's centre (docs/DETECTION.md, "The camera's tone curve")
+    win = gray[Y, X].astype(np.float64) if lut is None else lut[gray[Y, X]]  # (m, k, k)
     rr = np.hypot(X - pts[sel, 0, None, None], Y - pts[sel, 1, None, None])
     Rs = R[sel, None, None]
     inside = rr <= Rs
@@ -674,7 +679,7 @@ def _background_slopes(win, rim, X, Y, centres) -> tuple[np.ndarray, np.ndarray]
     return gx, gy
 
 
-def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi):
+def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi, lut: np.ndarray | None = None):
     x0, y0, x1, y1 = roi
     crop = gray[y0:y1, x0:x1]
     work = _local_contrast(crop)
@@ -703,7 +708,7 @@ def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi):
     if len(np.unique(idx)) != n_need:
         return DetectionFailure("pattern not found (ambiguous circle grid)")
     pts = cand[idx] + [x0, y0]
-    pts = _refine_centroids(gray, pts, np.maximum(sizes[idx] / 2.0, 1.5))
+    pts = _refine_centroids(gray, pts, np.maximum(sizes[idx] / 2.0, 1.5), lut)
     if _asym_handedness(pts, pattern) < 0:
         pts = _reverse_rows(pts, pattern)
     return pts
@@ -781,15 +786,16 @@ def _sample(gray: np.ndarray, xy: np.ndarray) -> float:
 
 
 def detect_pattern(image: np.ndarray, pattern: PatternSpec, mirrored: bool, board: BoardObservation | None = None,
-                   board_spec: CharucoSpec | None = None):
+                   board_spec: CharucoSpec | None = None, response: CameraResponse | None = None):
     """The projected pattern in `image` -> (N, 2) camera pixels in PatternSpec.points_px order, or a
     DetectionFailure. With `board` and its `board_spec`, the printed ChArUco area is masked out and the
-    search is limited to the board's neighbourhood."""
+    search is limited to the board's neighbourhood. With the camera's `response` (recorded in the
+    session, calib.detection.response), circle centroids weigh the image's levels linearised."""
     gray = _gray(image)
-    return _detect_pattern_gray(gray, pattern, mirrored, board, board_spec)
+    return _detect_pattern_gray(gray, pattern, mirrored, board, board_spec, response)
 
 
-def _detect_pattern_gray(gray, pattern, mirrored, board=None, board_spec=None):
+def _detect_pattern_gray(gray, pattern, mirrored, board=None, board_spec=None, response=None):
     W = gray.shape[1]
     img = cv2.flip(gray, 1) if mirrored else gray
     H = None
@@ -801,13 +807,14 @@ def _detect_pattern_gray(gray, pattern, mirrored, board=None, board_spec=None):
     elif board is not None and len(board.ids) >= 3:
         img = _mask_corner_hull(img, _flip_x(board.corners_px, W) if mirrored else board.corners_px, fill)
     roi = _search_roi(img.shape, H, board_spec)
+    lut = response.lut() if response is not None and not response.linear else None
     if pattern.kind == "circles":
-        pts = _find_circles(img, pattern, roi)
+        pts = _find_circles(img, pattern, roi, lut)
     else:
         pts = _find_chessboard(img, pattern, roi)
     if isinstance(pts, DetectionFailure) and roi != (0, 0, img.shape[1], img.shape[0]):
         full = (0, 0, img.shape[1], img.shape[0])
-        pts = _find_circles(img, pattern, full) if pattern.kind == "circles" else _find_chessboard(img, pattern, full)
+        pts = _find_circles(img, pattern, full, lut) if pattern.kind == "circles" else _find_chessboard(img, pattern, full)
     if isinstance(pts, DetectionFailure):
         return pts
     return _flip_x(pts, W) if mirrored else pts
@@ -847,6 +854,7 @@ class _Job:
     cached: dict | None = None  # this capture's detections.json entry, if any (calib.detection.cache)
     hash_image: bool = True  # the image's SHA-1 is needed (the cache is not off)
     refused: str | None = None  # why the image is not read at all (its path leads out of the session folder)
+    response: CameraResponse | None = None  # the camera's tone curve the session recorded, if any
 
 
 def _read_file(path: str) -> np.ndarray:
@@ -895,7 +903,7 @@ def _detect_job(job: _Job, data: np.ndarray):
     board = _detect_board_gray(gray, job.board, job.mirrored)
     if isinstance(board, DetectionFailure):
         return board
-    pts = _detect_pattern_gray(gray, job.pattern, job.mirrored, board, job.board)
+    pts = _detect_pattern_gray(gray, job.pattern, job.mirrored, board, job.board, job.response)
     if isinstance(pts, DetectionFailure):
         return pts
     return board, pts
@@ -912,7 +920,8 @@ def _job_for(store, c, old: dict, cache_on: bool):
     board = m.projector_board if c.step == STEP_PROJECTOR else (m.mirror_board or m.projector_board)
     flip = m.rig.view == VIEW_MIRROR and c.step == STEP_PROJECTOR
     pattern = m.pattern if c.step == STEP_PROJECTOR else None
-    key = detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size) if cache_on else None
+    response = recorded_response(m.rig.camera_settings) if pattern is not None else None
+    key = detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size, response) if cache_on else None
     entry = old.get(c.id)
     cached = entry if entry is not None and entry.get("job") == key else None
     try:
@@ -920,7 +929,7 @@ def _job_for(store, c, old: dict, cache_on: bool):
     except SessionError as e:  # never read, hashed or named: the reason does not tell whether it exists
         path, refused = "", str(e)
     return _Job(c.id, path, c.step, flip, board, pattern, tuple(m.rig.camera_size), cached,
-                hash_image=cache_on, refused=refused), key
+                hash_image=cache_on, refused=refused, response=response), key
 
 
 def detect_capture(store, capture_id: str):

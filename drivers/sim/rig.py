@@ -191,10 +191,16 @@ class SimCamera:
     def factory_intrinsics(self) -> CameraModel | None:
         return self.model if self._expose else None
 
+    def response(self) -> dict:
+        """The camera's tone curve, as a session records it (calib.detection.response): the simulated
+        camera knows its own (drivers/sim/render.py, `camera_gamma`, BT.709-shaped)."""
+        return {"model": "bt709", "gamma": float(self._rig.settings.camera_gamma)}
+
     def settings(self) -> dict:
         st = self._rig.settings
         out = {"driver": "sim", "scenario": self._rig.scenario.name, "seed": self._rig.scenario.seed,
                "quality": self._rig.quality, **{k: v for k, v in st.to_dict().items()}}
+        out["response"] = self.response()
         if getattr(self._rig, "bump", None):
             out["bump"] = self._rig.bump
         if not self._rig.hardware.ideal:
