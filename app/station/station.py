@@ -285,8 +285,6 @@ class Station:
                                        "tone curve {model}, gamma {gamma:g} recorded".format(**settings["response"])))
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("camera response", False, f"could not be read: {e}"))
-        elif not callable(response) and isinstance(cam, ExposureControl):  # the RealSense: measured
-            checks.append(self._measure_response(cam, proj, recorded, settings))
         if hasattr(proj, "settle_s"):
             try:
                 latency_s = recorded_latency_s(recorded)
@@ -306,6 +304,10 @@ class Station:
                 checks.append(RigCheck("projector latency", True, detail + (f", {refresh:g} Hz" if refresh else "")))
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("projector latency", False, f"could not be measured: {e}"))
+        # the RealSense: measured, last (a full white just before the latency trials fooled the first one
+        # through the emulation: 0 ms, and a settle time too short for the verification)
+        if not callable(response) and isinstance(cam, ExposureControl):
+            checks.append(self._measure_response(cam, proj, recorded, settings))
         return checks
 
     def _measure_response(self, cam, proj, recorded, settings) -> RigCheck:
@@ -330,15 +332,29 @@ class Station:
             self.machine.log(text)
             return RigCheck("camera response", True, text)
         finally:
-            try:
-                cam.set_manual_exposure(settings["exposure_us"], settings["gain"])
-            except (DeviceError, ProcamError, KeyError) as e:
-                _log.warning("could not restore the exposure after measuring the response: %s", e)
+            self._restore_exposure(cam, settings)
         settings.update(fit.camera_settings())
         text = (f"tone curve bt709, gamma {fit.gamma:g} measured (fit rms {fit.rms:.4f}, {fit.bins} pixel groups, "
                 f"{fit.frames} frames); exposure {settings['exposure_us']:g} us, gain {settings['gain']:g} restored")
         self.machine.log(text)
         return RigCheck("camera response", True, text)
+
+    def _restore_exposure(self, cam, settings) -> None:
+        """Re-apply the searched exposure and gain and wait for a frame exposed after the change (a
+        camera applies it a frame or two late), so no later frame has the response bracket's gain."""
+        from drivers.exposure import WAIT_FRAMES
+
+        try:
+            t_set = time.monotonic()
+            cam.set_manual_exposure(settings["exposure_us"], settings["gain"])
+            f = cam.get_frame(self.options.frame_timeout_s)
+            for _ in range(10 * WAIT_FRAMES):
+                if f.exposure_start_s is None or f.exposure_start_s >= t_set:
+                    break
+                f = cam.get_frame(self.options.frame_timeout_s, newer_than=f.frame_number)
+            self._last_frame = max(self._last_frame, f.frame_number)
+        except (DeviceError, ProcamError, KeyError) as e:
+            _log.warning("could not restore the exposure after measuring the response: %s", e)
 
     # ---- one frame ------------------------------------------------------------------------------
     def _sync_projector(self, state: str, target: Target | None) -> None:
