@@ -147,8 +147,9 @@ class ResponseFit:
     frames: int
 
     def camera_settings(self) -> dict:
-        """The manifest's rig.camera_settings key."""
-        return {"response": {"model": "bt709", "gamma": round(float(self.gamma), 3)}}
+        """The manifest's rig.camera_settings key ("source": measured, vs the simulated camera's "known")."""
+        return {"response": {"model": "bt709", "gamma": round(float(self.gamma), 3), "source": "measured",
+                             "rms": round(float(self.rms), 4), "frames": int(self.frames)}}
 
 
 def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0, 5.66, 8.0),
@@ -157,9 +158,10 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
     one whole refresh period of exposure, frames at a bracket of gains (x the lowest gain; the sensor's
     signal is proportional to exposure x gain before the tone curve), pixels grouped by their level in a
     first frame (groups of dim pixels, whose light the bracket multiplies up to 8x), each group's mean
-    level at each gain, and the gamma whose inverse makes those levels proportional to the gain. Only
-    the simulated camera is verified (tests/test_camera_response.py); a real camera's black level and
-    gain steps are not modelled. Raises DeviceError when the scene has too few dim pixels or levels."""
+    level at each gain, and the gamma whose inverse makes those levels proportional to the gain.
+    Verified on the simulated camera and through the RealSense driver on `--rig sim-realsense`
+    (tests/test_camera_response.py); a real camera's black level and gain steps are not modelled. The
+    station's rig check calls it for a camera without `response()` and restores the exposure after. Raises DeviceError when the scene has too few dim pixels or levels."""
     from calib.detection.response import CameraResponse
 
     lim = camera.exposure_limits()
@@ -168,6 +170,9 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
     if not refresh_hz or refresh_hz <= 0:
         raise DeviceError(f"the projector's refresh rate is unknown ({refresh_hz}): cannot measure the response")
     exposure = float(np.clip(1e6 / float(refresh_hz), e_lo, e_hi))
+    # a device whose gain control starts at 0 (the D455: 0..128, no unit) is taken as proportional to the
+    # amplification, the bracket ending at its maximum (an assumption verified only in emulation)
+    base = g_lo if g_lo > 0 else g_hi / max(gains)
     last = camera.get_frame(timeout_s).frame_number
     frames = 1
 
@@ -187,8 +192,8 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
         a = np.asarray(f.image)
         return float(applied["gain"]), (a if a.ndim == 2 else a[:, :, 1]).astype(np.float64)
 
-    g0, first = frame_at(g_lo * gains[0])  # groups the pixels; its own noise stays out of the levels below
-    shots = [frame_at(float(np.clip(g_lo * g, g_lo, g_hi))) for g in gains]
+    g0, first = frame_at(base * gains[0])  # groups the pixels; its own noise stays out of the levels below
+    shots = [frame_at(float(np.clip(base * g, g_lo, g_hi))) for g in gains]
     edges = np.arange(8.0, 64.0, 4.0)
     groups = [(first >= lo) & (first < lo + 4.0) for lo in edges]
     groups = [m for m in groups if m.sum() >= 200]

@@ -143,3 +143,89 @@ def test_the_response_measured_through_exposure_control_is_the_sim_cameras(gamma
         rig.close()
     assert fit.gamma == pytest.approx(gamma, abs=0.05)
     assert parse_response(fit.camera_settings()["response"]) == CameraResponse("bt709", fit.gamma)
+
+
+def _realsense_session(tmp_path):
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, open_rig
+
+    req = RigRequest("sim-realsense", "nonoverlap-136", 0)
+    rig = open_rig(req, latency_ms=0.0)
+    plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+    return req, rig, plan, create_session(tmp_path / "s", rig, req, plan)
+
+
+def test_the_rig_check_measures_the_realsense_response_and_a_resume_reuses_it(tmp_path, monkeypatch):
+    """`--rig sim-realsense` (the RealSense driver on librealsense's software device): the rig check
+    measures the tone curve after the exposure search, restores the searched exposure and gain, records
+    the fit as "measured"; a resumed session re-uses it without measuring again."""
+    import drivers.exposure
+    from app.station.setup import make_machine, open_rig
+    from app.station.station import Station
+    from calib.formats.session import SessionStore
+
+    req, rig, plan, store = _realsense_session(tmp_path)
+    try:
+        assert not callable(getattr(rig.camera, "response", None))  # the driver does not know its curve
+        checks = {c.name: c for c in Station(rig, make_machine(store, rig, plan)).check_rig()}
+        assert all(c.ok for c in checks.values()), checks
+        rec = SessionStore.open(tmp_path / "s").manifest.rig.camera_settings
+        assert rec["response"]["source"] == "measured" and "measured" in checks["camera response"].detail
+        truth = rig.sim.camera.response()["gamma"]
+        assert truth == pytest.approx(2.2)
+        assert recorded_response(rec).gamma == pytest.approx(truth, abs=0.1)
+        # the searched exposure and gain are back on the device and on the camera behind it
+        dev = rig.device.options()
+        assert (dev["exposure_us"], dev["gain"]) == (rec["exposure_us"], rec["gain"])
+        sim = rig.sim.camera.settings_timeline.current
+        assert sim["exposure_us"] == rec["exposure_us"] and sim["gain"] == rig.device.sim_gain(rec["gain"])
+        assert checks["projector latency"].ok
+    finally:
+        rig.close()
+
+    def never(*a, **k):
+        raise AssertionError("measured again")
+
+    monkeypatch.setattr(drivers.exposure, "measure_response", never)
+    rig2 = open_rig(req, latency_ms=0.0)
+    try:
+        store2 = SessionStore.open(tmp_path / "s")
+        checks = {c.name: c for c in Station(rig2, make_machine(store2, rig2, plan, resume=True)).check_rig()}
+        assert all(c.ok for c in checks.values()), checks
+        assert "re-used" in checks["camera response"].detail
+        assert SessionStore.open(tmp_path / "s").manifest.rig.camera_settings["response"] == rec["response"]
+    finally:
+        rig2.close()
+
+
+def test_a_failed_response_measurement_is_a_warning_and_the_rig_check_goes_on(tmp_path, monkeypatch, caplog):
+    import drivers.exposure
+    from app.station.setup import make_machine
+    from app.station.station import Station
+    from calib.formats.session import SessionStore
+    from drivers.errors import DeviceError
+
+    real = drivers.exposure.measure_response
+
+    def fails(camera, refresh_hz, **kw):  # the real bracket runs (gains change), then too few dim pixels
+        real(camera, refresh_hz, **kw)
+        raise DeviceError("too few dim pixels in view to measure the camera's response")
+
+    monkeypatch.setattr(drivers.exposure, "measure_response", fails)
+    _, rig, plan, store = _realsense_session(tmp_path)
+    try:
+        m = make_machine(store, rig, plan)
+        with caplog.at_level("WARNING", logger="procam.station"):
+            got = Station(rig, m).check_rig()
+        checks = {c.name: c for c in got}
+        assert all(c.ok for c in checks.values()), checks
+        assert "pattern" in checks and m.start_session(got) != "check_rig"  # the session goes on
+        assert "not measured" in checks["camera response"].detail and "too few dim pixels" in caplog.text
+        assert any("too few dim pixels" in e.text for e in m.events)
+        rec = SessionStore.open(tmp_path / "s").manifest.rig.camera_settings
+        assert "response" not in rec and recorded_response(rec) is None
+        assert checks["projector latency"].ok and "latency_ms" in rec["projector"]
+        dev = rig.device.options()
+        assert (dev["exposure_us"], dev["gain"]) == (rec["exposure_us"], rec["gain"])
+    finally:
+        rig.close()

@@ -277,8 +277,8 @@ class Station:
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("camera exposure", False, f"could not be set: {e}"))
                 return checks
-        response = getattr(cam, "response", None)  # a camera that knows its tone curve (the simulated one);
-        if callable(response) and recorded_response(recorded) is None:  # the RealSense's is not measured yet
+        response = getattr(cam, "response", None)  # a camera that knows its tone curve (the simulated one)
+        if callable(response) and recorded_response(recorded) is None:
             try:
                 settings["response"] = response()
                 checks.append(RigCheck("camera response", True,
@@ -304,7 +304,57 @@ class Station:
                 checks.append(RigCheck("projector latency", True, detail + (f", {refresh:g} Hz" if refresh else "")))
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("projector latency", False, f"could not be measured: {e}"))
+        # the RealSense: measured, last (a full white just before the latency trials fooled the first one
+        # through the emulation: 0 ms, and a settle time too short for the verification)
+        if not callable(response) and isinstance(cam, ExposureControl):
+            checks.append(self._measure_response(cam, proj, recorded, settings))
         return checks
+
+    def _measure_response(self, cam, proj, recorded, settings) -> RigCheck:
+        """Rig check, the tone curve of a camera that does not know it (drivers.exposure.measure_response:
+        a bracket of gains while the projector's white lights the board), the searched exposure and gain
+        restored after. A recorded one (a resumed session) is kept; a failed measurement is a warning:
+        nothing is recorded and detection uses the levels as they are."""
+        from calib.detection.response import recorded_response
+        from drivers.exposure import measure_response
+        from drivers.projector_images import white
+
+        old = recorded_response(recorded)
+        if old is not None:
+            return RigCheck("camera response", True, f"recorded tone curve {old.model}, gamma {old.gamma:g} re-used")
+        try:
+            self._show(white(self.projector_size))
+            time.sleep(0.5)  # any projector's latency: the white lights the board now
+            fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
+        except (DeviceError, ProcamError) as e:
+            text = f"camera response not measured ({e}): centroids use the camera's levels uncorrected"
+            _log.warning(text)
+            self.machine.log(text)
+            return RigCheck("camera response", True, text)
+        finally:
+            self._restore_exposure(cam, settings)
+        settings.update(fit.camera_settings())
+        text = (f"tone curve bt709, gamma {fit.gamma:g} measured (fit rms {fit.rms:.4f}, {fit.bins} pixel groups, "
+                f"{fit.frames} frames); exposure {settings['exposure_us']:g} us, gain {settings['gain']:g} restored")
+        self.machine.log(text)
+        return RigCheck("camera response", True, text)
+
+    def _restore_exposure(self, cam, settings) -> None:
+        """Re-apply the searched exposure and gain and wait for a frame exposed after the change (a
+        camera applies it a frame or two late), so no later frame has the response bracket's gain."""
+        from drivers.exposure import WAIT_FRAMES
+
+        try:
+            t_set = time.monotonic()
+            cam.set_manual_exposure(settings["exposure_us"], settings["gain"])
+            f = cam.get_frame(self.options.frame_timeout_s)
+            for _ in range(10 * WAIT_FRAMES):
+                if f.exposure_start_s is None or f.exposure_start_s >= t_set:
+                    break
+                f = cam.get_frame(self.options.frame_timeout_s, newer_than=f.frame_number)
+            self._last_frame = max(self._last_frame, f.frame_number)
+        except (DeviceError, ProcamError, KeyError) as e:
+            _log.warning("could not restore the exposure after measuring the response: %s", e)
 
     # ---- one frame ------------------------------------------------------------------------------
     def _sync_projector(self, state: str, target: Target | None) -> None:

@@ -22,8 +22,8 @@ has delivered (as the driver's capture thread, draining a streaming camera, alwa
 
 Options: every option the driver writes is stored by librealsense; before each frame the pusher
 forwards changes to the simulated camera when it implements drivers.base.ExposureControl
-(auto exposure, manual exposure in us, the emitter, and the gain mapped linearly from the D455's
-0..128 onto the simulated camera's own gain range); otherwise they only live on the device.
+(auto exposure, manual exposure in us, the emitter, and the gain: the D455's 0..128 taken as
+proportional to the amplification, 128 the simulated camera's maximum, see sim_gain); otherwise they only live on the device.
 """
 
 from __future__ import annotations
@@ -168,14 +168,15 @@ class SimRealSenseDevice:
         return now
 
     def sim_gain(self, device_gain: float) -> float:
-        """The D455's gain control (0..128, no physical unit) mapped linearly onto the simulated camera's
-        gain range (its exposure_limits), so the device's minimum is the simulation's minimum."""
-        lo, hi = COLOUR_OPTIONS["gain"][:2]
+        """The D455's gain control (0..128, no physical unit) taken as proportional to the amplification:
+        the device's maximum is the simulated camera's maximum gain (its exposure_limits), values below
+        the simulation's minimum give that minimum (on the 1..8 simulated camera: 0..16 -> 1x, 128 -> 8x)."""
+        hi = COLOUR_OPTIONS["gain"][1]
         try:
             glo, ghi = (float(v) for v in self.sim_camera.exposure_limits()["gain"][:2])
         except (AttributeError, KeyError, TypeError, ValueError):
             return float(device_gain)
-        return glo + (float(device_gain) - lo) / (hi - lo) * (ghi - glo)
+        return float(np.clip(float(device_gain) / hi * ghi, glo, ghi))
 
     # ---- frames ----------------------------------------------------------------------------------------
     def push(self, frame, exposure_us: float, exposure_start_s: float) -> None:

@@ -193,8 +193,9 @@ class SimCamera:
 
     def response(self) -> dict:
         """The camera's tone curve, as a session records it (calib.detection.response): the simulated
-        camera knows its own (drivers/sim/render.py, `camera_gamma`, BT.709-shaped)."""
-        return {"model": "bt709", "gamma": float(self._rig.settings.camera_gamma)}
+        camera knows its own (drivers/sim/render.py, `camera_gamma`, BT.709-shaped): "source" "known" (a
+        RealSense's is "measured" by the rig check, drivers.exposure.measure_response)."""
+        return {"model": "bt709", "gamma": float(self._rig.settings.camera_gamma), "source": "known"}
 
     def settings(self) -> dict:
         st = self._rig.settings
