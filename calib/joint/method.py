@@ -851,7 +851,8 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     # the final weights: per-class RMS of the inlier residuals at the ML solution
     before = dict(prob.class_sigma)
     prob.set_class_sigmas(_class_sigmas(prob, prob.raw_residuals(x), options, robust=False))
-    changed = any(abs(prob.class_sigma[k] / before[k] - 1) > 0.05 for k in before)
+    # a class whose every residual was rejected as an outlier has no sigma any more: the weights changed
+    changed = any(k not in prob.class_sigma or abs(prob.class_sigma[k] / before[k] - 1) > 0.05 for k in before)
     if prob.pattern_model == "conic" and options.centroid_correction:
         old = prob.centroid_corr.copy()
         _update_centroid_correction(prob, x)
