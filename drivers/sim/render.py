@@ -98,7 +98,7 @@ class RenderSettings:
 
 
 # ---- photometric curves ---------------------------------------------------------------------------
-_TOE_OFFSET = 0.099  # BT.709's offset: with exponent 0.45 this is exactly the BT.709 curve
+from calib.detection.response import BT709_OFFSET as _TOE_OFFSET  # with exponent 0.45: BT.709 itself
 
 
 def encode_gamma(light: np.ndarray, gamma: float) -> np.ndarray:
@@ -132,16 +132,13 @@ def _encode_lut(gamma: float) -> np.ndarray:
 
 
 def decode_gamma(level: np.ndarray, gamma: float) -> np.ndarray:
-    """The inverse of encode_gamma: relative level -> relative light."""
+    """The inverse of encode_gamma: relative level -> relative light (the detector's own inverse,
+    calib.detection.response, so the simulator and the correction share one curve)."""
     if gamma == 1.0:
         return level
-    p = 1.0 / gamma
-    a = _TOE_OFFSET
-    t = (a / ((1 + a) * (1 - p))) ** (1 / p)
-    slope = (1 + a) * p * t ** (p - 1)
-    V = np.asarray(level, np.float32)
-    hi = np.power((np.maximum(V, np.float32(slope * t)) + np.float32(a)) / np.float32(1 + a), np.float32(gamma))
-    return np.where(V < slope * t, V / np.float32(slope), hi).astype(np.float32)
+    from calib.detection.response import CameraResponse
+
+    return CameraResponse("bt709", float(gamma)).decode(level).astype(np.float32)
 
 
 def defocus_sigma_px(depth_mm, aperture_mm: float, focus_mm: float, f_px: float):
