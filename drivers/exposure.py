@@ -23,6 +23,7 @@ driver that skips frames delivers fewer; the frames exposed before a change are 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -30,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.errors import DeviceError
+
+_log = logging.getLogger(__name__)
 
 #: Measurements the search takes at most.
 MAX_ROUNDS = 6
@@ -60,6 +63,70 @@ class ExposureChoice:
                 "emitter_enabled": False}
 
 
+#: Frames exposed after a change that may still show the old settings before the wait gives up on them.
+SKIP_LIMIT = 12
+
+
+def shows_settings(frame, applied: dict) -> bool | None:
+    """Whether `frame` was taken with the exposure and gain `applied` (what set_manual_exposure returned),
+    by the frame's own metadata: `actual_exposure_us` (the RealSense driver) or `exposure_us` (the
+    simulated camera), and `gain`. None when the frame reports neither."""
+    meta = frame.meta if isinstance(getattr(frame, "meta", None), dict) else {}
+    said = []
+    exposure = meta.get("actual_exposure_us", meta.get("exposure_us"))
+    if exposure is not None and applied.get("exposure_us") is not None:
+        want = float(applied["exposure_us"])
+        said.append(abs(float(exposure) - want) <= max(60.0, 0.01 * want))  # a device step is 100 us
+    gain = meta.get("gain")
+    if gain is not None and applied.get("gain") is not None:
+        want = float(applied["gain"])
+        said.append(abs(float(gain) - want) <= 0.02 * max(1.0, abs(want)))  # the device reports what it applied
+    return all(said) if said else None
+
+
+def frames_after_change(camera, t_set: float, applied: dict, last: int, wait_frames: int = WAIT_FRAMES,
+                        timeout_s: float = 3.0, skip_limit: int = SKIP_LIMIT) -> tuple:
+    """Read frames until `wait_frames` of them show the change made at host time `t_set`: exposed after
+    it and, where a frame's metadata reports its exposure and gain, taken with `applied` (a sensor applies
+    a change some frames late: about 5 on a D455, HARDWARE facts in docs/DRIVERS.md; the time alone
+    would count frames still taken with the old settings). Returns (the last frame, its number, the
+    frames counted). Frames exposed before the change are skipped; so are frames whose metadata shows
+    other settings, until `skip_limit` of them: then the metadata is taken as not describing the
+    settings (a warning) and the time alone decides. Raises DeviceError when no frame is exposed after
+    the change."""
+    after = early = stale = 0
+    trust_meta = True
+    f = None
+    while after < max(1, int(wait_frames)):
+        f = camera.get_frame(timeout_s, newer_than=last)
+        last = f.frame_number
+        if f.exposure_start_s is not None and f.exposure_start_s < t_set:
+            early += 1
+            if early > skip_limit:
+                raise DeviceError("the camera delivers no frame exposed after the exposure change")
+            continue
+        if trust_meta and shows_settings(f, applied) is False:
+            stale += 1
+            if stale <= skip_limit:
+                continue
+            trust_meta = False
+            _log.warning("the camera's frames report settings other than those set (%s) %d frames after the "
+                         "change: timing the change by frame times alone", applied, stale)
+        after += 1
+    return f, last, after
+
+
+def apply_exposure(camera, exposure_us: float, gain: float, timeout_s: float = 3.0) -> tuple:
+    """Set a manual exposure and gain and wait for the first frame taken with them (frames_after_change):
+    a recorded exposure re-applied, or the searched one restored, holds for every frame read after this
+    returns. Returns (what the camera applied, that frame)."""
+    last = camera.get_frame(timeout_s).frame_number
+    t_set = time.monotonic()
+    applied = camera.set_manual_exposure(exposure_us, gain)
+    f, _, _ = frames_after_change(camera, t_set, applied, last, 1, timeout_s)
+    return applied, f
+
+
 def _level(image: np.ndarray, percentile: float) -> tuple[float, float]:
     a = np.asarray(image)
     g = a if a.ndim == 2 else a[:, :, 1]
@@ -88,17 +155,8 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
         nonlocal last, frames
         t_set = time.monotonic()
         applied = camera.set_manual_exposure(exposure_us, gain)
-        f, after, skipped = None, 0, 0
-        while after < max(1, int(wait_frames)):  # frames exposed after the change (when the driver can tell)
-            f = camera.get_frame(timeout_s, newer_than=last)
-            last = f.frame_number
-            if f.exposure_start_s is None or f.exposure_start_s >= t_set:
-                after += 1
-                frames += 1
-            else:
-                skipped += 1
-                if skipped > 10:
-                    raise DeviceError("the camera delivers no frame exposed after the exposure change")
+        f, last, after = frames_after_change(camera, t_set, applied, last, wait_frames, timeout_s)
+        frames += after
         lvl, sat = _level(f.image, percentile)
         return float(applied["exposure_us"]), float(applied["gain"]), lvl, sat
 
@@ -180,15 +238,8 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
         nonlocal last, frames
         t_set = time.monotonic()
         applied = camera.set_manual_exposure(exposure, gain)
-        after = 0
-        while after < max(1, int(wait_frames)):
-            f = camera.get_frame(timeout_s, newer_than=last)
-            last = f.frame_number
-            frames += 1
-            if f.exposure_start_s is None or f.exposure_start_s >= t_set:
-                after += 1
-            elif frames > 10 * len(gains) * max(1, int(wait_frames)):
-                raise DeviceError("the camera delivers no frame exposed after the gain change")
+        f, last, after = frames_after_change(camera, t_set, applied, last, wait_frames, timeout_s)
+        frames += after
         a = np.asarray(f.image)
         return float(applied["gain"]), (a if a.ndim == 2 else a[:, :, 1]).astype(np.float64)
 

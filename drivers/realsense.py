@@ -877,7 +877,8 @@ class RealSenseCamera:
         md = rs.frame_metadata_value
         for name, value, scale in (("actual_exposure_us", md.actual_exposure, COLOUR_EXPOSURE_UNIT_US),
                                   ("frame_timestamp_us", md.frame_timestamp, 1.0),
-                                  ("sensor_timestamp_us", md.sensor_timestamp, 1.0)):
+                                  ("sensor_timestamp_us", md.sensor_timestamp, 1.0),
+                                  ("gain", md.gain_level, 1.0)):
             try:
                 if vf.supports_frame_metadata(value):
                     meta[name] = float(vf.get_frame_metadata(value)) * scale

@@ -204,7 +204,7 @@ def apply_timing(camera, projector, camera_settings: dict | None = None, search_
     camera_settings["projector"]["latency_ms"] or measured (when `measure`). Returns the settings
     applied, in the manifest's form."""
     from drivers.base import ExposureControl
-    from drivers.exposure import search_exposure
+    from drivers.exposure import apply_exposure, search_exposure
 
     rec = dict(camera_settings or {})
     out = {}
@@ -212,7 +212,7 @@ def apply_timing(camera, projector, camera_settings: dict | None = None, search_
         camera.set_emitter(False)
         recorded = recorded_exposure(rec)
         if recorded is not None:
-            applied = camera.set_manual_exposure(*recorded)
+            applied, _ = apply_exposure(camera, *recorded)
         else:
             img = white(tuple(projector.size)) if search_image is None else search_image
             projector.wait_presented(projector.show(img))

@@ -40,6 +40,11 @@ def _frames(rig, n, after=None):
     return out
 
 
+def _lag_s(rig) -> float:
+    """How long after a change of exposure or gain the frames still show the old settings."""
+    return rig.hardware.settings_lag_frames * rig.hardware.period_s
+
+
 def _pure(rig, frame_number, ticket) -> bool:
     """The frame saw only the image of `ticket`, for its whole exposure."""
     return rig.frame_truth[frame_number] == ((int(ticket), 1.0),)
@@ -113,7 +118,7 @@ def test_auto_exposure_drifts_until_locked():
     t = time.monotonic()
     applied = rig.camera.set_manual_exposure(PERIOD_US, 1.0)
     assert applied == {"exposure_us": round(PERIOD_US), "gain": 1.0}
-    locked = [f for f in _frames(rig, 8) if f.exposure_start_s >= t + 1 / 30.0]
+    locked = [f for f in _frames(rig, 10) if f.exposure_start_s >= t + _lag_s(rig)]
     assert len(locked) >= 3
     assert {f.meta["exposure_us"] for f in locked} == {round(PERIOD_US)} and not any(f.meta["auto_exposure"] for f in locked)
     assert all(np.array_equal(locked[0].image, f.image) for f in locked[1:])  # no drift any more
@@ -130,7 +135,7 @@ def test_banding_for_an_exposure_off_the_refresh_period_only():
     def rows(exposure_us):
         t = time.monotonic()
         cam.set_manual_exposure(exposure_us, 1.0)
-        f = [f for f in _frames(rig, 6) if f.exposure_start_s >= t + 1 / 30.0][-1]
+        f = [f for f in _frames(rig, 8) if f.exposure_start_s >= t + _lag_s(rig)][-1]
         # the ratios below are ratios of light: undo the camera's tone curve (docs/SIMULATOR.md)
         lin = 255.0 * decode_gamma(f.image[:, :, 0].astype(np.float32) / 255.0, rig.settings.camera_gamma)
         return lin.astype(float), f.meta["banding_amplitude"]
@@ -161,11 +166,11 @@ def test_the_emitter_adds_dots_until_turned_off():
     cam.start()
     cam.set_manual_exposure(PERIOD_US, 1.0)
     t = time.monotonic()
-    on = [f for f in _frames(rig, 5) if f.exposure_start_s >= t + 1 / 30.0][-1]
+    on = [f for f in _frames(rig, 7) if f.exposure_start_s >= t + _lag_s(rig)][-1]
     assert on.meta["emitter_enabled"] is True
     t = time.monotonic()
     cam.set_emitter(False)
-    off = [f for f in _frames(rig, 5) if f.exposure_start_s >= t + 1 / 30.0][-1]
+    off = [f for f in _frames(rig, 7) if f.exposure_start_s >= t + _lag_s(rig)][-1]
     assert off.meta["emitter_enabled"] is False
     d = on.image[:, :, 0].astype(int) - off.image[:, :, 0].astype(int)
     assert (d > 15).sum() > 1000 and (d < -2).sum() == 0  # bright specks only, all over the image
@@ -303,3 +308,50 @@ def test_recorded_timing_from_a_hostile_manifest_counts_as_not_recorded():
     for bad in ({"projector": {"latency_ms": "85"}}, {"projector": {"latency_ms": -1}}, {"projector": 85},
                 {"projector": {"latency_ms": float("nan")}}, {}, None, []):
         assert recorded_latency_s(bad) is None, bad
+
+
+# ---- settings reach the frames late, and the waits know it ---------------------------------------------
+def test_a_setting_shows_only_after_the_sensors_lag_and_the_wait_reads_it_from_the_frames(caplog):
+    from drivers.exposure import apply_exposure, frames_after_change
+
+    rig = open_sim_rig("nonoverlap-136", seed=0, latency_ms=0.0, **QUIET)
+    cam = rig.camera
+    cam.start()
+    assert rig.hardware.settings_lag_frames >= 2  # a D455 needs a few frames
+    applied, _ = apply_exposure(cam, 4000.0, 1.0)
+    last = _frames(rig, 1)[0].frame_number
+    t = time.monotonic()
+    new = cam.set_manual_exposure(8000.0, 2.0)
+    seen = _frames(rig, 8, after=last)
+    after_t = [f for f in seen if f.exposure_start_s >= t]
+    old = [f for f in after_t if f.meta["exposure_us"] == applied["exposure_us"]]
+    assert old and all(f.meta["gain"] == 1.0 for f in old)  # exposed after the change, taken with the old settings
+    assert all(f.exposure_start_s < t + _lag_s(rig) for f in old)
+    from drivers.exposure import shows_settings
+
+    assert shows_settings(old[0], {"exposure_us": applied["exposure_us"], "gain": 1.41}) is False  # a gain step
+    assert shows_settings(old[0], applied) is True
+    # the wait counts only frames whose metadata shows the change, though earlier ones started after it
+    last = seen[-1].frame_number
+    t = time.monotonic()
+    got = cam.set_manual_exposure(2000.0, 1.0)
+    f, _, counted = frames_after_change(cam, t, got, last, wait_frames=1)
+    assert counted == 1 and f.meta["exposure_us"] == 2000.0 and f.exposure_start_s >= t + _lag_s(rig) - 1e-6
+
+    class Lying:  # a camera whose metadata never reports the settings set: the frame times decide
+        def __init__(self, cam):
+            self.cam = cam
+
+        def get_frame(self, timeout_s=2.0, newer_than=None):
+            from dataclasses import replace
+
+            g = self.cam.get_frame(timeout_s, newer_than)
+            return replace(g, meta={**g.meta, "gain": 99.0})
+
+    lying = Lying(cam)
+    last = lying.get_frame().frame_number
+    t = time.monotonic()
+    got = cam.set_manual_exposure(3000.0, 1.0)
+    with caplog.at_level("WARNING"):
+        f, _, counted = frames_after_change(lying, t, got, last, wait_frames=1, skip_limit=3)
+    assert counted == 1 and "report settings other than those set" in caplog.text

@@ -258,7 +258,10 @@ class Station:
             try:
                 cam.set_emitter(False)
                 if recorded_exposure(recorded) is not None:
-                    applied = cam.set_manual_exposure(*recorded_exposure(recorded))
+                    from drivers.exposure import apply_exposure
+
+                    applied, f = apply_exposure(cam, *recorded_exposure(recorded), self.options.frame_timeout_s)
+                    self._last_frame = max(self._last_frame, f.frame_number)
                     detail = f"recorded {applied['exposure_us']:g} us, gain {applied['gain']:g} re-applied"
                 else:
                     from drivers.exposure import search_exposure
@@ -340,18 +343,13 @@ class Station:
         return RigCheck("camera response", True, text)
 
     def _restore_exposure(self, cam, settings) -> None:
-        """Re-apply the searched exposure and gain and wait for a frame exposed after the change (a
-        camera applies it a frame or two late), so no later frame has the response bracket's gain."""
-        from drivers.exposure import WAIT_FRAMES
+        """Re-apply the searched exposure and gain and wait for a frame taken with them (a camera applies a
+        change some frames late; drivers.exposure.frames_after_change), so no later frame has the
+        response bracket's gain."""
+        from drivers.exposure import apply_exposure
 
         try:
-            t_set = time.monotonic()
-            cam.set_manual_exposure(settings["exposure_us"], settings["gain"])
-            f = cam.get_frame(self.options.frame_timeout_s)
-            for _ in range(10 * WAIT_FRAMES):
-                if f.exposure_start_s is None or f.exposure_start_s >= t_set:
-                    break
-                f = cam.get_frame(self.options.frame_timeout_s, newer_than=f.frame_number)
+            _, f = apply_exposure(cam, settings["exposure_us"], settings["gain"], self.options.frame_timeout_s)
             self._last_frame = max(self._last_frame, f.frame_number)
         except (DeviceError, ProcamError, KeyError) as e:
             _log.warning("could not restore the exposure after measuring the response: %s", e)

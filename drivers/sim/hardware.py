@@ -49,6 +49,9 @@ class HardwareModel:
     initial_exposure_us: float = 6000.0
     emitter_enabled: bool = True  # at power-on, as a D455
     band_depth: float = 0.35  # banding amplitude for an exposure half a period off a whole number
+    # a change of exposure, gain, auto exposure or emitter applies to frames whose exposure starts this
+    # many frame periods after it (a D455 needs a few frames: allow about 5 before measuring brightness)
+    settings_lag_frames: float = 3.0
 
     @property
     def period_s(self) -> float:
@@ -176,7 +179,8 @@ class ProjectorTimeline:
 
 class CameraSettingsTimeline:
     """Exposure, gain, auto exposure and emitter as set over time; a change applies to frames whose
-    exposure starts at least one frame period after it was made (the sensor's pipeline)."""
+    exposure starts `settings_lag_frames` frame periods after it was made (the sensor's pipeline); each
+    frame's meta says which settings it was taken with, as a RealSense's metadata does."""
 
     def __init__(self, model: HardwareModel):
         self.model = model
@@ -191,7 +195,7 @@ class CameraSettingsTimeline:
 
     def set(self, t: float, **changes) -> None:
         state = {**self._states[-1], **changes}
-        eff = t + (0.0 if self.model.ideal else self.model.period_s)
+        eff = t + (0.0 if self.model.ideal else self.model.settings_lag_frames * self.model.period_s)
         while len(self._times) > 1 and self._times[-1] >= eff:  # superseded before it took effect
             self._times.pop()
             self._states.pop()

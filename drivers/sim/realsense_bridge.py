@@ -72,6 +72,7 @@ class SimRealSenseDevice:
         self._lock = threading.Lock()
         self._mono0 = time.monotonic()
         self._applied: dict[str, float] = {}
+        self._device_gain: dict[float, float] = {}  # simulated gain -> the device gain last set for it
         self.forwarded: list[tuple[str, Any]] = []  # (what, value) handed to the simulated camera
         self._build()
 
@@ -162,7 +163,8 @@ class SimRealSenseDevice:
             elif (last.get("auto_exposure") is not False or now["exposure_us"] != last.get("exposure_us")
                   or now["gain"] != last.get("gain")):
                 gain = self.sim_gain(now["gain"])
-                cam.set_manual_exposure(now["exposure_us"], gain)
+                got = cam.set_manual_exposure(now["exposure_us"], gain)
+                self._device_gain[round(float(got["gain"]), 6)] = float(now["gain"])
                 self.forwarded.append(("manual", (now["exposure_us"], gain)))
             self._applied = now
         return now
@@ -195,6 +197,12 @@ class SimRealSenseDevice:
         sensor = self.colour
         md = rs.frame_metadata_value
         sensor.set_metadata(md.actual_exposure, units)
+        gain = frame.meta.get("gain") if isinstance(frame.meta, dict) else None
+        if gain is not None:  # the gain the frame was taken with, in the device's units (as the option)
+            device_gain = self._device_gain.get(round(float(gain), 6))
+            if device_gain is None:  # not set through the device (the camera's power-on gain)
+                device_gain = float(gain) / self.sim_gain(COLOUR_OPTIONS["gain"][1]) * COLOUR_OPTIONS["gain"][1]
+            sensor.set_metadata(md.gain_level, int(round(device_gain)))
         sensor.set_metadata(md.frame_timestamp, frame_ts_us)
         sensor.set_metadata(md.sensor_timestamp, sensor_ts_us)
         img = np.ascontiguousarray(frame.image, dtype=np.uint8)
