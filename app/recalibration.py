@@ -472,7 +472,8 @@ def only_captures(obs, ids: set):
 
 def rig_verify_fn(rig, folder):
     """The `verify(result, final)` of run_recalibration on this rig (None where the rig cannot verify):
-    the previous calibration checked on the rig, the final one written as the session's verification."""
+    the previous calibration checked on the rig, the final one written as the session's verification;
+    both with the camera's response the recalibration session's rig check recorded."""
     from app.station.setup import make_verify_fn
 
     final_fn = make_verify_fn(rig, folder)
@@ -482,9 +483,9 @@ def rig_verify_fn(rig, folder):
     def verify(result, final):
         if final:
             return final_fn(result)
-        from app.verification import verify as check
+        from app.verification import session_response, verify as check
 
-        return check(rig.camera, rig.projector, rig.operator, result)
+        return check(rig.camera, rig.projector, rig.operator, result, response=session_response(folder))
 
     return verify
 
