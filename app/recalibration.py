@@ -279,7 +279,8 @@ class Outcome:
 
 def _verification_summary(report) -> dict:
     return {"passed": bool(report.passed), "mean_proj_px": report.mean_proj_px, "mean_px": report.mean_px,
-            "threshold_px": report.threshold_px, "measured": report.n_measured}
+            "threshold_px": report.threshold_px, "measured": report.n_measured,
+            "response": getattr(report, "response", None)}  # the camera's tone curve the frames were read with
 
 
 def run_recalibration(previous_path, station: Station, machine: RecalibrationMachine, log=print,
