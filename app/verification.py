@@ -212,8 +212,11 @@ def _grey(img: np.ndarray, response: CameraResponse | None = None) -> np.ndarray
     """(H, W) float32 light: the mean of the channels, as calib.detection.curves reads a BGR frame. With
     the camera's `response` (tone curve, not linear), each channel's levels are linearised first (the
     curve's inverse, interpolated in CameraResponse.lut: averaged frames have fractional levels), so the
-    stripe signal divides light, not encoded levels. The only place the verification's frames become
-    grey light."""
+    stripe signal divides light, not encoded levels, and its validity threshold (a fraction of the
+    white's rise) sees the print's black squares as the few percent of the light they are, not the
+    ~20 % of the levels the curve lifts them to: left out, their noisy signal no longer pulls the
+    centre line (most of the gain, docs/VERIFICATION.md). The only place the verification's frames
+    become grey light. (Averaged frames are averaged before they are linearised: a noise-sized error.)"""
     a = np.asarray(img)
     if response is not None and not response.linear:
         a = np.interp(a, _LEVELS, response.lut())

@@ -19,7 +19,8 @@ C. Rotations of 0.5 deg about axes in the projector's image plane, every 15 deg 
    verification pose): the direction the epipolar check is blind to.
 D. The stroke's scale (camera px per projector px, from its cross-section) under the projector's and the
    camera's gamma, with and without the camera's response, against the photometrically neutral
-   renderer's at the same pixels (noise-free, session quality, 136 deg rig, ground truth).
+   renderer's at the same pixels (session quality, 136 deg rig, ground truth; noise-free, then with the
+   scenario's noise as benchmarks/photometric.py renders it).
 With --session DIR (a `procam simulate` session calibrated with `procam calibrate`), also the
 `procam calibrate` result of that session through the real procedure.
 """
@@ -88,8 +89,9 @@ def table_a(scenarios, grid, perturbations=PERTURBATIONS, reads=("light", "level
     print()
 
 
-def table_d(grid, effects=("projector_gamma", "camera_gamma", "all")):
-    """The stroke's scale vs the neutral renderer's at the same pixels, per effect, levels and light."""
+def table_d(grid, effects=("projector_gamma", "camera_gamma", "all"), noise: bool = False):
+    """The stroke's scale vs the neutral renderer's at the same pixels, per effect, levels and light;
+    `noise`: the scenario's read and shot noise kept (else noise-free frames)."""
     from dataclasses import replace
 
     from calib.detection.response import parse_response
@@ -102,7 +104,7 @@ def table_d(grid, effects=("projector_gamma", "camera_gamma", "all")):
 
     def run(settings, pixels, response):
         rig = open_sim_rig("nonoverlap-136", 0, quality="session", ideal=True, latency_ms=0.0,
-                           **settings.without_noise().to_dict())
+                           **(settings if noise else settings.without_noise()).to_dict())
         try:
             rig.camera.start()
             rig.operator.request_pose("verification", None, 0)
@@ -114,7 +116,8 @@ def table_d(grid, effects=("projector_gamma", "camera_gamma", "all")):
     base = run(neutral, None, False)
     pixels = [c.pixel for c in base.checks]
     ref = np.array([c.scale or np.nan for c in base.checks])
-    print(f"D. stroke scale vs the neutral renderer (noise-free, session quality, 136 deg rig, ground truth, "
+    print(f"D. stroke scale vs the neutral renderer ({'with noise' if noise else 'noise-free'}, session quality, "
+          f"136 deg rig, ground truth, "
           f"{len(pixels)} pixels); neutral: mean {base.mean_proj_px:.3f} projector px")
     print(f"{'effect':<18} {'frames':<6} {'scale vs neutral mean %':>23} {'worst %':>8} {'proj mean':>9} {'proj worst':>10}")
     for e in effects:
@@ -236,8 +239,9 @@ def session_row(folder, grid):
     from calib.detection.response import parse_response, recorded_response
 
     response = recorded_response(st) or parse_response(rig.camera.response())  # as `procam verify` does
-    rep = verify(rig.camera, rig.projector, rig.operator, res, grid=grid, response=response)
-    print(f"procam calibrate result of {folder}: {rep.summary()}")
+    for read, r in (("light", response), ("levels", None)):
+        rep = verify(rig.camera, rig.projector, rig.operator, res, grid=grid, response=r)
+        print(f"procam calibrate result of {folder} ({read}): {rep.summary()}", flush=True)
 
 
 def main(argv=None):
@@ -261,6 +265,7 @@ def main(argv=None):
         table_c()
     if "D" in a.tables:
         table_d(grid)
+        table_d(grid, noise=True)
     if a.session:
         session_row(a.session, grid)
     print(f"({time.time() - t0:.0f} s)")

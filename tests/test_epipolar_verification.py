@@ -165,6 +165,11 @@ def test_single_pixel_and_errors(sim):
     ov = c.overlay()
     assert ov["pixel"] == (640.0, 400.0) and len(ov["detected"]) > 50 and len(ov["predicted"]) > 10
     assert "camera px" in ov["label"]
+    # the panel's click passes the session's response: the references it captures are read as light
+    from calib.detection.response import CameraResponse
+
+    c = verify_pixel(sim.camera, sim.projector, gt, (640.0, 400.0), response=CameraResponse("bt709", 2.2))
+    assert c.ok and c.distance_px < 0.1 and c.distance_proj_px < 0.5
     with pytest.raises(VerificationError, match="outside"):
         verify_pixel(sim.camera, sim.projector, gt, (5000.0, 1.0))
     wrong_size = gt.with_(projector=gt.projector.__class__(1280, 720, gt.projector.K, gt.projector.dist))
