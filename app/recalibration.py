@@ -279,7 +279,8 @@ class Outcome:
 
 def _verification_summary(report) -> dict:
     return {"passed": bool(report.passed), "mean_proj_px": report.mean_proj_px, "mean_px": report.mean_px,
-            "threshold_px": report.threshold_px, "measured": report.n_measured}
+            "threshold_px": report.threshold_px, "measured": report.n_measured,
+            "response": getattr(report, "response", None)}  # the camera's tone curve the frames were read with
 
 
 def run_recalibration(previous_path, station: Station, machine: RecalibrationMachine, log=print,
@@ -472,7 +473,8 @@ def only_captures(obs, ids: set):
 
 def rig_verify_fn(rig, folder):
     """The `verify(result, final)` of run_recalibration on this rig (None where the rig cannot verify):
-    the previous calibration checked on the rig, the final one written as the session's verification."""
+    the previous calibration checked on the rig, the final one written as the session's verification;
+    both with the camera's response the recalibration session's rig check recorded."""
     from app.station.setup import make_verify_fn
 
     final_fn = make_verify_fn(rig, folder)
@@ -482,9 +484,9 @@ def rig_verify_fn(rig, folder):
     def verify(result, final):
         if final:
             return final_fn(result)
-        from app.verification import verify as check
+        from app.verification import session_response, verify as check
 
-        return check(rig.camera, rig.projector, rig.operator, result)
+        return check(rig.camera, rig.projector, rig.operator, result, response=session_response(folder))
 
     return verify
 

@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from calib.detection.curves import CurveDetection, detect_projected_curve, distance_to_curve, lit_region, stripe_signal
+from calib.detection.response import CameraResponse
 from calib.epipolar import epipolar_curve, predicted_camera_curve
 from calib.errors import FormatError, ProcamError
 from calib.formats.fileio import atomic_write_text
@@ -204,9 +205,21 @@ class _Grabber:
         return acc / self.average if self.average > 1 else acc
 
 
-def _grey(img: np.ndarray) -> np.ndarray:
-    """(H, W) float32: the mean of the channels, as calib.detection.curves reads a BGR frame."""
+_LEVELS = np.arange(256, dtype=np.float64)
+
+
+def _grey(img: np.ndarray, response: CameraResponse | None = None) -> np.ndarray:
+    """(H, W) float32 light: the mean of the channels, as calib.detection.curves reads a BGR frame. With
+    the camera's `response` (tone curve, not linear), each channel's levels are linearised first (the
+    curve's inverse, interpolated in CameraResponse.lut: averaged frames have fractional levels), so the
+    stripe signal divides light, not encoded levels, and its validity threshold (a fraction of the
+    white's rise) sees the print's black squares as the few percent of the light they are, not the
+    ~20 % of the levels the curve lifts them to: left out, their noisy signal no longer pulls the
+    centre line (most of the gain, docs/VERIFICATION.md). The only place the verification's frames
+    become grey light. (Averaged frames are averaged before they are linearised: a noise-sized error.)"""
     a = np.asarray(img)
+    if response is not None and not response.linear:
+        a = np.interp(a, _LEVELS, response.lut())
     return a.astype(np.float32).mean(axis=2) if a.ndim == 3 else a.astype(np.float32)
 
 
@@ -218,29 +231,40 @@ def _draw(size, curve: np.ndarray, stroke_px: float) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class ReferenceFrames:
-    """The frames every check shares: projector black and full white, and the lit region."""
+    """The frames every check shares: projector black and full white (as the camera delivered them), the
+    lit region, and the camera's response the frames' light is read with (None: the levels as they are)."""
 
     off: np.ndarray
     white: np.ndarray
-    lit: np.ndarray  # bool mask of what the projector lights brightly, as the camera sees it
+    lit: np.ndarray  # bool mask of what the projector lights brightly, as the camera sees it (its levels)
+    response: CameraResponse | None = None
+
+    def light(self) -> tuple[np.ndarray, np.ndarray]:
+        """(off, white) as grey float32 light, linearised by `response` (see _grey)."""
+        return _grey(self.off, self.response), _grey(self.white, self.response)
 
 
-def capture_references(camera, projector, settle_frames: int = 1, average: int = 1, grabber=None) -> ReferenceFrames:
-    """Capture the black and white reference frames (the board must be in place and still)."""
+def capture_references(camera, projector, settle_frames: int = 1, average: int = 1, grabber=None,
+                       response: CameraResponse | None = None) -> ReferenceFrames:
+    """Capture the black and white reference frames (the board must be in place and still). `response`:
+    the camera's tone curve (calib.detection.response), kept with the frames: every signal formed from
+    them is then linear light (None: encoded levels, as before responses were recorded)."""
     W, H = projector.size
     g = grabber or _Grabber(camera, projector, settle_frames, average)
     white = g.grab(np.full((H, W), 255, np.uint8))
     off = g.grab(np.zeros((H, W), np.uint8))
-    return ReferenceFrames(off, white, lit_region(off, white))
+    return ReferenceFrames(off, white, lit_region(off, white), response)
 
 
 def verify_pixel(camera, projector, result: CalibrationResult, pixel, *, references: ReferenceFrames | None = None,
                  stroke_px: float | None = None, board_pose: np.ndarray | None = None, settle_frames: int = 1,
-                 average: int = 1, leave_dark: bool = True) -> PixelCheck:
+                 average: int = 1, leave_dark: bool = True, response: CameraResponse | None = None) -> PixelCheck:
     """Verify one camera pixel: draw its epipolar curve, detect it, measure. `references`: shared
     black/white frames (captured here when None). `stroke_px`: stroke width in projector pixels
     (default: INITIAL_STROKE_PX). `board_pose`: T_cam_board of the board (or (n, d) of its plane) for
-    the predicted curve overlay. The projector is left black afterwards unless `leave_dark` is False."""
+    the predicted curve overlay. `response`: the camera's tone curve, for the references captured here
+    (given `references` carry their own). The projector is left black afterwards unless `leave_dark`
+    is False."""
     pixel = (float(pixel[0]), float(pixel[1]))
     cw, ch = result.camera.size
     if not (-0.5 <= pixel[0] <= cw - 0.5 and -0.5 <= pixel[1] <= ch - 0.5):
@@ -254,7 +278,7 @@ def verify_pixel(camera, projector, result: CalibrationResult, pixel, *, referen
         return PixelCheck(pixel, curve, np.zeros((0, 2)), None, None, None, None, None, stroke, None,
                           "the projector cannot light what this pixel sees: its epipolar curve misses the "
                           "projector image (pick a pixel on the board in the projector's light)")
-    refs = references or capture_references(camera, projector, settle_frames, average)
+    refs = references or capture_references(camera, projector, settle_frames, average, response=response)
     g = _Grabber(camera, projector, settle_frames, average)
     on = g.grab(_draw(projector.size, curve, stroke))
     if leave_dark:
@@ -265,17 +289,21 @@ def verify_pixel(camera, projector, result: CalibrationResult, pixel, *, referen
 
 def measure_pixel(result: CalibrationResult, pixel, curve: np.ndarray, frame_on: np.ndarray, refs: ReferenceFrames,
                   stroke_px: float, board_pose=None, roi: np.ndarray | None = None, signal=None) -> PixelCheck:
-    """The measurement of verify_pixel on captured frames (pure: no devices). `roi`: where in the
-    camera image this pixel's stroke is looked for (when other strokes share the frame); `signal`:
-    calib.detection.curves.stripe_signal of the frames, computed once for all strokes of the frame."""
+    """The measurement of verify_pixel on captured frames (pure: no devices). `frame_on` and `refs` as
+    the camera delivered them, read as light through `refs.response` (see capture_references). `roi`:
+    where in the camera image this pixel's stroke is looked for (when other strokes share the frame);
+    `signal`: calib.detection.curves.stripe_signal of the frames' light, computed once for all strokes
+    of the frame (frame_on is then not read)."""
     pixel = (float(pixel[0]), float(pixel[1]))
     predicted = None
     if board_pose is not None:
         predicted = predicted_camera_curve(result, pixel, board_pose)
-    if roi is not None and signal is not None and roi.any():
+    if signal is None:
+        signal = stripe_signal(_grey(frame_on, refs.response), *refs.light())
+    if roi is not None and roi.any():
         det = _detect_in_box(signal, roi, refs.white)
     else:
-        det: CurveDetection = detect_projected_curve(frame_on, refs.off, refs.white, roi=roi, signal=signal)
+        det: CurveDetection = detect_projected_curve(None, None, refs.white, roi=roi, signal=signal)
     if not det.ok:
         return PixelCheck(pixel, curve, np.zeros((0, 2)), predicted, None, None, None, None, stroke_px, None,
                           det.reason)
@@ -367,7 +395,9 @@ def _stroke_rois(shape, lines: list[np.ndarray], half_width_px: float) -> list[n
 class VerificationReport:
     """The automatic check. Distances: mean/worst over the measured checks, camera pixels (`*_px`) and
     projector pixels (`*_proj_px`); `threshold_px` applies to projector pixels (see the module doc);
-    `passed` the verdict and `verdict` why, in words; `n_failed_detection` checks not measured."""
+    `passed` the verdict and `verdict` why, in words; `n_failed_detection` checks not measured;
+    `response` the camera's tone curve the frames were linearised with (CameraResponse.to_dict(), plus
+    where it came from when the caller says), None when the levels were used as they are."""
 
     checks: tuple[PixelCheck, ...]
     mean_px: float | None
@@ -381,6 +411,7 @@ class VerificationReport:
     calibration: dict = field(default_factory=dict)  # what was verified (method, units, path)
     settings: dict = field(default_factory=dict)
     created: str = ""
+    response: dict | None = None  # the camera's tone curve the frames were linearised with (None: not)
 
     @property
     def n_measured(self) -> int:
@@ -407,7 +438,7 @@ class VerificationReport:
                 "mean_proj_px": _num(self.mean_proj_px), "worst_proj_px": _num(self.worst_proj_px),
                 "n_checks": len(self.checks), "n_measured": self.n_measured,
                 "n_failed_detection": self.n_failed_detection, "calibration": self.calibration,
-                "settings": self.settings, "checks": [c.to_dict() for c in self.checks]}
+                "response": self.response, "settings": self.settings, "checks": [c.to_dict() for c in self.checks]}
 
     def save_json(self, path) -> None:
         """Write verification.json atomically."""
@@ -435,7 +466,8 @@ class VerificationReport:
 
         return cls(cs, num("mean_camera_px", "mean_px"), num("worst_camera_px", "worst_px"), num("mean_proj_px"), num("worst_proj_px"), float(thr),
                    d["passed"], int(d.get("n_failed_detection", 0)), str(d.get("verdict", "")),
-                   dict(d.get("calibration") or {}), dict(d.get("settings") or {}), str(d.get("created", "")))
+                   dict(d.get("calibration") or {}), dict(d.get("settings") or {}), str(d.get("created", "")),
+                   d["response"] if isinstance(d.get("response"), dict) else None)
 
     @classmethod
     def from_json(cls, path) -> "VerificationReport":
@@ -580,7 +612,7 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
            threshold_px: float = DEFAULT_THRESHOLD_PX, board_region=None, progress: Progress | None = None, *,
            board=None, board_pose=None, stroke_px: float | None = None, settle_frames: int = 1, average: int = 1,
            min_measured: int = 3, calibration_info: dict | None = None, session_dir=None,
-           curves_per_image: int = MAX_CURVES_PER_IMAGE) -> VerificationReport:
+           curves_per_image: int = MAX_CURVES_PER_IMAGE, response: CameraResponse | None = None) -> VerificationReport:
     """The automatic epipolar check. `operator` (may be None) is asked for the 'verification' pose
     first. `pixels`: (N, 2) camera pixels to verify, default a `grid` (cols, rows) spread over the
     region the projector lights (within `board_region` when given). One pixel after another; the
@@ -589,14 +621,17 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     frame; default the session's projector board when `session_dir` is given) add the predicted curve
     to each check (overlay only). `session_dir`: write the report there as verification.json. Returns
     the report (the projector is left black). `curves_per_image`: strokes drawn together in one
-    projector image (pixels grouped by group_pixels; 1: one image per pixel)."""
+    projector image (pixels grouped by group_pixels; 1: one image per pixel). `response`: the camera's
+    tone curve (the session's recorded one, calib.detection.response.recorded_response): every frame is
+    linearised before the stroke's signal is formed, so the white and black frames divide out light
+    (None: the camera's levels as they are); the report records it."""
     if tuple(projector.size) != tuple(result.projector.size):
         raise VerificationError(f"the projector is {projector.size[0]}x{projector.size[1]} but the calibration is for "
                                 f"{result.projector.width}x{result.projector.height}")
     if operator is not None:
         operator.request_pose("verification", None, 0)
     ref_grabber = _Grabber(camera, projector, settle_frames, average)
-    refs = capture_references(camera, projector, settle_frames, average, grabber=ref_grabber)
+    refs = capture_references(camera, projector, settle_frames, average, grabber=ref_grabber, response=response)
     H, W = refs.off.shape[:2]
     if (W, H) != tuple(result.camera.size):
         raise VerificationError(f"the camera delivers {W}x{H} frames but the calibration is for "
@@ -623,7 +658,7 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     groups = group_pixels(pts, lines, curves_per_image)
     results: dict[int, PixelCheck] = {}
     g = _Grabber(camera, projector, settle_frames, average)
-    grey = ReferenceFrames(_grey(refs.off), _grey(refs.white), refs.lit)  # converted once, not per check
+    off_light, white_light = refs.light()  # converted once, not per check
     done = 0
     for group in groups:
         if progress is not None:
@@ -637,12 +672,12 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
             from drivers.projector_images import draw_polylines
 
             image = draw_polylines((Wp, Hp), [curves[i] for i in drawable], thickness_px=stroke, antialias=True)
-            on = _grey(g.grab(image))
-            signal = stripe_signal(on, grey.off, grey.white)
+            on = _grey(g.grab(image), response)
+            signal = stripe_signal(on, off_light, white_light)
             rois = _stroke_rois((H, W), [lines[i] for i in drawable], MIN_SEPARATION_PX / 2) \
                 if len(drawable) > 1 else [None]
             for i, roi in zip(drawable, rois):
-                results[i] = measure_pixel(result, pts[i], curves[i], on, grey, stroke, board_pose, roi=roi,
+                results[i] = measure_pixel(result, pts[i], curves[i], on, refs, stroke, board_pose, roi=roi,
                                            signal=signal)
         done += len(group)
         if stroke_px is None:
@@ -660,7 +695,8 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
                 "stroke_px": stroke_px, "min_measured": min_measured, "board_pose_known": board_pose is not None,
                 "curves_per_image": curves_per_image, "projector_images": 2 + len(groups),
                 "frames": [list(x) for x in ref_grabber.seen + g.seen]}  # [camera frame, projector ticket]
-    report = judge(checks, threshold_px, min_measured, info, settings)
+    report = replace(judge(checks, threshold_px, min_measured, info, settings),
+                     response=None if response is None else response.to_dict())
     if session_dir is not None:
         report.save_json(Path(session_dir) / "verification.json")
     return report
@@ -696,6 +732,18 @@ def _session_board(folder):
 
     try:
         return SessionStore.open(folder).manifest.projector_board
+    except ProcamError:
+        return None
+
+
+def session_response(folder) -> CameraResponse | None:
+    """The camera's response the session in `folder` recorded (rig.camera_settings["response"]; the rig
+    check records it), or None when it recorded none, a malformed one, or cannot be read."""
+    from calib.detection.response import recorded_response
+    from calib.formats.session import SessionStore
+
+    try:
+        return recorded_response(SessionStore.open(folder).manifest.rig.camera_settings)
     except ProcamError:
         return None
 

@@ -7,13 +7,20 @@ Prints three tables (numbers quoted in docs/VERIFICATION.md):
 A. The real procedure (app.verification.verify, 4x3 grid) on the rendered simulated rigs: the ground
    truth and deliberately perturbed calibrations (0.5 deg rotations of T_cam_proj about the projector's
    axes, 5 px shifts of the projector's principal point), mean / worst distance in camera and projector
-   pixels and the verdict at the default threshold.
+   pixels and the verdict at the default threshold; each with the frames read as light through the
+   camera's response (`light`, what the station and `procam verify` do) and as the camera's encoded
+   levels (`levels`, before the response was used). `--repeats N`: N checks each (the rig's noise
+   moves the numbers from one check to the next): mean of the means, largest worst.
 B. Calibrations as the pipeline estimates them from observations with Gaussian detection noise
    (calib.synthetic + calib.pipeline, 136 deg rig), measured by an ideal detector (exact geometry: the
    estimated curve drawn on the true board, seen by the true camera), over the blank region of 13
    board poses: how far honest calibrations are from the threshold.
 C. Rotations of 0.5 deg about axes in the projector's image plane, every 15 deg (ideal detector,
    verification pose): the direction the epipolar check is blind to.
+D. The stroke's scale (camera px per projector px, from its cross-section) under the projector's and the
+   camera's gamma, with and without the camera's response, against the photometrically neutral
+   renderer's at the same pixels (session quality, 136 deg rig, ground truth; noise-free, then with the
+   scenario's noise as benchmarks/photometric.py renders it).
 With --session DIR (a `procam simulate` session calibrated with `procam calibrate`), also the
 `procam calibrate` result of that session through the real procedure.
 """
@@ -47,28 +54,80 @@ def _fmt(v, w=7):
     return f"{v:{w}.2f}" if v is not None else f"{'-':>{w}}"
 
 
-def table_a(scenarios, grid):
+def table_a(scenarios, grid, perturbations=PERTURBATIONS, reads=("light", "levels"), repeats=1):
+    from calib.detection.response import parse_response
+    from drivers.settle import apply_timing
     from drivers.sim.rig import open_sim_rig
 
     print(f"A. verify() on the rendered simulated rigs, grid {grid[0]}x{grid[1]}, threshold "
-          f"{DEFAULT_THRESHOLD_PX:g} projector px (mean; worst <= 2x)")
-    print(f"{'scenario':<16} {'calibration':<26} {'cam mean':>8} {'cam worst':>9} {'proj mean':>9} {'proj worst':>10} "
-          f"{'measured':>8}  verdict")
+          f"{DEFAULT_THRESHOLD_PX:g} projector px (mean; worst <= 2x); {repeats} check(s) each")
+    print(f"{'scenario':<16} {'calibration':<26} {'frames':<6} {'cam mean':>8} {'cam worst':>9} {'proj mean':>9} "
+          f"{'proj worst':>10} {'measured':>8}  verdict")
     for name in scenarios:
-        from drivers.settle import apply_timing
-
         rig = open_sim_rig(name, seed=0, quality="live")
         rig.camera.start()
         rig.operator.request_pose("verification", None, 0)
         apply_timing(rig.camera, rig.projector)  # exposure and latency, as the station's rig check
+        response = parse_response(rig.camera.response())  # what the rig check records
         gt = rig.ground_truth()
-        for label, kw in PERTURBATIONS:
+        for label, kw in perturbations:
             res = perturbed(gt, **kw) if kw else gt
-            rep = verify(rig.camera, rig.projector, rig.operator, res, grid=grid)
-            print(f"{name:<16} {label:<26} {_fmt(rep.mean_px, 8)} {_fmt(rep.worst_px, 9)} {_fmt(rep.mean_proj_px, 9)} "
-                  f"{_fmt(rep.worst_proj_px, 10)} {rep.n_measured:>4}/{len(rep.checks):<3}  "
-                  f"{'PASS' if rep.passed else 'FAIL'}")
-        rig.camera.stop()
+            for read in reads:
+                reps = [verify(rig.camera, rig.projector, rig.operator, res, grid=grid,
+                               response=response if read == "light" else None) for _ in range(repeats)]
+
+                def agg(key, f):
+                    v = [getattr(r, key) for r in reps]
+                    return None if any(x is None for x in v) else float(f(v))
+
+                rep = reps[0]
+                print(f"{name:<16} {label:<26} {read:<6} {_fmt(agg('mean_px', np.mean), 8)} "
+                      f"{_fmt(agg('worst_px', np.max), 9)} {_fmt(agg('mean_proj_px', np.mean), 9)} "
+                      f"{_fmt(agg('worst_proj_px', np.max), 10)} {min(r.n_measured for r in reps):>4}/{len(rep.checks):<3}  "
+                      f"{'/'.join(sorted({'PASS' if r.passed else 'FAIL' for r in reps}))}", flush=True)
+        rig.close()
+    print()
+
+
+def table_d(grid, effects=("projector_gamma", "camera_gamma", "all"), noise: bool = False):
+    """The stroke's scale vs the neutral renderer's at the same pixels, per effect, levels and light;
+    `noise`: the scenario's read and shot noise kept (else noise-free frames)."""
+    from dataclasses import replace
+
+    from calib.detection.response import parse_response
+    from drivers.sim.rig import open_sim_rig
+    from drivers.sim.scenarios import get_scenario
+
+    sc = get_scenario("nonoverlap-136", 0)
+    full = sc.render
+    neutral = full.photometrically_neutral()
+
+    def run(settings, pixels, response):
+        rig = open_sim_rig("nonoverlap-136", 0, quality="session", ideal=True, latency_ms=0.0,
+                           **(settings if noise else settings.without_noise()).to_dict())
+        try:
+            rig.camera.start()
+            rig.operator.request_pose("verification", None, 0)
+            r = parse_response(rig.camera.response()) if response else None
+            return verify(rig.camera, rig.projector, None, rig.ground_truth(), grid=grid, pixels=pixels, response=r)
+        finally:
+            rig.close()
+
+    base = run(neutral, None, False)
+    pixels = [c.pixel for c in base.checks]
+    ref = np.array([c.scale or np.nan for c in base.checks])
+    print(f"D. stroke scale vs the neutral renderer ({'with noise' if noise else 'noise-free'}, session quality, "
+          f"136 deg rig, ground truth, "
+          f"{len(pixels)} pixels); neutral: mean {base.mean_proj_px:.3f} projector px")
+    print(f"{'effect':<18} {'frames':<6} {'scale vs neutral mean %':>23} {'worst %':>8} {'proj mean':>9} {'proj worst':>10}")
+    for e in effects:
+        st = full if e == "all" else replace(neutral, **{e: getattr(full, e)})
+        for read in ("levels", "light"):
+            rep = run(st, pixels, read == "light")
+            sc_ = np.array([c.scale or np.nan for c in rep.checks])
+            dev = 100.0 * np.abs(sc_ / ref - 1.0)
+            print(f"{e:<18} {read:<6} {np.nanmean(dev):23.2f} {np.nanmax(dev):8.2f} {_fmt(rep.mean_proj_px, 9)} "
+                  f"{_fmt(rep.worst_proj_px, 10)}", flush=True)
     print()
 
 
@@ -177,24 +236,36 @@ def session_row(folder, grid):
     rig.operator.request_pose("verification", None, 0)
     apply_timing(rig.camera, rig.projector, st)
     res = CalibrationResult.load_json(Path(folder) / "calibration.json")
-    rep = verify(rig.camera, rig.projector, rig.operator, res, grid=grid)
-    print(f"procam calibrate result of {folder}: {rep.summary()}")
+    from calib.detection.response import parse_response, recorded_response
+
+    response = recorded_response(st) or parse_response(rig.camera.response())  # as `procam verify` does
+    for read, r in (("light", response), ("levels", None)):
+        rep = verify(rig.camera, rig.projector, rig.operator, res, grid=grid, response=r)
+        print(f"procam calibrate result of {folder} ({read}): {rep.summary()}", flush=True)
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one scenario, fewer seeds")
     ap.add_argument("--session", default=None, help="a simulated, calibrated session to verify too")
-    ap.add_argument("--tables", default="ABC", help="which tables to print (default ABC)")
+    ap.add_argument("--tables", default="ABCD", help="which tables to print (default ABCD)")
+    ap.add_argument("--ground-truth-only", action="store_true", help="table A: the ground truth rows only")
+    ap.add_argument("--repeats", type=int, default=1, help="table A: checks per row (default 1)")
+    ap.add_argument("--scenarios", nargs="+", default=None, help="table A: these scenarios")
     a = ap.parse_args(argv)
     t0 = time.time()
     grid = (4, 3)
     if "A" in a.tables:
-        table_a(["nonoverlap-136"] if a.quick else ["nonoverlap-136", "nonoverlap-90", "nonoverlap-180", "direct"], grid)
+        names = a.scenarios or (["nonoverlap-136"] if a.quick else
+                                ["nonoverlap-136", "nonoverlap-90", "nonoverlap-180", "direct"])
+        table_a(names, grid, PERTURBATIONS[:1] if a.ground_truth_only else PERTURBATIONS, repeats=a.repeats)
     if "B" in a.tables:
         table_b([0.1, 0.2, 0.3, 0.5, 1.0], [1] if a.quick else [1, 2, 3])
     if "C" in a.tables:
         table_c()
+    if "D" in a.tables:
+        table_d(grid)
+        table_d(grid, noise=True)
     if a.session:
         session_row(a.session, grid)
     print(f"({time.time() - t0:.0f} s)")

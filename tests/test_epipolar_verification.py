@@ -165,6 +165,11 @@ def test_single_pixel_and_errors(sim):
     ov = c.overlay()
     assert ov["pixel"] == (640.0, 400.0) and len(ov["detected"]) > 50 and len(ov["predicted"]) > 10
     assert "camera px" in ov["label"]
+    # the panel's click passes the session's response: the references it captures are read as light
+    from calib.detection.response import CameraResponse
+
+    c = verify_pixel(sim.camera, sim.projector, gt, (640.0, 400.0), response=CameraResponse("bt709", 2.2))
+    assert c.ok and c.distance_px < 0.1 and c.distance_proj_px < 0.5
     with pytest.raises(VerificationError, match="outside"):
         verify_pixel(sim.camera, sim.projector, gt, (5000.0, 1.0))
     wrong_size = gt.with_(projector=gt.projector.__class__(1280, 720, gt.projector.K, gt.projector.dist))
@@ -207,3 +212,59 @@ def test_board_pose_from_the_white_frame(sim):
     D = invert_T(sim.board.T_cam_board) @ T
     assert np.linalg.norm(D[:3, 3]) < 5.0 and rotation_angle_deg(D) < 0.5  # mm, degrees
     assert estimate_board_pose(refs.off * 0, sim.scenario.projector_board, gt) is None
+
+
+
+def test_the_cameras_response_brings_a_correct_calibration_closer_to_0():
+    """The simulated camera encodes light with a BT.709-like 2.2 curve: on its encoded levels the white
+    and black frames do not divide out the print exactly (strokes across a black square's edge lean).
+    Read as light through the camera's response, the ground truth measures far closer to 0. A
+    noise-free rig renders the same frames for every check, so the comparison is exact; a linear
+    response changes nothing (the levels as they are), and the report records what was applied."""
+    from calib.detection.response import CameraResponse, parse_response
+
+    rig = open_sim_rig("nonoverlap-136", seed=0, quality="live", ideal=True, latency_ms=0.0, read_noise_dn=0.0,
+                       electrons_per_dn=0.0)
+    try:
+        rig.camera.start()
+        rig.operator.request_pose("verification", None, 0)
+        gt = rig.ground_truth()
+        response = parse_response(rig.camera.response())
+        assert response == CameraResponse("bt709", 2.2)
+        raw = verify(rig.camera, rig.projector, None, gt, grid=(4, 3))
+        light = verify(rig.camera, rig.projector, None, gt, grid=(4, 3), response=response)
+        same = verify(rig.camera, rig.projector, None, gt, grid=(4, 3), response=CameraResponse("bt709", 1.0))
+    finally:
+        rig.close()
+    assert raw.n_measured == light.n_measured == 12
+    assert [c.pixel for c in light.checks] == [c.pixel for c in raw.checks]  # the same pixels
+    assert light.mean_proj_px < 0.5 * raw.mean_proj_px and light.worst_proj_px < 0.5 * raw.worst_proj_px, \
+        (raw.summary(), light.summary())
+    assert [(c.distance_px, c.scale) for c in same.checks] == [(c.distance_px, c.scale) for c in raw.checks]
+    assert raw.response is None and raw.to_dict()["response"] is None
+    assert light.response == {"model": "bt709", "gamma": 2.2}
+    assert VerificationReport.from_dict(json.loads(json.dumps(light.to_dict()))).response == light.response
+
+
+def test_the_station_and_the_recalibration_verify_with_the_sessions_recorded_response(sim, tmp_path):
+    """The station's verification step (app.station.setup.make_verify_fn) and the recalibration's check of
+    the previous calibration (app.recalibration.rig_verify_fn) read the response the session's rig check
+    recorded when they run (it is recorded after they are made); none recorded: the levels as they are."""
+    from dataclasses import replace
+
+    from app.recalibration import rig_verify_fn
+    from app.station.setup import make_verify_fn
+    from calib.formats.session import SessionStore
+    from tests._epipolar_helpers import make_sim_session
+
+    make_sim_session(tmp_path)
+    gt = sim.ground_truth()
+    station_verify, previous_verify = make_verify_fn(sim, tmp_path), rig_verify_fn(sim, tmp_path)
+    store = SessionStore.open(tmp_path)
+    assert station_verify(gt, grid=(2, 2)).response is None
+    settings = {**store.manifest.rig.camera_settings, "response": {"model": "bt709", "gamma": 2.2, "source": "known"}}
+    store.update(rig=replace(store.manifest.rig, camera_settings=settings))
+    rep = station_verify(gt, grid=(2, 2))
+    assert rep.passed and rep.response == {"model": "bt709", "gamma": 2.2}
+    assert json.loads((tmp_path / "verification.json").read_text())["response"] == rep.response
+    assert previous_verify(gt, False).response == rep.response

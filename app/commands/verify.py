@@ -5,7 +5,10 @@ could be measured), 2 the check could not run (missing files, devices, bad argum
 
 A camera with exposure control (RealSense, the simulated camera) is set as the session recorded it
 (session.json rig.camera_settings: manual exposure and gain, emitter off) and the projector's latency is
-the one the session measured (rig.camera_settings.projector.latency_ms), unless --settle is given.
+the one the session measured (rig.camera_settings.projector.latency_ms), unless --settle is given. The
+frames are linearised with the camera's response (tone curve) the session recorded; without one, the
+camera's own (simulated) or, on a RealSense, one measured now as the station's rig check does
+(camera_response); verification.json records which ("response", null when none).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 NAME = "verify"
@@ -24,7 +28,9 @@ DESCRIPTION = (
     "writes SESSION/verification.json, and exits with 0 (pass), 1 (fail) or 2 (could not run). On --rig sim "
     "the simulated rig of the session's scenario is used (the session must come from `procam simulate` or a "
     "simulated station session, or give --scenario). The session's recorded exposure, gain and emitter setting "
-    "(on a camera with exposure control) and its measured projector latency are applied first."
+    "(on a camera with exposure control) and its measured projector latency are applied first; the frames are "
+    "linearised with the camera's recorded response (tone curve), measured now on a RealSense when the session "
+    "recorded none."
 )
 
 
@@ -99,6 +105,11 @@ def apply_recorded(rig, manifest, settle_s: float | None = None) -> list[str]:
     and the projector's latency (`settle_s` overrides the recorded one). Uses the station's own
     procedure (drivers.settle.apply_timing: it also searches an exposure / measures the latency the
     session did not record). Returns the lines to print."""
+    return _apply_recorded(rig, manifest, settle_s)[1]
+
+
+def _apply_recorded(rig, manifest, settle_s: float | None = None) -> tuple[dict, list[str]]:
+    """apply_recorded, also returning the settings applied (drivers.settle.apply_timing's)."""
     from drivers.settle import apply_timing, recorded_exposure
 
     rec = dict(manifest.rig.camera_settings or {})
@@ -130,7 +141,49 @@ def apply_recorded(rig, manifest, settle_s: float | None = None) -> list[str]:
         how = "--settle" if settle_s is not None else \
             "as the session measured" if recorded_latency_s(manifest) is not None else "measured now"
         lines.append(f"projector latency: {float(proj['latency_ms']):.0f} ms ({how})")
-    return lines
+    return got, lines
+
+
+def camera_response(rig, manifest, applied: dict):
+    """The camera's response (tone curve) the check linearises the frames with: (CameraResponse or
+    None, what verification.json records of it or None, the line to print). The session's recorded one
+    (rig.camera_settings["response"]); else the camera's own (the simulated camera knows it); else, on a
+    camera with exposure control (a RealSense), measured now as the station's rig check does
+    (drivers.exposure.measure_response while the projector's white lights the board), the exposure and
+    gain `applied` (apply_recorded's) restored after. A failed measurement is a warning and the check
+    goes on with the camera's levels uncorrected."""
+    from calib.detection.response import parse_response, recorded_response
+    from calib.errors import ProcamError
+    from drivers.base import ExposureControl
+    from drivers.exposure import measure_response, set_exposure_and_wait
+    from drivers.projector_images import white
+
+    rec = recorded_response(manifest.rig.camera_settings)
+    if rec is not None:
+        return rec, {**rec.to_dict(), "from": "session"}, \
+            f"camera response: tone curve {rec.model}, gamma {rec.gamma:g} as the session recorded"
+    cam, proj = rig.camera, rig.projector
+    own = getattr(cam, "response", None)
+    if callable(own):
+        r = parse_response(own())
+        if r is not None:
+            return r, {**r.to_dict(), "from": "camera"}, \
+                f"camera response: tone curve {r.model}, gamma {r.gamma:g} (the camera's own; the session recorded none)"
+    if not isinstance(cam, ExposureControl) or "exposure_us" not in applied:
+        return None, None, "camera response: unknown (the session recorded none): the camera's levels are used as they are"
+    try:
+        proj.wait_presented(proj.show(white(tuple(proj.size))))
+        fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
+    except ProcamError as e:  # DeviceError included
+        return None, None, f"warning: camera response not measured ({e}): the check uses the camera's levels uncorrected"
+    finally:
+        set_exposure_and_wait(cam, applied["exposure_us"], applied["gain"])  # no later frame at the bracket's gain
+    r = parse_response(fit.camera_settings()["response"])
+    if r is None:
+        return None, None, f"warning: the measured camera response (gamma {fit.gamma:g}) is implausible: not used"
+    return r, {**fit.camera_settings()["response"], "from": "measured"}, \
+        (f"camera response: tone curve bt709, gamma {fit.gamma:g} measured now (fit rms {fit.rms:.4f}); exposure "
+         f"{applied['exposure_us']:g} us, gain {applied['gain']:g} restored")
 
 
 def _sim_options(manifest, args) -> dict:
@@ -195,13 +248,17 @@ def run(args) -> int:
             if args.rig == "realsense" and args.delay > 0:
                 time.sleep(args.delay)
             # exposure, emitter and projector latency as the session recorded them
-            for line in apply_recorded(rig, man, args.settle):
+            applied, lines = _apply_recorded(rig, man, args.settle)
+            # the camera's tone curve: recorded, the camera's own, or measured now (after the exposure)
+            response, record, line = camera_response(rig, man, applied)
+            for line in lines + [line]:
                 print(line, file=sys.stderr, flush=True)
             # the operator has been asked already: pass None so verify does not ask again
             # the session's board, found in the white frame, adds the predicted curves to the report
-            return verify(rig.camera, rig.projector, None, result, grid=args.grid, threshold_px=args.threshold,
-                          progress=progress, board=man.projector_board, settle_frames=settle_frames,
-                          average=args.average, calibration_info=info)
+            report = verify(rig.camera, rig.projector, None, result, grid=args.grid, threshold_px=args.threshold,
+                            progress=progress, board=man.projector_board, settle_frames=settle_frames,
+                            average=args.average, calibration_info=info, response=response)
+            return replace(report, response=record)
         finally:
             rig.camera.stop()
 

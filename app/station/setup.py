@@ -174,6 +174,8 @@ def make_verify_fn(rig, folder):
     def run(result, **kw):
         # the machine saved `result` as calibration.json before verifying: the report records its hash
         kw.setdefault("calibration_info", {"path": str(Path(folder) / "calibration.json")})
+        # the camera's tone curve the rig check recorded (read now: it is recorded after this is made)
+        kw.setdefault("response", V.session_response(folder))
         report = verify(rig.camera, rig.projector, rig.operator, result, **kw)
         report.save_json(Path(folder) / VERIFICATION_FILE)
         return report

@@ -738,12 +738,14 @@ class Station:
         if m.result is None:
             raise ActionRefused("check a pixel", "calibrate first")
         from app.verification import verify_pixel
+        from calib.detection.response import recorded_response
 
         with m.hold("verifying"):
             if self.is_sim:  # the simulated person holds the board where the projector lights it
                 self.rig.operator.request_pose("verification", None, 0)
             self._shown = None
-            check = verify_pixel(self.rig.camera, self.rig.projector, m.result, (float(x), float(y)))
+            check = verify_pixel(self.rig.camera, self.rig.projector, m.result, (float(x), float(y)),
+                                 response=recorded_response(m.manifest.rig.camera_settings))
         self.pixel_check = check
         m.log("pixel check " + check.label())
         return check

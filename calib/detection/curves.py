@@ -193,6 +193,8 @@ def _scan_columns(s, valid, mask, level_fraction, max_width_px):
         for a, b in zip(starts, ends):
             p = a + int(np.argmax(col[a:b]))
             peak = float(col[p])
+            if not peak > 0:  # the smoothed signal passed the threshold, the pixels themselves do not
+                continue
             level = level_fraction * peak
             lo = p
             while lo > 0 and valid[lo - 1, x] and col[lo - 1] > level:
