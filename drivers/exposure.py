@@ -273,24 +273,3 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
     # camera equally well, so the smallest gamma that fits about as well as the best is taken
     k = int(np.argmax(np.asarray(costs) <= 1.1 * min(costs) + 1e-4))
     return ResponseFit(float(round(grid[k], 2)), float(costs[k]), len(groups), frames)
-
-
-def set_exposure_and_wait(camera, exposure_us: float, gain: float, wait_frames: int = WAIT_FRAMES,
-                          timeout_s: float = 3.0) -> dict:
-    """Set manual exposure and gain and read frames until `wait_frames` of them were exposed after the
-    change (a camera applies it a frame or two late: measure_response's rule), so that no frame read
-    later was taken with the settings before (e.g. restoring the exposure after measure_response's gain
-    bracket). Returns what the camera applied."""
-    t_set = time.monotonic()
-    applied = camera.set_manual_exposure(exposure_us, gain)
-    f = camera.get_frame(timeout_s)
-    after = read = 0
-    while True:
-        if f.exposure_start_s is None or f.exposure_start_s >= t_set:
-            after += 1
-        if after >= max(1, int(wait_frames)):
-            return applied
-        read += 1
-        if read > 10 * max(1, int(wait_frames)):
-            raise DeviceError("the camera delivers no frame exposed after the exposure change")
-        f = camera.get_frame(timeout_s, newer_than=f.frame_number)

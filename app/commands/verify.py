@@ -155,7 +155,7 @@ def camera_response(rig, manifest, applied: dict):
     from calib.detection.response import parse_response, recorded_response
     from calib.errors import ProcamError
     from drivers.base import ExposureControl
-    from drivers.exposure import measure_response, set_exposure_and_wait
+    from drivers.exposure import apply_exposure, measure_response
     from drivers.projector_images import white
 
     rec = recorded_response(manifest.rig.camera_settings)
@@ -177,7 +177,7 @@ def camera_response(rig, manifest, applied: dict):
     except ProcamError as e:  # DeviceError included
         return None, None, f"warning: camera response not measured ({e}): the check uses the camera's levels uncorrected"
     finally:
-        set_exposure_and_wait(cam, applied["exposure_us"], applied["gain"])  # no later frame at the bracket's gain
+        apply_exposure(cam, applied["exposure_us"], applied["gain"])  # no later frame at the bracket's gain
     r = parse_response(fit.camera_settings()["response"])
     if r is None:
         return None, None, f"warning: the measured camera response (gamma {fit.gamma:g}) is implausible: not used"
