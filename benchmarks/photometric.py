@@ -231,14 +231,16 @@ def corner_errors(scenario_name: str, seeds: int, effects, noise: bool, log=prin
                         for j, (b, px, kind) in enumerate(found):
                             if b is not None and not isinstance(b, D.DetectionFailure):
                                 out.setdefault((e, use, kind), {})[(seed, c.id, j)] = (b.ids, b.corners_px, px[b.ids])
+                out["image centre"] = (np.asarray(m.rig.camera_size, float) - 1.0) / 2.0
                 log(f"  corners: {e}, seed {seed}")
     return out
 
 
 def _corner_table(errs: dict, effects) -> None:
     print("| camera | detector | boards | corners | vs truth px, mean / max | mean error vector px | radial px "
-          "| vs linear camera px, mean / max |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| towards the image centre px | vs linear camera px, mean / max |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    c0 = errs.get("image centre", np.zeros(2))
     for kind in ("projector", "mirror"):
         for e in effects:
             for use in (False, True):
@@ -246,17 +248,19 @@ def _corner_table(errs: dict, effects) -> None:
                 ref = errs.get(("none", False, kind), {})
                 if not views or (e == "none" and use):  # a linear camera's response changes nothing
                     continue
-                d, rad, shift = [], [], []
+                d, rad, inward, shift = [], [], [], []
                 for key, (ids, det, tru) in views.items():
                     err = det - tru
                     u = tru - tru.mean(axis=0)
                     u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
                     d.append(err)
                     rad.append((err * u).sum(axis=1))
+                    v = c0 - tru
+                    inward.append((err * v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)).sum(axis=1))
                     if key in ref and e != "none":
                         _, ia, ib = np.intersect1d(ids, ref[key][0], return_indices=True)
                         shift.append(np.linalg.norm(det[ia] - ref[key][1][ib], axis=1))
-                d, rad = np.concatenate(d), np.concatenate(rad)
+                d, rad, inward = np.concatenate(d), np.concatenate(rad), np.concatenate(inward)
                 n = np.linalg.norm(d, axis=1)
                 vs_linear = "- / -"
                 if shift:
@@ -264,7 +268,7 @@ def _corner_table(errs: dict, effects) -> None:
                     vs_linear = f"{sh.mean():.4f} / {sh.max():.3f}"
                 print(f"| {e} | {'response' if use else 'encoded levels'} | {kind} | {len(d)} "
                       f"| {n.mean():.4f} / {n.max():.3f} | ({d[:, 0].mean():+.4f}, {d[:, 1].mean():+.4f}) "
-                      f"| {rad.mean():+.4f} | {vs_linear} |")
+                      f"| {rad.mean():+.4f} | {inward.mean():+.4f} | {vs_linear} |")
 
 
 def paired_projk(calib: dict) -> dict:
@@ -318,12 +322,19 @@ def main() -> None:
     ap.add_argument("--small-live", action="store_true",
                     help="calibrate small live-quality sessions (26 projector + 4 mirror views) instead of full ones")
     ap.add_argument("--no-response", action="store_true",
-                    help="the detector without the camera's recorded tone curve (centroids on encoded levels)")
+                    help="the detector without the camera's recorded tone curve (centroids and corners on encoded levels)")
     ap.add_argument("--no-centres", action="store_true", help="skip the circle-centre part")
     ap.add_argument("--corners", action="store_true",
                     help="only the ChArUco corners of small live-quality sessions, with and without the response")
     ap.add_argument("--noise", action="store_true", help="--corners: with the sensor's noise (default noise-free)")
+    ap.add_argument("--encoded-corners", action="store_true",
+                    help="refine ChArUco corners on the encoded levels even with the response (the detector before "
+                         "2026-12-02; circle centroids still linearised)")
     a = ap.parse_args()
+    if a.encoded_corners:
+        from calib.detection import detect as D
+
+        D._refinement_image = lambda img, response: img  # a before/after measurement only
     effects = list(dict.fromkeys(a.effects))
     if a.corners:
         t0 = time.perf_counter()
