@@ -322,7 +322,8 @@ def main() -> None:
     ap.add_argument("--small-live", action="store_true",
                     help="calibrate small live-quality sessions (26 projector + 4 mirror views) instead of full ones")
     ap.add_argument("--no-response", action="store_true",
-                    help="the detector without the camera's recorded tone curve (centroids and corners on encoded levels)")
+                    help="the detector without the camera's recorded tone curve (centroids and corners on encoded "
+                         "levels)")
     ap.add_argument("--no-centres", action="store_true", help="skip the circle-centre part")
     ap.add_argument("--corners", action="store_true",
                     help="only the ChArUco corners of small live-quality sessions, with and without the response")
