@@ -2,6 +2,7 @@
 to the calibration and to the epipolar verification.
 
     python benchmarks/photometric.py [--seeds 2] [--scenario nonoverlap-136] [--effects ...] [--no-calib]
+    python benchmarks/photometric.py --corners --seeds 6 --effects none "camera gamma" "all (default)"
 
 For each effect alone (added to a photometrically neutral renderer: linear projector and camera, no
 black level, no defocus, no vignetting), all together (the scenario's default) and none:
@@ -16,6 +17,14 @@ black level, no defocus, no vignetting), all together (the scenario's default) a
 - verification: `app.verification.verify` with the ground truth at the scenario's verification pose:
   the mean distance in projector px, and the stroke's measured scale (camera px per projector px)
   relative to the neutral renderer's, mean and worst |ratio - 1| over the checked pixels.
+
+Every calibrated effect but `none` is also compared with `none` seed by seed (the same poses and noise
+draws): the mean paired ProjK difference and its standard error.
+
+`--corners` measures the ChArUco corners instead: small live-quality sessions (26 projector + 4 mirror
+views, as --small-live), detected with and without the recorded response, each corner against its true
+projection: mean / max distance, the mean error vector (a systematic shift), its mean radial part about
+the view's corners' centre (a scale), and the distance to the same corner with the linear camera.
 """
 
 from __future__ import annotations
@@ -147,8 +156,8 @@ def calibration_errors(scenario_name: str, seeds: int, effects, workers: int = 2
 
     out = {e: [] for e in effects}
     with tempfile.TemporaryDirectory(prefix="procam-photometric-") as tmp:
-        for e in effects:
-            for seed in range(seeds):
+        for seed in range(seeds):  # seed by seed: a run stopped early still has every effect of its seeds
+            for e in effects:
                 sc = get_scenario(scenario_name, seed)
                 sc = replace(sc, render=settings_for(sc, e))
                 if small_live:
@@ -171,8 +180,108 @@ def calibration_errors(scenario_name: str, seeds: int, effects, workers: int = 2
                     continue
                 m = compare(res, sc.ground_truth())
                 out[e].append((m.distance, m.angle_deg, m.proj_k_px))
-                log(f"  {e}, seed {seed}: {m.distance:.3f} mm, {m.angle_deg:.4f} deg, ProjK {m.proj_k_px:.3f} px "
+                log(f"  {e}, seed {seed}: {m.distance:.3f} mm, {m.angle_deg:.4f} deg, ProjK {m.proj_k_px:.3f} px, "
+                    f"CamK {m.cam_k_px:.3f} px "
                     f"({len(obs.skipped)} skipped; {time.perf_counter() - t0:.0f} s)")
+    return out
+
+
+def corner_errors(scenario_name: str, seeds: int, effects, noise: bool, log=print) -> dict:
+    """(effect, response used, board kind) -> list of (ids, detected px, true px) per view; board kind
+    "projector" (projector-step boards) or "mirror" (the real and virtual boards of the mirror step).
+    Small live-quality sessions, rendered with or without the sensor's noise (blur and 8 bits kept)."""
+    import cv2
+
+    from app.commands.simulate import simulate_session
+    from calib.detection import detect as D
+    from calib.detection.response import recorded_response
+    from calib.formats.session import SessionStore
+    from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
+    from drivers.sim.scene_file import expected_points
+
+    out: dict = {}
+    with tempfile.TemporaryDirectory(prefix="procam-corners-") as tmp:
+        for seed in range(seeds):
+            for e in effects:
+                sc = get_scenario(scenario_name, seed)
+                st = settings_for(sc, e)
+                if not noise:
+                    st = replace(st, read_noise_dn=0.0, electrons_per_dn=0.0)
+                sc = replace(sc, render=st, per_position=2, mirror_count=4)
+                folder = Path(tmp) / f"{e.replace(' ', '_')}-{seed}"
+                simulate_session(sc, folder, quality="live", workers=2, force=True, progress=False)
+                store = SessionStore.open(folder)
+                m = store.manifest
+                truth = expected_points(folder)
+                mirrored = m.rig.view == VIEW_MIRROR
+                mboard = m.mirror_board or m.projector_board
+                for use in (False, True):
+                    resp = recorded_response(m.rig.camera_settings) if use else None
+                    for c in m.captures:
+                        gray = cv2.imread(str(store.image_path(c)), cv2.IMREAD_GRAYSCALE)
+                        t = truth[c.id]
+                        if c.step == STEP_PROJECTOR:
+                            found = [(D._detect_board_gray(gray, m.projector_board, mirrored, response=resp),
+                                      t.board_px, "projector")]
+                        else:
+                            fn = D.detect_real_virtual if c.step == STEP_REAL_VIRTUAL else D.detect_real_mirror
+                            mv = fn(gray, mboard, c.id, response=resp)
+                            found = [] if isinstance(mv, D.DetectionFailure) else \
+                                [(mv.real, t.board_px, "mirror"), (mv.virtual, t.virtual_px, "mirror")]
+                        for j, (b, px, kind) in enumerate(found):
+                            if b is not None and not isinstance(b, D.DetectionFailure):
+                                out.setdefault((e, use, kind), {})[(seed, c.id, j)] = (b.ids, b.corners_px, px[b.ids])
+                out["image centre"] = (np.asarray(m.rig.camera_size, float) - 1.0) / 2.0
+                log(f"  corners: {e}, seed {seed}")
+    return out
+
+
+def _corner_table(errs: dict, effects) -> None:
+    print("| camera | detector | boards | corners | vs truth px, mean / max | mean error vector px | radial px "
+          "| towards the image centre px | vs linear camera px, mean / max |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    c0 = errs.get("image centre", np.zeros(2))
+    for kind in ("projector", "mirror"):
+        for e in effects:
+            for use in (False, True):
+                views = errs.get((e, use, kind), {})
+                ref = errs.get(("none", False, kind), {})
+                if not views or (e == "none" and use):  # a linear camera's response changes nothing
+                    continue
+                d, rad, inward, shift = [], [], [], []
+                for key, (ids, det, tru) in views.items():
+                    err = det - tru
+                    u = tru - tru.mean(axis=0)
+                    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
+                    d.append(err)
+                    rad.append((err * u).sum(axis=1))
+                    v = c0 - tru
+                    inward.append((err * v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)).sum(axis=1))
+                    if key in ref and e != "none":
+                        _, ia, ib = np.intersect1d(ids, ref[key][0], return_indices=True)
+                        shift.append(np.linalg.norm(det[ia] - ref[key][1][ib], axis=1))
+                d, rad, inward = np.concatenate(d), np.concatenate(rad), np.concatenate(inward)
+                n = np.linalg.norm(d, axis=1)
+                vs_linear = "- / -"
+                if shift:
+                    sh = np.concatenate(shift)
+                    vs_linear = f"{sh.mean():.4f} / {sh.max():.3f}"
+                print(f"| {e} | {'response' if use else 'encoded levels'} | {kind} | {len(d)} "
+                      f"| {n.mean():.4f} / {n.max():.3f} | ({d[:, 0].mean():+.4f}, {d[:, 1].mean():+.4f}) "
+                      f"| {rad.mean():+.4f} | {inward.mean():+.4f} | {vs_linear} |")
+
+
+def paired_projk(calib: dict) -> dict:
+    """effect -> (mean ProjK difference to `none` px, its standard error, seeds) over the seeds where both
+    calibrated (the same poses and noise draws: the seeds' own spread cancels)."""
+    out = {}
+    base = calib.get("none", [])
+    for e, runs in calib.items():
+        if e == "none":
+            continue
+        diff = np.array([r[2] - b[2] for r, b in zip(runs, base) if r is not None and b is not None])
+        if len(diff) >= 2:
+            out[e] = (float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(len(diff))), len(diff))
     return out
 
 
@@ -213,22 +322,44 @@ def main() -> None:
     ap.add_argument("--small-live", action="store_true",
                     help="calibrate small live-quality sessions (26 projector + 4 mirror views) instead of full ones")
     ap.add_argument("--no-response", action="store_true",
-                    help="the detector without the camera's recorded tone curve (centroids on encoded levels)")
+                    help="the detector without the camera's recorded tone curve (centroids and corners on encoded "
+                         "levels)")
+    ap.add_argument("--no-centres", action="store_true", help="skip the circle-centre part")
+    ap.add_argument("--corners", action="store_true",
+                    help="only the ChArUco corners of small live-quality sessions, with and without the response")
+    ap.add_argument("--noise", action="store_true", help="--corners: with the sensor's noise (default noise-free)")
+    ap.add_argument("--encoded-corners", action="store_true",
+                    help="refine ChArUco corners on the encoded levels even with the response (the detector before "
+                         "2026-12-02; circle centroids still linearised)")
     a = ap.parse_args()
+    if a.encoded_corners:
+        from calib.detection import detect as D
+
+        D._refinement_image = lambda img, response: img  # a before/after measurement only
     effects = list(dict.fromkeys(a.effects))
+    if a.corners:
+        t0 = time.perf_counter()
+        errs = corner_errors(a.scenario, a.seeds, list(dict.fromkeys(["none"] + effects)), a.noise)
+        print(f"corners ({'with' if a.noise else 'without'} noise): {time.perf_counter() - t0:.0f} s\n")
+        _corner_table(errs, list(dict.fromkeys(["none"] + effects)))
+        return
     sc = get_scenario(a.scenario)
     st = sc.render
     print(f"{a.scenario}, seeds 0-{a.seeds - 1}; defaults: projector gamma {st.projector_gamma}, black level "
           f"{st.projector_black_level}, aperture {st.projector_aperture_mm} mm focused at {st.projector_focus_mm} mm, "
           f"vignetting {st.vignetting_corner} at the corners, camera gamma {st.camera_gamma}, ambient {st.ambient}")
     t0 = time.perf_counter()
-    bias = circle_bias(a.scenario, a.seeds, effects, a.quality, not a.no_response)
-    print(f"circle centres ({a.quality} quality): {time.perf_counter() - t0:.0f} s", flush=True)
+    bias = {e: {"centre": np.array([np.nan]), "conic": np.array([np.nan]), "shift": np.array([np.nan]), "failed": 0}
+            for e in effects}
+    if not a.no_centres:
+        bias = circle_bias(a.scenario, a.seeds, effects, a.quality, not a.no_response)
+        print(f"circle centres ({a.quality} quality): {time.perf_counter() - t0:.0f} s", flush=True)
     calib = {}
     if not a.no_calib:
         t0 = time.perf_counter()
         calib = calibration_errors(a.scenario, a.seeds, [e for e in a.calib_effects if e in effects],
-                                   small_live=a.small_live, response=not a.no_response)
+                                   small_live=a.small_live, response=not a.no_response,
+                                   log=lambda line: print(line, flush=True))
         print(f"calibration: {time.perf_counter() - t0:.0f} s", flush=True)
     ver = {}
     if not a.no_verify:
@@ -270,6 +401,11 @@ def main() -> None:
         else:
             cells += ["-", "-"]
         print("| " + " | ".join(cells) + " |")
+    paired = paired_projk(calib)
+    if paired:
+        print()
+        for e, (mean, se, n) in paired.items():
+            print(f"ProjK {e} minus none, paired over {n} seeds: {mean:+.3f} +- {se:.3f} px (standard error)")
 
 
 if __name__ == "__main__":

@@ -26,13 +26,13 @@ from app.commands._progress import BARS, LINES, OFF, Progress, progress_mode
 from app.verification import VerificationReport, file_sha256, verification_is_stale
 from calib.models.result import CalibrationResult
 
-SIM_ARGS = ["--per-position", "1", "--mirror-count", "3", "--quality", "live", "--workers", "1"]
+SIM_ARGS = ["--per-position", "2", "--mirror-count", "3", "--quality", "live", "--workers", "1"]
 
 
 @pytest.fixture(scope="module")
 def sim_session(tmp_path_factory):
-    """A small simulated session (13 projector + 3 mirror images, live quality), calibrated once (joint; with
-    2 mirror images the quality gate finds it LOW QUALITY and the command exits 3):
+    """A small simulated session (26 projector + 3 mirror images, live quality), calibrated once (joint; with
+    13 projector images the quality gate finds it LOW QUALITY (projector orientation) and the command exits 3):
     the folder holds session.json, images/, detections.json, calibration.json/.yaml, ground_truth.json."""
     folder = tmp_path_factory.mktemp("cli_hardening") / "s"
     assert main(["simulate", "nonoverlap-136", "--out", str(folder), *SIM_ARGS, "--no-progress"]) == 0
@@ -254,7 +254,7 @@ def test_no_bars_when_stderr_is_a_file(sim_session, tmp_path):
     text = log.read_text()
     assert "\r" not in text and "\x1b" not in text and "it/s" not in text
     lines = text.splitlines()
-    assert lines[0] == "detect: 16 images" and re.fullmatch(r"detect: 16/16 images done in [\d.]+ s", lines[1])
+    assert lines[0] == "detect: 29 images" and re.fullmatch(r"detect: 29/29 images done in [\d.]+ s", lines[1])
     assert lines[2:] == ["calibrate: starting (0/3)", "calibrate: camera (1/3)", "calibrate: mirror (2/3)",
                          "calibrate: projector (3/3)"]
 

@@ -263,16 +263,34 @@ def _roi_around(markers: np.ndarray, shape, grow: float = 2.5):
 
 
 # ---- the board ---------------------------------------------------------------------------------------
-def detect_board(image: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corners: int = 6):
+def detect_board(image: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corners: int = 6,
+                 response: CameraResponse | None = None):
     """ChArUco corners of `spec` in `image` (gray or BGR) -> BoardObservation | DetectionFailure.
 
-    `mirrored`: the board is seen through the mirror; detect in the flipped image and map back."""
+    `mirrored`: the board is seen through the mirror; detect in the flipped image and map back.
+    `response`: the camera's recorded tone curve (calib.detection.response); the corners are then
+    refined on the image's levels linearised (see _refinement_image)."""
     gray = _gray(image)
-    return _detect_board_gray(gray, spec, mirrored, min_corners)
+    return _detect_board_gray(gray, spec, mirrored, min_corners, response)
 
 
-def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corners: int = 6):
+def _refinement_image(img: np.ndarray, response: CameraResponse | None) -> np.ndarray:
+    """The image the corners are refined on: `img` itself, or with the camera's recorded response its
+    levels linearised (float32, light in 0..255 units). An X-junction is point-symmetric under any tone
+    curve, so the curve does not bias a corner, but it spreads the sensor's noise unevenly: the dark toe
+    is steep (about 4 levels per level of light at the black squares, 0.8 at the white ones), so the
+    black squares' noise dominates the encoded image and corners scatter more (projector-step boards at
+    live quality: 0.050 px mean instead of the linear camera's 0.037; docs/SIMULATOR.md, "Photometric
+    realism"). In light, the noise is the sensor's again."""
+    if response is None or response.linear:
+        return img
+    return response.lut().astype(np.float32)[img]
+
+
+def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corners: int = 6,
+                       response: CameraResponse | None = None):
     img = cv2.flip(gray, 1) if mirrored else gray
+    fine = _refinement_image(img, response)
     found = None
     h, w = img.shape
     x0 = y0 = 0
@@ -286,7 +304,7 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
         corners, ids, markers, _ = _charuco_in(small, spec, fast_only=True)
         if ids is not None and len(ids) == spec.n_corners and \
                 np.min(_margins_px(corners * 2.0 + 0.5, ids, spec)) >= _MIN_REFINE_MARGIN_PX:
-            refined, ok = _refine_corners(img, corners * 2.0 + 0.5, ids, spec)
+            refined, ok = _refine_corners(fine, corners * 2.0 + 0.5, ids, spec)
             if ok.all():  # every corner pulled onto its X-junction at full resolution
                 found = (refined, ids)
         if found is None:
@@ -312,8 +330,8 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
             # camera images are gamma-encoded, not linear in light: where a marker's cells are a pixel or
             # two wide, the pixels that mix black and white encode brighter than the light they received
             # and the black cells fade. A linearised copy decodes them again (docs/SIMULATOR.md,
-            # "Photometric realism"); the corners are still refined in the image itself (an X-junction
-            # stays point-symmetric under any monotone tone curve, so they do not move).
+            # "Photometric realism"); the corners are refined below as any others (in the image itself,
+            # or linearised with the session's recorded response: _refinement_image).
             # (the region where the board was looked for first, then the whole image)
             regions = [(img, 0, 0)] if search is img else [(search, *roi[:2]), (img, 0, 0)]
             for region, ox, oy in regions:
@@ -327,8 +345,8 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
             return DetectionFailure("board not found")
         if n < min_corners:
             return DetectionFailure(f"only {n} ChArUco corners (need {min_corners})")
-        corners, done = _refine_corners(img, corners + [x0, y0], ids, spec)
-        corners, ids = _verify_corners(img, corners, ids, spec, done)
+        corners, done = _refine_corners(fine, corners + [x0, y0], ids, spec)
+        corners, ids = _verify_corners(fine, corners, ids, spec, done)
         if len(ids) < min_corners:
             return DetectionFailure(f"only {len(ids)} ChArUco corners (need {min_corners})")
         found = (corners, ids)
@@ -821,21 +839,23 @@ def _detect_pattern_gray(gray, pattern, mirrored, board=None, board_spec=None, r
 
 
 # ---- mirror-calibration views ------------------------------------------------------------------------
-def detect_real_virtual(image: np.ndarray, spec: CharucoSpec, capture_id: str = "", min_corners: int = 6):
+def detect_real_virtual(image: np.ndarray, spec: CharucoSpec, capture_id: str = "", min_corners: int = 6,
+                        response: CameraResponse | None = None):
     """A board seen directly (`real`) and in the mirror (`virtual`) in one image -> MirrorView."""
     gray = _gray(image)
-    real = _detect_board_gray(gray, spec, False, min_corners)
+    real = _detect_board_gray(gray, spec, False, min_corners, response)
     if isinstance(real, DetectionFailure):
         return DetectionFailure(f"real board: {real.reason}")
-    virtual = _detect_board_gray(gray, spec, True, min_corners)
+    virtual = _detect_board_gray(gray, spec, True, min_corners, response)
     if isinstance(virtual, DetectionFailure):
         return DetectionFailure(f"virtual board (in the mirror): {virtual.reason}")
     return MirrorView(capture_id, STEP_REAL_VIRTUAL, real, virtual)
 
 
-def detect_real_mirror(image: np.ndarray, spec: CharucoSpec, capture_id: str = "", min_corners: int = 6):
+def detect_real_mirror(image: np.ndarray, spec: CharucoSpec, capture_id: str = "", min_corners: int = 6,
+                       response: CameraResponse | None = None):
     """A board lying on the mirror, seen directly -> MirrorView (real only)."""
-    real = _detect_board_gray(_gray(image), spec, False, min_corners)
+    real = _detect_board_gray(_gray(image), spec, False, min_corners, response)
     if isinstance(real, DetectionFailure):
         return real
     return MirrorView(capture_id, STEP_REAL_MIRROR, real, None)
@@ -897,10 +917,10 @@ def _detect_job(job: _Job, data: np.ndarray):
     if (w, h) != tuple(job.camera_size):
         return DetectionFailure(f"image is {w}x{h}, the session's camera is {job.camera_size[0]}x{job.camera_size[1]}")
     if job.step == STEP_REAL_VIRTUAL:
-        return detect_real_virtual(gray, job.board, job.capture_id)
+        return detect_real_virtual(gray, job.board, job.capture_id, response=job.response)
     if job.step == STEP_REAL_MIRROR:
-        return detect_real_mirror(gray, job.board, job.capture_id)
-    board = _detect_board_gray(gray, job.board, job.mirrored)
+        return detect_real_mirror(gray, job.board, job.capture_id, response=job.response)
+    board = _detect_board_gray(gray, job.board, job.mirrored, response=job.response)
     if isinstance(board, DetectionFailure):
         return board
     pts = _detect_pattern_gray(gray, job.pattern, job.mirrored, board, job.board, job.response)
@@ -920,7 +940,7 @@ def _job_for(store, c, old: dict, cache_on: bool):
     board = m.projector_board if c.step == STEP_PROJECTOR else (m.mirror_board or m.projector_board)
     flip = m.rig.view == VIEW_MIRROR and c.step == STEP_PROJECTOR
     pattern = m.pattern if c.step == STEP_PROJECTOR else None
-    response = recorded_response(m.rig.camera_settings) if pattern is not None else None
+    response = recorded_response(m.rig.camera_settings)
     key = detect_cache.job_key(c.step, flip, board, pattern, m.rig.camera_size, response) if cache_on else None
     entry = old.get(c.id)
     cached = entry if entry is not None and entry.get("job") == key else None
