@@ -593,15 +593,16 @@ def grid_pixels(mask: np.ndarray, grid=DEFAULT_GRID, margin_px: int = 12, prefer
     return np.array(out, float).reshape(-1, 2)
 
 
-def estimate_board_pose(image: np.ndarray, board, result: CalibrationResult) -> np.ndarray | None:
+def estimate_board_pose(image: np.ndarray, board, result: CalibrationResult, response=None) -> np.ndarray | None:
     """T_cam_board of the ChArUco `board` (CharucoSpec) in a camera image, with the calibration's camera
     model (and mirror: the board is then detected mirrored). None when the board is not found. Used
-    for the predicted-curve overlay only; the measurement never depends on it."""
+    for the predicted-curve overlay only; the measurement never depends on it. `response`: the camera's
+    tone curve, as detection uses it (corners refined in light)."""
     from calib.detection.detect import detect_board
     from calib.paper.board_pose import solve_board_pose, usable_reason
 
     img = np.clip(np.asarray(image), 0, 255).astype(np.uint8)
-    obs = detect_board(img, board, mirrored=result.mirror is not None)
+    obs = detect_board(img, board, mirrored=result.mirror is not None, response=response)
     if not obs or usable_reason(board, obs) is not None:
         return None
     pose = solve_board_pose(result.camera, board, obs)
@@ -639,7 +640,7 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     if board_pose is None and board is None and session_dir is not None:
         board = _session_board(session_dir)
     if board_pose is None and board is not None:
-        board_pose = estimate_board_pose(refs.white, board, result)
+        board_pose = estimate_board_pose(refs.white, board, result, refs.response)
     if pixels is None:
         region = region_mask((H, W), refs.lit, board_region)
         if not region.any():

@@ -116,8 +116,13 @@ def sim():
 
 
 def test_ground_truth_passes_and_the_detected_curve_is_the_predicted_one(sim):
+    from calib.detection.response import parse_response
+
     gt = sim.ground_truth()
-    rep = verify(sim.camera, sim.projector, sim.operator, gt, grid=(3, 2), board_pose=sim.board.T_cam_board)
+    # frames read as light, as the station and `procam verify` read them (read as levels the worst pixel
+    # scatters from 0.12 to 0.51 projector px between runs of this very test: the tone curve's noise)
+    rep = verify(sim.camera, sim.projector, sim.operator, gt, grid=(3, 2), board_pose=sim.board.T_cam_board,
+                 response=parse_response(sim.camera.response()))
     assert rep.passed, rep.summary()
     assert rep.n_measured == 6 and rep.n_failed_detection == 0
     assert rep.worst_proj_px < 0.5 and rep.worst_px < 0.15
