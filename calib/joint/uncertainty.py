@@ -25,20 +25,50 @@ def _sym_inv(A: np.ndarray) -> np.ndarray:
     return inv / s[:, None] / s[None, :]
 
 
-def marginal_covariance(prob, x: np.ndarray):
+def marginal_covariance(prob, x: np.ndarray, unit_noise: bool = False):
     """(Cov of the global parameters, variance factor, dof) at x, the board poses marginalised:
     Cov = s^2 (A - B D^-1 B^T)^-1 with J^T J = [[A, B^T], [B, D]] (D block-diagonal per pose) and
-    s^2 = r.r / (N - P) of the (whitened) residuals."""
+    s^2 = r.r / (N - P) of the (whitened) residuals.
+
+    `unit_noise`: instead, the covariance the same observations would give with 1 px of noise on every
+    one of them (each row un-whitened by its class sigma, s^2 = 1): the session's geometry alone, for
+    the quality gate, which must not judge a session by which of its classes happen to be the cleaner."""
     Jg, Jl = prob.jacobian_blocks(x)
     r = prob.residuals(x)
-    A, B, D, _, _ = normal_blocks(prob, Jg, Jl, np.ones_like(r), r)
+    w = np.ones_like(r)
+    if unit_noise:
+        scale = getattr(prob, "row_scale", None)
+        if scale is None or len(scale) != len(r):
+            raise ValueError("the residuals have no class sigma per row")
+        w = np.asarray(scale, float) ** 2
+    A, B, D, _, _ = normal_blocks(prob, Jg, Jl, w, r)
     E = np.einsum("vij,vjg->vig", np.linalg.inv(D), B)
     schur = A - np.einsum("vkg,vkh->gh", B, E)
     pi, pl = prior_terms(prob)  # a zero-mean prior (k3 shrinkage) adds its precision
     schur[pi, pi] += pl
     dof = max(r.size - prob.n_params, 1)
-    s2 = float(np.einsum("i,i->", r, r)) / dof
+    s2 = 1.0 if unit_noise else float(np.einsum("i,i->", r, r)) / dof
     return s2 * _sym_inv(schur), s2, dof
+
+
+def _summary(prob, cov: np.ndarray, unit_to_mm: float = 1.0) -> dict:
+    """The gate's 1-sigma values of a covariance: projector position (total), orientation (total, deg),
+    the largest of fx, fy, cx, cy per device (None when held fixed), the mirror normal (deg)."""
+    idx = {n: i for i, n in enumerate(prob.global_names)}
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    ri = [idx[f"T_cam_proj.rot_{a}"] for a in "xyz"]
+    ti = [idx[f"T_cam_proj.t_{a}"] for a in "xyz"]
+    out = {"t_total": float(np.sqrt(np.trace(cov[np.ix_(ti, ti)]))),
+           "rot_total_deg": float(np.degrees(np.sqrt(np.trace(4.0 * cov[np.ix_(ri, ri)]))))}
+    for dev, prefix in (("camera", "cam"), ("projector", "proj")):
+        keys = [f"{prefix}.{k}" for k in ("fx", "fy", "cx", "cy")]
+        out[f"{dev}_intrinsics_px"] = float(max(sd[idx[k]] for k in keys)) if all(k in idx for k in keys) else None
+    if prob.mirrored:
+        mi = [idx["mirror.tilt_1"], idx["mirror.tilt_2"]]
+        out["mirror_normal_deg"] = float(np.degrees(np.sqrt(np.trace(cov[np.ix_(mi, mi)]))))
+    else:
+        out["mirror_normal_deg"] = None
+    return out
 
 
 def joint_uncertainty(prob, x: np.ndarray) -> dict:
@@ -88,6 +118,12 @@ def joint_uncertainty(prob, x: np.ndarray) -> dict:
                          "d": float(sd[idx["mirror.d"]])}
     else:
         out["mirror"] = None
+    try:  # the same observations with 1 px of noise on every one: what the quality gate judges
+        unit = _summary(prob, marginal_covariance(prob, x, unit_noise=True)[0])
+        out["unit_noise"] = {**unit, "note": "1-sigma values if every observation had 1 px of noise (the "
+                                              "session's geometry alone); t_total in the result's units"}
+    except (ValueError, np.linalg.LinAlgError):
+        out["unit_noise"] = None
     out["covariance"] = {"names": list(names), "matrix": cov.tolist(),
                          "note": "global parameters; rotations as Gibbs vectors (rotation vector / 2) about "
                                  "the solution, mirror tilts in radians along two tangent axes"}

@@ -91,20 +91,21 @@ class QualityThresholds:
     (benchmarks/quality_gate.py prints them; docs/CALIBRATION.md "Quality gate"). The `reference_*`
     values are those worst full-session values, reported next to the measured 1-sigma."""
 
-    reference_noise_px: float = 0.3  # every 1-sigma is scaled to this noise (by it / the joint RMS)
-    sigma_t_mm: float = 3.5  # 1-sigma of T_cam_proj's translation (all axes together)
-    sigma_rot_deg: float = 0.28  # ... of its rotation
-    sigma_camera_intrinsics_px: float = 2.3  # largest 1-sigma of the camera's fx, fy, cx, cy
-    sigma_projector_intrinsics_px: float = 8.6  # ... of the projector's
-    sigma_mirror_normal_deg: float = 0.19
+    reference_noise_px: float = 0.3  # every 1-sigma is taken at this noise per coordinate on every observation
+    sigma_t_mm: float = 4.8  # 1-sigma of T_cam_proj's translation (all axes together)
+    sigma_rot_deg: float = 0.385  # ... of its rotation
+    sigma_camera_intrinsics_px: float = 3.2  # largest 1-sigma of the camera's fx, fy, cx, cy
+    sigma_projector_intrinsics_px: float = 12.0  # ... of the projector's
+    sigma_mirror_normal_deg: float = 0.26
     projection_camera_max_px: float = 9.7  # max over the image of the projection uncertainty grid
     projection_projector_max_px: float = 4.0
-    # the worst of 24 simulated full sessions (8 scenarios x 3 seeds, 0.3 px noise), scaled as above
-    reference_t_mm: float = 1.39
-    reference_rot_deg: float = 0.111
-    reference_camera_intrinsics_px: float = 0.93
-    reference_projector_intrinsics_px: float = 3.45
-    reference_mirror_normal_deg: float = 0.074
+    # the worst of 24 simulated full sessions (8 scenarios x 3 seeds, 0.3 px noise): the pose, intrinsics
+    # and mirror from `uncertainty.unit_noise` x 0.3 px (2026-12-02), the grids scaled by 0.3 px / the joint RMS
+    reference_t_mm: float = 1.92
+    reference_rot_deg: float = 0.154
+    reference_camera_intrinsics_px: float = 1.29
+    reference_projector_intrinsics_px: float = 4.79
+    reference_mirror_normal_deg: float = 0.103
     reference_projection_camera_max_px: float = 3.87
     reference_projection_projector_max_px: float = 1.59
 
@@ -204,14 +205,21 @@ def check_calibration(result, thresholds: TrustThresholds | None = None,
 
 
 # ---- quality gate ------------------------------------------------------------------------------------
+#: quality metric -> its key in `uncertainty.unit_noise` (calib.joint.uncertainty)
+_UNIT_KEYS = {"t_mm": "t_total", "rot_deg": "rot_total_deg"}
+
 def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[QualityReason, ...]:
     """The quality reasons of a result, from the 1-sigma metrics the uncertainty check measured (joint
     covariance) and the result's projection-uncertainty grid.
 
     The gate judges the geometry of the session (how many and how varied the poses, how much of the
-    images they cover), not the detection noise: a 1-sigma scales with the residuals, so each one is
-    scaled to the reference noise (`qth.reference_noise_px`, the noise of the simulated full sessions
-    the limits come from) by reference_noise / the joint RMS before it is compared. The scaled values go
+    images they cover), not the detection noise: each 1-sigma is taken at the reference noise
+    (`qth.reference_noise_px`, the noise of the simulated full sessions the limits come from) on every
+    observation: from the joint covariance recomputed with 1 px on every observation
+    (`uncertainty.unit_noise`) times the reference noise; for a result without it (older files, the
+    projection-uncertainty grid) by reference_noise / the joint RMS. (The RMS scaling judged a session
+    whose ChArUco corners were cleaner than its circles as thinner than it was: the joint RMS fell,
+    the pattern's share of the pose's uncertainty did not.) The scaled values go
     into `metrics` ("quality.*"). Methods without a covariance (paper) have nothing to judge: no reasons."""
     out: list[QualityReason] = []
     rms = (result.rms or {}).get("joint") if isinstance(result.rms, dict) else None
@@ -219,16 +227,28 @@ def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[Qualit
         return ()
     scale = qth.reference_noise_px / float(rms)
     metrics["quality.noise_scale"] = scale
+    unc = result.uncertainty if isinstance(result.uncertainty, dict) else {}
+    unit = unc.get("unit_noise") if isinstance(unc.get("unit_noise"), dict) else None
+    if unit is not None:
+        metrics["quality.scaled_by"] = "unit_noise"
 
-    def low(code, key, what, raw, limit, reference, unit, advice):
-        value = raw * scale
+    def at_reference(key, raw):
+        """The 1-sigma at the reference noise: from the covariance with the same noise on every
+        observation when the result has it (joint, `uncertainty.unit_noise`), else scaled by the RMS."""
+        u = unit.get(_UNIT_KEYS.get(key, key)) if unit is not None else None
+        if isinstance(u, (int, float)):
+            return float(u) * qth.reference_noise_px * (_MM_PER_UNIT.get(result.units, 1.0) if key == "t_mm" else 1.0)
+        return raw * scale
+
+    def low(code, key, what, raw, limit, reference, unit_name, advice):
+        value = at_reference(key, raw)
         metrics[f"quality.{key}"] = value
         if not value <= limit:  # NaN / inf too
-            shown = (f"{raw:.3g} {unit} (1 sigma at this session's {rms:.3g} px RMS; {value:.3g} {unit} at "
+            shown = (f"{raw:.3g} {unit_name} (1 sigma at this session's {rms:.3g} px RMS; {value:.3g} {unit_name} at "
                      f"{qth.reference_noise_px:g} px of noise" if math.isfinite(value) else
                      "an amount that cannot be computed (singular covariance")
-            out.append(QualityReason(code, f"LOW QUALITY: {what} is uncertain by {shown}; limit {limit:g} {unit}, "
-                                     f"worst full session {reference:g} {unit}): {advice}",
+            out.append(QualityReason(code, f"LOW QUALITY: {what} is uncertain by {shown}; limit {limit:g} {unit_name}, "
+                                     f"worst full session {reference:g} {unit_name}): {advice}",
                                      float(value), limit, reference, advice))
 
     m = metrics
