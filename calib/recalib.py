@@ -833,6 +833,7 @@ def _with_updated_uncertainty(result: CalibrationResult, previous: CalibrationRe
     u = dict(previous.uncertainty) if isinstance(previous.uncertainty, dict) else None
     if u is None:
         return result
+    u["unit_noise"] = None  # the previous session's geometry, not this one's: the gate scales by the RMS
     stored = _stored_covariance(previous)
     if stored is not None:
         names, M = stored

@@ -216,8 +216,9 @@ def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[Qualit
     images they cover), not the detection noise: each 1-sigma is taken at the reference noise
     (`qth.reference_noise_px`, the noise of the simulated full sessions the limits come from) on every
     observation: from the joint covariance recomputed with 1 px on every observation
-    (`uncertainty.unit_noise`) times the reference noise; for a result without it (older files, the
-    projection-uncertainty grid) by reference_noise / the joint RMS. (The RMS scaling judged a session
+    (`uncertainty.unit_noise`) times the reference noise; for a result without it (older files, a
+    recalibration) by sqrt(2) x reference_noise / the joint RMS (the RMS is a per-point 2D norm), and the
+    projection-uncertainty grids by reference_noise / the joint RMS, as their limits were derived. (The RMS scaling judged a session
     whose ChArUco corners were cleaner than its circles as thinner than it was: the joint RMS fell,
     the pattern's share of the pose's uncertainty did not.) The scaled values go
     into `metrics` ("quality.*"). Methods without a covariance (paper) have nothing to judge: no reasons."""
@@ -238,7 +239,11 @@ def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[Qualit
         u = unit.get(_UNIT_KEYS.get(key, key)) if unit is not None else None
         if isinstance(u, (int, float)):
             return float(u) * qth.reference_noise_px * (_MM_PER_UNIT.get(result.units, 1.0) if key == "t_mm" else 1.0)
-        return raw * scale
+        if key.startswith("projection_"):  # the grids' limits were derived with the RMS scaling itself
+            return raw * scale
+        # the joint RMS is a per-point 2D norm, sqrt(2) x the per-coordinate noise the limits assume
+        # (the 24 full sessions: unit-noise values 1.38-1.39 x the RMS-scaled ones)
+        return raw * scale * math.sqrt(2.0)
 
     def low(code, key, what, raw, limit, reference, unit_name, advice):
         value = at_reference(key, raw)
