@@ -467,7 +467,7 @@ class VerificationReport:
         return cls(cs, num("mean_camera_px", "mean_px"), num("worst_camera_px", "worst_px"), num("mean_proj_px"), num("worst_proj_px"), float(thr),
                    d["passed"], int(d.get("n_failed_detection", 0)), str(d.get("verdict", "")),
                    dict(d.get("calibration") or {}), dict(d.get("settings") or {}), str(d.get("created", "")),
-                   d["response"] if isinstance(d.get("response"), dict) else None)
+                   _read_response_record(d.get("response")))
 
     @classmethod
     def from_json(cls, path) -> "VerificationReport":
@@ -735,6 +735,18 @@ def _session_board(folder):
         return SessionStore.open(folder).manifest.projector_board
     except ProcamError:
         return None
+
+
+def _read_response_record(value) -> dict | None:
+    """verification.json's "response" (untrusted): a known tone curve (calib.detection.response) with
+    the short strings saying where it came from, or None; anything else in the file is dropped."""
+    from calib.detection.response import parse_response
+
+    r = parse_response(value)
+    if r is None:
+        return None
+    extra = {k: value[k] for k in ("from", "source") if isinstance(value.get(k), str) and len(value[k]) <= 40}
+    return {**r.to_dict(), **extra}
 
 
 def session_response(folder) -> CameraResponse | None:

@@ -273,3 +273,23 @@ def test_the_station_and_the_recalibration_verify_with_the_sessions_recorded_res
     assert rep.passed and rep.response == {"model": "bt709", "gamma": 2.2}
     assert json.loads((tmp_path / "verification.json").read_text())["response"] == rep.response
     assert previous_verify(gt, False).response == rep.response
+
+
+@pytest.mark.parametrize("bad", [{"model": 7, "gamma": 2.2}, {"model": "bt709", "gamma": 99.0},
+                                 {"model": "bt709", "gamma": "2.2"}, ["bt709", 2.2], "<script>alert(1)</script>"])
+def test_a_damaged_response_in_verification_json_reads_as_none(tmp_path, bad):
+    """verification.json is untrusted: its "response" is kept only as a known tone curve, with short
+    strings for where it came from; anything else reads as null, the rest of the report as written."""
+    import dataclasses
+
+    rep = judge([_check(0.1), _check(0.2), _check(0.1)])
+    good = dataclasses.replace(rep, response={"model": "bt709", "gamma": 2.2, "from": "session", "junk": [1] * 5,
+                                              "source": "x" * 500})
+    path = tmp_path / "verification.json"
+    good.save_json(path)
+    assert VerificationReport.from_json(path).response == {"model": "bt709", "gamma": 2.2, "from": "session"}
+    d = json.loads(path.read_text())
+    d["response"] = bad
+    path.write_text(json.dumps(d))
+    back = VerificationReport.from_json(path)
+    assert back.response is None and back.passed == rep.passed and back.mean_proj_px == rep.mean_proj_px

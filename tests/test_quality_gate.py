@@ -162,3 +162,17 @@ def test_cleaner_corners_do_not_make_the_same_poses_look_thinner():
     # the RMS scaling on the same two results: the joint RMS and the pose's 1-sigma fall by different shares
     rms_scaled = {k: m[k]["sigma.rot_deg"] * 0.3 / r.rms["joint"] for k, r in res.items()}
     assert abs(rms_scaled["spliced"] / rms_scaled["base"] - 1) > 0.15
+
+
+@pytest.mark.parametrize("bad", [{"rot_total_deg": -1.0}, {"t_total": float("nan")}, {"rot_total_deg": "0.01"},
+                                 {"camera_intrinsics_px": True}, [0.1], "x"])
+def test_a_damaged_unit_noise_is_not_trusted(thin_result, bad):
+    """calibration.json is untrusted: a unit_noise with a negative, NaN, string or boolean value (or not a
+    dict) is ignored and the gate scales by the RMS, so a hostile file cannot talk a thin session out of
+    LOW QUALITY."""
+    damaged = thin_result.with_(uncertainty={**thin_result.uncertainty, "unit_noise": bad})
+    rep = check_calibration(damaged).to_dict()
+    assert "quality.scaled_by" not in rep["metrics"]
+    assert rep["quality"]["low"] is True
+    good = check_calibration(thin_result).to_dict()
+    assert good["metrics"]["quality.scaled_by"] == "unit_noise" and good["quality"]["low"] is True

@@ -207,6 +207,22 @@ def check_calibration(result, thresholds: TrustThresholds | None = None,
 # ---- quality gate ------------------------------------------------------------------------------------
 #: quality metric -> its key in `uncertainty.unit_noise` (calib.joint.uncertainty)
 _UNIT_KEYS = {"t_mm": "t_total", "rot_deg": "rot_total_deg"}
+_UNIT_FIELDS = ("t_total", "rot_total_deg", "camera_intrinsics_px", "projector_intrinsics_px", "mirror_normal_deg")
+
+
+def _unit_noise(u) -> dict | None:
+    """calibration.json's `uncertainty.unit_noise` (untrusted when read from a file): used only when every
+    field is absent, null or a finite number >= 0 (a NaN, a negative, a string or a boolean would bend
+    the gate's verdict); otherwise None, and the gate scales by the RMS instead."""
+    if not isinstance(u, dict):
+        return None
+    for k in _UNIT_FIELDS:
+        v = u.get(k)
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            return None
+    return u
 
 def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[QualityReason, ...]:
     """The quality reasons of a result, from the 1-sigma metrics the uncertainty check measured (joint
@@ -229,7 +245,7 @@ def check_quality(result, metrics: dict, qth: QualityThresholds) -> tuple[Qualit
     scale = qth.reference_noise_px / float(rms)
     metrics["quality.noise_scale"] = scale
     unc = result.uncertainty if isinstance(result.uncertainty, dict) else {}
-    unit = unc.get("unit_noise") if isinstance(unc.get("unit_noise"), dict) else None
+    unit = _unit_noise(unc.get("unit_noise"))
     if unit is not None:
         metrics["quality.scaled_by"] = "unit_noise"
 
