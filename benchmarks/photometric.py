@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from calib.detection.detect import detect_board, detect_pattern  # noqa: E402
 from calib.detection.response import CameraResponse  # noqa: E402
 from calib.models.observations import VIEW_MIRROR  # noqa: E402
-from calib.synthetic import projector_points_on_board  # noqa: E402
+from calib.synthetic import imaged_circle_centroids, projector_points_on_board  # noqa: E402
 from calib.transforms import transform_points  # noqa: E402
 from drivers.sim.render import PlacedBoard, Renderer, SceneState  # noqa: E402
 from drivers.sim.scenarios import get_scenario  # noqa: E402
@@ -75,24 +75,13 @@ def settings_for(scenario, effect: str):
     return st
 
 
-def _polygon_centroid(poly: np.ndarray) -> np.ndarray:
-    x, y = poly[:, 0], poly[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
-    cross = x * yn - xn * y
-    a = cross.sum() / 2.0
-    return np.array([((x + xn) * cross).sum() / (6 * a), ((y + yn) * cross).sum() / (6 * a)])
-
-
 def circle_truth(sc, T, pts_px) -> tuple[np.ndarray, np.ndarray]:
     """(projections of the circle centres, area centroids of the circles' exact images), camera px."""
     rig = sc.rig
     S = rig.S() if rig.mirror is not None else np.eye(4)
     Xb = projector_points_on_board(rig, T, pts_px)
     centre = rig.camera.project(transform_points(S @ T, Xb))
-    a = np.linspace(0, 2 * np.pi, 360, endpoint=False)
-    ring = np.column_stack([np.cos(a), np.sin(a)]) * sc.pattern.radius_px
-    conic = np.array([_polygon_centroid(rig.camera.project(transform_points(S @ T, projector_points_on_board(rig, T, c + ring))))
-                      for c in pts_px])
+    conic = imaged_circle_centroids(rig, T, pts_px, sc.pattern.radius_px, n_boundary=360)
     return centre, conic
 
 

@@ -4,17 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.joint.conic import polygon_centroid
 from calib.synthetic import projector_points_on_board
 from calib.transforms import transform_points
-
-
-def polygon_centroid(poly: np.ndarray) -> np.ndarray:
-    """Area centroid of a simple polygon (N, 2) (shoelace formula)."""
-    x, y = poly[:, 0], poly[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
-    cross = x * yn - xn * y
-    a = cross.sum() / 2.0
-    return np.array([((x + xn) * cross).sum() / (6 * a), ((y + yn) * cross).sum() / (6 * a)])
 
 
 def imaged_circle_centroids(rig, T_cam_board, centres_px, radius_px, n: int = 720) -> np.ndarray:
