@@ -386,3 +386,35 @@ def test_a_full_disk_on_the_command_line_is_one_line(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert "Traceback" not in r.stderr and len(lines) == 1
     assert f"disk full writing {tmp_path / 'sim' / 'session.json'}" in lines[0]
+
+
+def test_a_lock_collected_while_the_registry_is_busy_does_not_deadlock(tmp_path):
+    """A garbage collection can finalize a SessionLock inside acquire() in the same thread, the registry
+    lock held (a fresh-clone CI run hung there). The finalizer then queues its release, which the
+    holder performs before it lets go: nothing waits, and the folder is free afterwards."""
+    import gc
+    import threading
+
+    from calib.formats import session_lock as SL
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    done = threading.Event()
+
+    def run():
+        old = SL.acquire(tmp_path / "a")
+        key = old._key
+        with SL._REGISTRY_LOCK:  # as inside acquire(): a collection finalizes `old` here
+            del old
+            gc.collect()
+            assert key in SL._held  # not released yet: queued
+        SL._drain_if_free()
+        assert key not in SL._held and not (tmp_path / "a" / SL.LOCK_FILE).exists()
+        SL.acquire(tmp_path / "b").release()
+        done.set()
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(10)
+    assert done.is_set(), "deadlocked"
+    SL.acquire(tmp_path / "a").release()  # free again, in this process too

@@ -53,28 +53,58 @@ class SessionLock:
         self._finalizer = weakref.finalize(self, _release, key)
 
     def release(self) -> None:
-        self._finalizer()
+        if self._finalizer.detach() is not None:  # released once, whoever asks again
+            with _REGISTRY_LOCK:
+                _release_held(self._key)
+                _drain()
 
     @property
     def held(self) -> bool:
         return self._finalizer.alive
 
 
+#: keys whose SessionLock was garbage-collected while the registry was busy, released by its holder
+_pending: list = []
+
+
 def _release(key) -> None:
-    with _REGISTRY_LOCK:
-        h = _held.get(key)
-        if h is None:
-            return
-        h.count -= 1
-        if h.count > 0:
-            return
-        del _held[key]
-        try:  # remove the file while still holding the lock (acquire checks it locked the file on disk)
-            if _same_file(h.path, h.fd):
-                os.unlink(h.path)
-        except OSError:
-            pass
-        os.close(h.fd)
+    """A SessionLock's finalizer (garbage collection, exit). A collection can run inside acquire() in this
+    very thread, the registry lock held: waiting for it there would never return (seen in a CI run). So
+    a finalizer never waits: when the registry is busy, the release is queued and done by the holder
+    before it lets go (_drain)."""
+    _pending.append(key)
+    _drain_if_free()
+
+
+def _drain_if_free() -> None:
+    if _pending and _REGISTRY_LOCK.acquire(blocking=False):
+        try:
+            _drain()
+        finally:
+            _REGISTRY_LOCK.release()
+
+
+def _drain() -> None:
+    """The queued releases (the registry lock held)."""
+    while _pending:
+        _release_held(_pending.pop())
+
+
+def _release_held(key) -> None:
+    """One hold of `key` given back (the registry lock held); the last one unlocks and removes the file."""
+    h = _held.get(key)
+    if h is None:
+        return
+    h.count -= 1
+    if h.count > 0:
+        return
+    del _held[key]
+    try:  # remove the file while still holding the lock (acquire checks it locked the file on disk)
+        if _same_file(h.path, h.fd):
+            os.unlink(h.path)
+    except OSError:
+        pass
+    os.close(h.fd)
 
 
 def _same_file(path: Path, fd: int) -> bool:
@@ -174,11 +204,16 @@ def acquire(folder) -> SessionLock:
     key = (st.st_dev, st.st_ino)
     path = folder / LOCK_FILE
     with _REGISTRY_LOCK:
-        h = _held.get(key)
-        if h is None:
-            h = _held[key] = _take(folder, path)
-        h.count += 1
-        return SessionLock(key, h)
+        try:
+            h = _held.get(key)
+            if h is None:
+                h = _held[key] = _take(folder, path)
+            h.count += 1
+            lock = SessionLock(key, h)
+        finally:
+            _drain()  # releases queued by a collection during this
+    _drain_if_free()
+    return lock
 
 
 def _take(folder: Path, path: Path) -> _Held:
