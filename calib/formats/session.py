@@ -7,7 +7,8 @@ half-written one. An image without a manifest entry is an orphan and is ignored.
 session.json (format "procam-session", version 1):
   rig: {camera: {width, height}, projector: {width, height}, view: "mirror"|"direct",
         camera_settings: {...}, driver: "sim"|"realsense"|...}
-  projector_board: CharucoSpec dict; mirror_board: CharucoSpec dict or null
+  projector_board: CharucoSpec dict (its units are the session's); mirror_board: CharucoSpec dict or null, in
+    any of the units (converted to the session's on load)
   pattern: PatternSpec dict
   mirror_method: "real-virtual" | "real-mirror" | null; board_thickness: number (board units)
   captures: [{id, step, image, pattern_position?, pattern_points_px?, meta?}, ...]
@@ -113,6 +114,13 @@ class SessionManifest:
     board_thickness: float = 0.0
     captures: tuple[Capture, ...] = ()
     state: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        # Every length of a session is in the projector board's units (the units of the result): a mirror
+        # board declared in other units is the same physical board, so its lengths are converted, never
+        # read as numbers in the session's units.
+        if self.mirror_board is not None and self.mirror_board.units != self.projector_board.units:
+            object.__setattr__(self, "mirror_board", self.mirror_board.in_units(self.projector_board.units))
 
     @property
     def units(self) -> str:

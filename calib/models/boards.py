@@ -17,6 +17,8 @@ import numpy as np
 from calib.errors import FormatError, SpecError
 
 UNITS = ("mm", "cm", "m", "in")
+#: millimetres per unit of UNITS
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 
 def _aruco_dictionary_id(name: str) -> int:
@@ -69,6 +71,15 @@ class CharucoSpec:
             raise SpecError(f"board spec '{text}': square/marker length is not a number") from None
         return cls(int(m.group(1)), int(m.group(2)), m.group(3), square, marker, units)
 
+    def in_units(self, units: str) -> "CharucoSpec":
+        """The same physical board with its lengths expressed in `units`."""
+        if units == self.units:
+            return self
+        if units not in MM_PER_UNIT:
+            raise SpecError(f"unknown length unit '{units}' (one of {', '.join(UNITS)})")
+        f = MM_PER_UNIT[self.units] / MM_PER_UNIT[units]
+        return CharucoSpec(self.cols, self.rows, self.dictionary, self.square_length * f, self.marker_length * f, units)
+
     def __str__(self) -> str:
         return f"{self.cols}x{self.rows}:{self.dictionary}:{self.square_length:g}:{self.marker_length:g} {self.units}"
 
@@ -120,6 +131,8 @@ class CharucoSpec:
                 raise FormatError(path, f"{where}.{key}", "missing")
             if not isinstance(d[key], typ) or isinstance(d[key], bool):
                 raise FormatError(path, f"{where}.{key}", f"has the wrong type ({type(d[key]).__name__})")
+        if d["units"] not in UNITS:
+            raise FormatError(path, f"{where}.units", f"unknown length unit '{d['units']}' (one of {', '.join(UNITS)})")
         try:
             return cls(d["cols"], d["rows"], d["dictionary"], float(d["square_length"]),
                        float(d["marker_length"]), d["units"])
