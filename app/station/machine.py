@@ -368,7 +368,7 @@ class SessionMachine:
                 return "choose the mirror method (real-virtual or real-mirror) first"
             if self.target is None:
                 if s == MIRROR_CAPTURE:
-                    return (f"all {self.mirror_total} mirror captures are taken; press Next, or delete or "
+                    return (f"all {self.mirror_total} mirror captures are taken; press 'Next step', or delete or "
                             "retake a capture")
                 return (f"all {self.projector_total} projector captures are taken; calibrate, or delete or "
                         "retake a capture")

@@ -843,7 +843,7 @@ class Station:
             tgt = m.target
             c = m.counts()
             if tgt is None:
-                return f"All {c['mirror_total']} mirror captures are taken. Press Next to go on to the projector."
+                return f"All {c['mirror_total']} mirror captures are taken. Press 'Next step' to go on to the projector."
             if m.mirror_method == "real-virtual":
                 what = ("Hold the mirror board between the camera and the mirror so that the camera sees it "
                         "both directly and in the mirror; change its place and tilt from the last capture.")
