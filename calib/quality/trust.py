@@ -414,18 +414,28 @@ def _check_geometry(result, th: TrustThresholds, fail, metrics: dict) -> None:
     poses = diag.get("board_poses")
     steps = {pv.get("capture_id"): pv.get("step") for pv in result.per_view if isinstance(pv, dict)}
     if isinstance(poses, dict) and poses:
-        T_proj_cam = invert_T(T)
-        behind = []
-        for cid, Tb in poses.items():
-            if steps.get(cid) != "projector":
-                continue
-            c = np.asarray(Tb, float)[:3, 3]
-            if (T_proj_cam[:3, :3] @ c + T_proj_cam[:3, 3])[2] <= 0:
-                behind.append(cid)
+        behind = [cid for cid, Tb in poses.items()
+                  if steps.get(cid) == "projector" and not _projector_lights_board(result.projector, T, Tb)]
         metrics["boards_behind_projector"] = len(behind)
         if behind:
             fail("board_behind_projector", f"{len(behind)} board(s) the projector lit are behind it "
                  f"({', '.join(behind[:3])}{'...' if len(behind) > 3 else ''})", len(behind), 0.0)
+
+
+def _projector_lights_board(proj: CameraModel, T_cam_proj: np.ndarray, T_cam_board) -> bool:
+    """Whether any ray of the projector's image meets the board's plane in front of the projector.
+
+    The lit points are where the projector's rays meet the board, not the board frame's origin (a ChArUco
+    corner): on a strongly tilted board near the projector that corner can lie behind the projector's
+    lens plane while every lit point is far in front of it."""
+    T_proj_board = invert_T(T_cam_proj) @ np.asarray(T_cam_board, float)
+    n = T_proj_board[:3, 2]  # the board's plane in the projector frame: n . x = n . o
+    o = T_proj_board[:3, 3]
+    us, vs = np.meshgrid(np.linspace(0, proj.width - 1, 9), np.linspace(0, proj.height - 1, 9))
+    rays = proj.rays(np.column_stack([us.ravel(), vs.ravel()]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (n @ o) / (rays @ n)
+    return bool(np.any(np.isfinite(s) & (s > 0)))
 
 
 def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None:
