@@ -24,7 +24,7 @@ from calib.quality.projection_uncertainty import large_regions, where_max
 from calib.transforms import invert_T
 
 #: length units of a session -> millimetres (limits on lengths are stated in mm)
-_MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+from calib.models.boards import MM_PER_UNIT as _MM_PER_UNIT
 
 CODES = {
     "non_finite": "a parameter or residual is NaN or infinite",
