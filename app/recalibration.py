@@ -17,6 +17,7 @@ from pathlib import Path
 
 from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target
 from app.station.station import Station
+from drivers.clock import clock_of
 from calib.errors import SessionError
 from calib.formats.fileio import atomic_write_text
 from calib.formats.session import MANIFEST, SessionStore
@@ -523,10 +524,11 @@ def _take(station: Station, machine: RecalibrationMachine, state: str, prompt, l
         if prompt is not None:
             prompt(f"{label()}: {step_instruction(station)}")
         before = machine.last_capture
-        t_end = time.monotonic() + timeout_s
+        clock = clock_of(station.rig.camera)  # the rig's time: frames delivered, not the CPU's speed
+        t_end = clock.now() + timeout_s
         said, said_s = "", 0.0
         while machine.state == state and machine.target == tgt:
-            if time.monotonic() > t_end:
+            if clock.now() > t_end:
                 why = station.live.decision.message if station.live is not None and station.live.decision else ""
                 raise RecalibrationStopped(f"no capture for {tgt.step} in {timeout_s:.0f} s"
                                            + (f" ({why})" if why else ""))

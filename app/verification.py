@@ -45,6 +45,7 @@ from calib.epipolar import epipolar_curve, predicted_camera_curve
 from calib.errors import FormatError, ProcamError
 from calib.formats.fileio import atomic_write_text
 from calib.models.result import CalibrationResult
+from drivers.clock import clock_of
 
 SCHEMA = "procam-verification"
 VERSION = 1
@@ -187,14 +188,15 @@ class _Grabber:
         if self.last is None:
             self.last = self.camera.get_frame(self.timeout_s).frame_number
         acc, n, skip = None, 0, self.settle_frames
-        deadline = time.monotonic() + self.timeout_s
+        clock = clock_of(self.projector)
+        deadline = clock.now() + self.timeout_s
         while n < self.average:
             f = self.camera.get_frame(self.timeout_s, newer_than=self.last)
             self.last = f.frame_number
             early = f.exposure_start_s < visible_s if f.exposure_start_s is not None else skip > 0
             if early:
                 skip -= 1
-                if time.monotonic() > deadline:
+                if clock.now() > deadline:
                     raise VerificationError(f"no camera frame exposed after the projector's image became visible "
                                             f"within {self.timeout_s:g} s: check the camera's frame times")
                 continue

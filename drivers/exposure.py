@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.clock import clock_of
 from drivers.errors import DeviceError
 
 _log = logging.getLogger(__name__)
@@ -121,7 +121,7 @@ def apply_exposure(camera, exposure_us: float, gain: float, timeout_s: float = 3
     a recorded exposure re-applied, or the searched one restored, holds for every frame read after this
     returns. Returns (what the camera applied, that frame)."""
     last = camera.get_frame(timeout_s).frame_number
-    t_set = time.monotonic()
+    t_set = clock_of(camera).now()
     applied = camera.set_manual_exposure(exposure_us, gain)
     f, _, _ = frames_after_change(camera, t_set, applied, last, 1, timeout_s)
     return applied, f
@@ -153,7 +153,7 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
 
     def measure(exposure_us, gain):
         nonlocal last, frames
-        t_set = time.monotonic()
+        t_set = clock_of(camera).now()
         applied = camera.set_manual_exposure(exposure_us, gain)
         f, last, after = frames_after_change(camera, t_set, applied, last, wait_frames, timeout_s)
         frames += after
@@ -236,7 +236,7 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
 
     def frame_at(gain):
         nonlocal last, frames
-        t_set = time.monotonic()
+        t_set = clock_of(camera).now()
         applied = camera.set_manual_exposure(exposure, gain)
         f, last, after = frames_after_change(camera, t_set, applied, last, wait_frames, timeout_s)
         frames += after

@@ -23,11 +23,11 @@ the projector's jitter (up to +-5 ms: more jitter needs a larger margin).
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.clock import clock_of
 from drivers.errors import DeviceError
 from drivers.projector_images import black, white
 
@@ -57,9 +57,9 @@ def _grey_small(img: np.ndarray, step: int) -> np.ndarray:
     return g
 
 
-def _arrival(frame) -> float:
+def _arrival(frame, clock) -> float:
     t = frame.meta.get("host_time_s") if isinstance(frame.meta, dict) else None
-    return float(t) if t is not None else time.monotonic()
+    return float(t) if t is not None else clock.now()
 
 
 def _exposure_s(frame) -> float | None:
@@ -103,15 +103,16 @@ def measure_settle(projector, camera, trials: int = 5, observe_s: float = 1.5, r
     if old_settle is not None:
         projector.settle_s = 0.0
     samples, intervals, changed, exact, lows = [], [], [], [], []
+    clock = clock_of(projector)  # the projector's presentation times and the camera's frame times share it
     try:
         last = camera.get_frame(frame_timeout_s).frame_number
         away = None
         for k in range(trials):
             projector.wait_presented(projector.show(dark), frame_timeout_s)
             if k == 0:  # what was shown before is unknown: wait for any projector to have caught up
-                time.sleep(max(rest_s, first_rest_s))
+                clock.sleep(max(rest_s, first_rest_s))
             elif rest_s > 0:
-                time.sleep(rest_s)
+                clock.sleep(rest_s)
             ref, ref_img = _steady(camera, last, frame_timeout_s, downsample, change_levels / 2, away)
             last = ref.frame_number
             t_swap = projector.wait_presented(projector.show(bright), frame_timeout_s)
@@ -120,7 +121,7 @@ def measure_settle(projector, camera, trials: int = 5, observe_s: float = 1.5, r
                 f = camera.get_frame(frame_timeout_s, newer_than=last)
                 last = f.frame_number
                 g = _grey_small(f.image, downsample)
-                seen.append((f, _arrival(f), g))
+                seen.append((f, _arrival(f, clock), g))
                 moved = _changed_fraction(g, ref_img, change_levels) >= min_changed_fraction
                 if len(seen) >= 3 and moved and _changed_fraction(g, seen[-2][2], change_levels / 2) < 1e-4 \
                         and _changed_fraction(seen[-2][2], seen[-3][2], change_levels / 2) < 1e-4:
@@ -216,7 +217,7 @@ def apply_timing(camera, projector, camera_settings: dict | None = None, search_
         else:
             img = white(tuple(projector.size)) if search_image is None else search_image
             projector.wait_presented(projector.show(img))
-            time.sleep(0.5)  # longer than any projector's latency
+            clock_of(projector).sleep(0.5)  # longer than any projector's latency
             c = search_exposure(camera, float(getattr(projector, "refresh_hz", 60.0) or 60.0))
             applied = {"exposure_us": c.exposure_us, "gain": c.gain}
         out.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),

@@ -140,8 +140,30 @@ class StationProcess:
                 self.proc.wait(10)
 
 
+#: how long a browser test waits for a state: a wait ends as soon as the state is reached, so only a
+#: broken feature ever waits this long (a loaded machine is slow, not wrong)
+WAIT_MS = 240_000
+
+
 def launch_chromium(playwright):
+    from playwright.sync_api import expect
+
+    expect.set_options(timeout=WAIT_MS)  # every expect(...) waits on state, not on a 5 s default
     return playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+
+
+def until(condition, timeout_s: float = WAIT_MS / 1000, every_s: float = 0.1):
+    """Poll `condition()` until it returns a true value (returned) or `timeout_s` passes (AssertionError)."""
+    import time
+
+    end = time.monotonic() + timeout_s
+    while True:
+        got = condition()
+        if got:
+            return got
+        if time.monotonic() > end:
+            raise AssertionError(f"not reached within {timeout_s:g} s: {getattr(condition, '__doc__', None) or condition}")
+        time.sleep(every_s)
 
 
 def text_input(page, label: str):

@@ -32,7 +32,7 @@ from app.station.panel import DISCONNECT_TEXT, StationPanel
 from app.station.setup import RigRequest, create_session, make_machine, open_rig
 from app.station.station import Station, StationOptions
 from calib.models.observations import BoardObservation
-from tests._station_helpers import StationProcess
+from tests._station_helpers import WAIT_MS, StationProcess
 
 PROTOCOL = [f"viser-v{viser.__version__}"]
 
@@ -389,12 +389,12 @@ def test_the_page_says_so_when_the_station_process_is_gone(tmp_path):
             browser = launch_chromium(p)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             page.goto(st.url)
-            expect(page.get_by_text(re.compile("Checklist")).first).to_be_visible(timeout=30_000)
+            expect(page.get_by_text(re.compile("Checklist")).first).to_be_visible(timeout=WAIT_MS)
             banner = page.get_by_text(DISCONNECT_TEXT[:40])
             time.sleep(7.0)  # longer than the banner's delay: the heartbeat keeps it hidden while alive
             expect(banner).to_be_hidden()
             st.stop()
-            expect(banner).to_be_visible(timeout=20_000)
+            expect(banner).to_be_visible(timeout=WAIT_MS)
             page.screenshot(path=str(tmp_path / "gone.png"))
             browser.close()
     finally:
@@ -427,9 +427,9 @@ def test_the_operator_sees_a_loop_failure_in_the_browser(tmp_path):
             panel.start()
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             page.goto(panel.url)
-            expect(page.get_by_text("Checklist").first).to_be_visible(timeout=30_000)
+            expect(page.get_by_text("Checklist").first).to_be_visible(timeout=WAIT_MS)
             # a notification and a banner, and the traceback in the Log tab
-            expect(page.get_by_text("Capture loop failed").first).to_be_visible(timeout=30_000)
+            expect(page.get_by_text("Capture loop failed").first).to_be_visible(timeout=WAIT_MS)
             expect(page.get_by_text("The capture loop failed and was restarted").first).to_be_visible()
             page.get_by_role("tab", name="Log").click()
             expect(page.get_by_text(re.compile(r"ZeroDivisionError: injected for the test")).first).to_be_visible()

@@ -53,7 +53,9 @@ class RecordingExposure:
 def sim_rig():
     from drivers.sim.rig import open_sim_rig
 
-    rig = open_sim_rig("nonoverlap-136", seed=0, quality="live")
+    from drivers.clock import MONOTONIC
+
+    rig = open_sim_rig("nonoverlap-136", seed=0, quality="live", clock=MONOTONIC)  # librealsense's clock
     rig.camera.start()
     yield rig
     rig.close()

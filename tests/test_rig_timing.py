@@ -5,7 +5,6 @@ projector during each frame's exposure (SimRig.frame_truth)."""
 
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -57,14 +56,14 @@ def test_frames_follow_the_camera_clock_and_never_come_from_the_future():
     f = rig.camera.get_frame()
     for _ in range(5):
         g = rig.camera.get_frame(newer_than=f.frame_number)
-        returned = time.monotonic()
+        returned = rig.clock.now()
         assert g.frame_number > f.frame_number
         # frame n is exposed from t0 + n / 30 s and delivered a frame period later, not before
         assert g.exposure_start_s - f.exposure_start_s == pytest.approx((g.frame_number - f.frame_number) / 30.0)
         assert g.exposure_start_s + 1 / 30.0 <= returned + 1e-6
         f = g
     far = rig.camera.get_frame(newer_than=f.frame_number + 5)  # waits for that frame's time
-    assert far.frame_number == f.frame_number + 6 and far.exposure_start_s + 1 / 30.0 <= time.monotonic() + 1e-6
+    assert far.frame_number == f.frame_number + 6 and far.exposure_start_s + 1 / 30.0 <= rig.clock.now() + 1e-6
     rig.camera.stop()
     rig.camera.start()  # a restarted clock goes on numbering: a frame number is never handed out twice
     again = rig.camera.get_frame()
@@ -83,7 +82,7 @@ def test_the_projector_shows_an_image_only_after_its_latency_and_frames_blend_th
     rig.operator.request_pose("verification", None, 0)
     _frames(rig, 3)  # the settings apply from the next frames on
     assert proj.refresh_hz == 60.0
-    t_req = time.monotonic()
+    t_req = rig.clock.now()
     ticket = proj.show(_white(rig))
     swap = proj.wait_presented(ticket)  # settle_s 0: the presentation (vsync), not the visibility
     visible = proj.true_visible_s(ticket)
@@ -115,7 +114,7 @@ def test_auto_exposure_drifts_until_locked():
     assert all(f.meta["auto_exposure"] for f in drifting)
     assert len({round(f.meta["exposure_us"]) for f in drifting}) >= 3  # it keeps moving
     assert len({round(float(f.image.mean()), 2) for f in drifting}) >= 3
-    t = time.monotonic()
+    t = rig.clock.now()
     applied = rig.camera.set_manual_exposure(PERIOD_US, 1.0)
     assert applied == {"exposure_us": round(PERIOD_US), "gain": 1.0}
     locked = [f for f in _frames(rig, 10) if f.exposure_start_s >= t + _lag_s(rig)]
@@ -133,7 +132,7 @@ def test_banding_for_an_exposure_off_the_refresh_period_only():
     rig.projector.show(_white(rig))
 
     def rows(exposure_us):
-        t = time.monotonic()
+        t = rig.clock.now()
         cam.set_manual_exposure(exposure_us, 1.0)
         f = [f for f in _frames(rig, 8) if f.exposure_start_s >= t + _lag_s(rig)][-1]
         # the ratios below are ratios of light: undo the camera's tone curve (docs/SIMULATOR.md)
@@ -165,10 +164,10 @@ def test_the_emitter_adds_dots_until_turned_off():
     cam = rig.camera
     cam.start()
     cam.set_manual_exposure(PERIOD_US, 1.0)
-    t = time.monotonic()
+    t = rig.clock.now()
     on = [f for f in _frames(rig, 7) if f.exposure_start_s >= t + _lag_s(rig)][-1]
     assert on.meta["emitter_enabled"] is True
-    t = time.monotonic()
+    t = rig.clock.now()
     cam.set_emitter(False)
     off = [f for f in _frames(rig, 7) if f.exposure_start_s >= t + _lag_s(rig)][-1]
     assert off.meta["emitter_enabled"] is False
@@ -188,7 +187,7 @@ def test_exposure_search_converges_on_whole_refresh_periods(light):
     rig.operator.request_pose("projector", 6, 0)
     W, H = rig.projector.size
     rig.projector.show(rig.scenario.pattern.render(W, H, 6)[0])
-    time.sleep(0.3)  # the pattern is visible
+    rig.clock.sleep(0.3)  # the pattern is visible
     c = search_exposure(cam, rig.projector.refresh_hz)
     assert c.frames <= MAX_FRAMES
     assert c.whole_periods and abs(c.periods - round(c.periods)) < 1e-3 and round(c.periods) >= 1
@@ -320,7 +319,7 @@ def test_a_setting_shows_only_after_the_sensors_lag_and_the_wait_reads_it_from_t
     assert rig.hardware.settings_lag_frames >= 2  # a D455 needs a few frames
     applied, _ = apply_exposure(cam, 4000.0, 1.0)
     last = _frames(rig, 1)[0].frame_number
-    t = time.monotonic()
+    t = rig.clock.now()
     new = cam.set_manual_exposure(8000.0, 2.0)
     seen = _frames(rig, 8, after=last)
     after_t = [f for f in seen if f.exposure_start_s >= t]
@@ -333,7 +332,7 @@ def test_a_setting_shows_only_after_the_sensors_lag_and_the_wait_reads_it_from_t
     assert shows_settings(old[0], applied) is True
     # the wait counts only frames whose metadata shows the change, though earlier ones started after it
     last = seen[-1].frame_number
-    t = time.monotonic()
+    t = rig.clock.now()
     got = cam.set_manual_exposure(2000.0, 1.0)
     f, _, counted = frames_after_change(cam, t, got, last, wait_frames=1)
     assert counted == 1 and f.meta["exposure_us"] == 2000.0 and f.exposure_start_s >= t + _lag_s(rig) - 1e-6
@@ -350,7 +349,7 @@ def test_a_setting_shows_only_after_the_sensors_lag_and_the_wait_reads_it_from_t
 
     lying = Lying(cam)
     last = lying.get_frame().frame_number
-    t = time.monotonic()
+    t = rig.clock.now()
     got = cam.set_manual_exposure(3000.0, 1.0)
     with caplog.at_level("WARNING"):
         f, _, counted = frames_after_change(lying, t, got, last, wait_frames=1, skip_limit=3)

@@ -18,7 +18,7 @@ from playwright.sync_api import expect, sync_playwright
 
 from app.station.panel_results import RESULT_FILES
 from calib.formats.session import SessionStore
-from tests._station_helpers import StationProcess, launch_chromium, text_input
+from tests._station_helpers import WAIT_MS, until, StationProcess, launch_chromium, text_input
 
 pytestmark = pytest.mark.browser
 
@@ -33,21 +33,24 @@ def click(page, name):
 T0 = [time.monotonic()]
 
 
-def see(page, pattern, timeout=30_000):
+def see(page, pattern, timeout=WAIT_MS):
     print(f"{time.monotonic() - T0[0]:6.1f} s  waiting for {pattern}")
     expect(page.get_by_text(re.compile(pattern)).first).to_be_visible(timeout=timeout)
 
 
-def live_image_sources(page, seconds=3.0):
-    """Distinct sources the live camera image shows during `seconds` (each update is a new blob)."""
+def live_image_updates(page, n=3):
+    """Wait until the live camera image has shown `n` distinct sources (each update is a new blob)."""
     img = page.locator("img[src^='blob:']").first
     seen = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
+
+    def updated():
+        """the live image updates"""
         src = img.get_attribute("src")
         if not seen or seen[-1] != src:
             seen.append(src)
-        time.sleep(0.02)
+        return len(seen) >= n
+
+    until(updated, every_s=0.02)
     return seen
 
 
@@ -103,7 +106,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
                     see(page, r"Hold the board next towards")
                     page.screenshot(path=str(tmp_path / "mirror-step.png"))
             # the live image keeps changing with detections drawn on it
-            assert len(live_image_sources(page, 2.0)) >= 3
+            assert len(live_image_updates(page, 3)) >= 3
             click(page, "Next step")
             see(page, r"The projector shows the pattern at position 1 of 13")
             click(page, "Move board")
@@ -115,7 +118,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Projector capture: 1 / 13 captures")
             # from here the simulated operator follows the station by itself
             page.get_by_text("Simulated operator moves the board by itself").click()
-            see(page, r"Projector capture: 13 / 13 captures, 13 / 13 pattern positions complete", timeout=90_000)
+            see(page, r"Projector capture: 13 / 13 captures, 13 / 13 pattern positions complete", timeout=WAIT_MS)
             see(page, r"covered by the pattern positions captured|pattern positions captured cover \d+%")
             # the capture to change defaults to the newest one (Delete selected removes what was just taken)
             page.get_by_text("Change captures", exact=True).click()
@@ -125,7 +128,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Possible now\. Diversity targets not met yet: .*the target is a range of")
             click(page, "Calibrate")
             see(page, r"Calibrate: running.*Diversity targets not met yet: ")
-            see(page, r"Calibration\*? \(paper", timeout=90_000)
+            see(page, r"Calibration\*? \(paper", timeout=WAIT_MS)
             see(page, r"Projector in the camera frame")
             # the results are at the top: visible without scrolling, with the Download button
             scroll_panels_to_top(page)
@@ -142,14 +145,18 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"calibration\.yaml \(\d+(\.\d)? (bytes|kB)\)")
             see(page, r"images/: 16 files")
             click(page, "Verify")
-            see(page, r"Verification PASSED", timeout=60_000)
+            see(page, r"Verification PASSED", timeout=WAIT_MS)
             # every verified pixel is drawn on the live image with its distance and verdict
             see(page, r"Verified pixels")
             see(page, r"\(\d+\.\d, \d+\.\d\): \d+\.\d+ camera px = \d+\.\d+ projector px: pass")
-            time.sleep(1.0)
-            shot = page.locator("img[src^='blob:']").first.screenshot()
-            assert colour_pixels(shot, (30, 140, 255)) > 50  # orange detected strokes
-            assert colour_pixels(shot, (60, 210, 60), tol=30) > 20  # green (pass) pixel markers
+            live_img = page.locator("img[src^='blob:']").first
+
+            def strokes_and_markers():
+                """the live image shows orange detected strokes and green (pass) pixel markers"""
+                shot = live_img.screenshot()
+                return colour_pixels(shot, (30, 140, 255)) > 50 and colour_pixels(shot, (60, 210, 60), tol=30) > 20
+
+            until(strokes_and_markers)
             # click on the camera image in the 3D view to check that pixel
             click(page, "View from the camera")
             time.sleep(1.5)
@@ -161,7 +168,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
             x = (panel_right + box["x"] + box["width"] * 0.75) / 2
             page.mouse.click(x, box["y"] + box["height"] / 2)
             see(page, r"Check pixel: checking pixel \(\d+\.\d, \d+\.\d\) camera px")
-            see(page, r"Pixel check \(\d+\.\d, \d+\.\d\): \d+\.\d+ camera px.*: (pass|FAIL)", timeout=60_000)
+            see(page, r"Pixel check \(\d+\.\d, \d+\.\d\): \d+\.\d+ camera px.*: (pass|FAIL)", timeout=WAIT_MS)
             print("clicked at", x, box["y"] + box["height"] / 2, "canvas", box)
             time.sleep(1.5)
             page.screenshot(path=str(tmp_path / "clicked.png"))
@@ -224,7 +231,7 @@ def test_network_panel_needs_the_access_code(tmp_path):
             click(op, "Open the panel")
             see(op, r"no RealSense camera is connected, so the station uses the simulated rig")
             see(op, r"only browsers that gave the access code see this panel")
-            expect(op.get_by_role("button", name="Check rig", exact=True)).to_be_visible(timeout=15_000)
+            expect(op.get_by_role("button", name="Check rig", exact=True)).to_be_visible(timeout=WAIT_MS)
             click(op, "Check rig")
             see(op, r"Check the rig: camera ok")
             # a second browser opening the printed address gets in at once, and sees what the operator did

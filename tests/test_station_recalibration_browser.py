@@ -11,12 +11,12 @@ import time
 import pytest
 from playwright.sync_api import expect, sync_playwright
 
-from tests._station_helpers import StationProcess, launch_chromium
+from tests._station_helpers import WAIT_MS, until, StationProcess, launch_chromium
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
-def see(page, pattern, timeout=30_000):
+def see(page, pattern, timeout=WAIT_MS):
     expect(page.get_by_text(re.compile(pattern)).first).to_be_visible(timeout=timeout)
 
 
@@ -40,15 +40,15 @@ def test_recalibration_checklist_from_the_panel(tmp_path):
             assert not (folder / "recalibration.json").exists()
             page.get_by_role("button", name="Start check", exact=True).click()
             # the check's verdict waits for the operator, nothing is written before
-            see(page, r"projector: moved", timeout=120_000)
+            see(page, r"projector: moved", timeout=WAIT_MS)
             see(page, r"verdict: moved")
             expect(page.get_by_role("button", name="Accept verdict", exact=True)).to_be_visible()
             assert not (folder / "recalibration.json").exists()
             page.screenshot(path=str(tmp_path / "verdict.png"))
             page.get_by_role("button", name="Accept verdict", exact=True).click()
             see(page, r"Re-measure what moved.*projector")
-            see(page, r"projector rot deg: 1-sigma \d+\.\d+ / target \d+\.\d+", timeout=120_000)
-            see(page, r"Compare.*\(ok\)", timeout=180_000)
+            see(page, r"projector rot deg: 1-sigma \d+\.\d+ / target \d+\.\d+", timeout=WAIT_MS)
+            see(page, r"Compare.*\(ok\)", timeout=WAIT_MS)
             see(page, r"projector moved \d+\.\d+ \w+ \(1-sigma \d+\.\d+\), turned (0\.9|1\.0)\d+ deg")
             see(page, r"files written: recalibration\.json, calibration\.json, previous/calibration\.json")
             page.screenshot(path=str(tmp_path / "compared.png"))
@@ -83,7 +83,7 @@ def test_unchanged_signoff_from_the_panel(tmp_path):
             page.goto(st.url)
             see(page, r"press \*?Start check")
             page.get_by_role("button", name="Start check", exact=True).click()
-            see(page, r"verdict: unchanged", timeout=120_000)
+            see(page, r"verdict: unchanged", timeout=WAIT_MS)
             for part in ("camera", "mirror", "projector"):
                 see(page, rf"{part}: unchanged")
             sign = page.get_by_role("button", name="Sign off: unchanged", exact=True)
@@ -92,7 +92,7 @@ def test_unchanged_signoff_from_the_panel(tmp_path):
             time.sleep(1.0)  # the flow waits for the technician: nothing is written before the sign-off
             assert not (folder / "recalibration.json").exists() and not (folder / "calibration.json").exists()
             sign.click()
-            see(page, r"Compare.*unchanged \(ok\)", timeout=60_000)
+            see(page, r"Compare.*unchanged \(ok\)", timeout=WAIT_MS)
             see(page, r"no part moved: calibration\.json is the previous calibration")
             see(page, r"files written: recalibration\.json, calibration\.json, previous/calibration\.json$")
             see(page, r"Recalibration of.*✔ done")

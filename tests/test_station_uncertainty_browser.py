@@ -12,7 +12,7 @@ import pytest
 from playwright.sync_api import expect, sync_playwright
 
 from calib.quality.projection_uncertainty import large_regions
-from tests._station_helpers import StationProcess, launch_chromium
+from tests._station_helpers import WAIT_MS, until, StationProcess, launch_chromium
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -31,12 +31,12 @@ def test_projection_uncertainty_is_shown_after_a_calibration(tmp_path):
             shown = {}
             for dev in ("camera", "projector"):
                 line = page.get_by_text(re.compile(NUMBERS.format(dev=dev))).first
-                expect(line).to_be_visible(timeout=120_000)
+                expect(line).to_be_visible(timeout=WAIT_MS)
                 shown[dev] = re.search(NUMBERS.format(dev=dev), line.inner_text()).groups()
                 # the heat map under its label: a real picture, not the 8x8 placeholder
                 img = page.locator(f"xpath=//p[normalize-space()='{dev} projection uncertainty']"
                                    "/following-sibling::div//img").first
-                expect(img).to_be_visible(timeout=30_000)
+                expect(img).to_be_visible(timeout=WAIT_MS)
                 img.scroll_into_view_if_needed()
                 assert img.evaluate("e => e.naturalWidth") >= 300
                 pix = cv2.imdecode(np.frombuffer(img.screenshot(), np.uint8), cv2.IMREAD_COLOR)

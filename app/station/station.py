@@ -46,6 +46,7 @@ from calib.detection.detect import DetectionFailure, detect_capture
 from calib.errors import ProcamError, SessionError, SpecError
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
+from drivers.clock import clock_of
 from drivers.errors import DeviceDisconnected, DeviceError
 
 
@@ -99,6 +100,7 @@ class Station:
     def __init__(self, rig, machine: SessionMachine, options: StationOptions | None = None,
                  log: Callable[[str], None] | None = None):
         self.rig = rig
+        self.clock = clock_of(rig.camera)  # frame and presentation times (simulated time on the simulated rig)
         self.machine = machine
         self.options = options or StationOptions()
         self.kind = getattr(rig, "kind", "sim")
@@ -179,7 +181,7 @@ class Station:
         """The projector image (visible from `visible_s`) or the board (now) changed: frames exposed
         before no longer count."""
         self._min_frame = self._last_frame + self.options.settle_frames
-        self._min_start_s = max(self._min_start_s, time.monotonic() if visible_s is None else float(visible_s))
+        self._min_start_s = max(self._min_start_s, self.clock.now() if visible_s is None else float(visible_s))
         self.autocap.reset()
         self._frames_on_target = 0
         self._similar_frames = 0
@@ -524,7 +526,7 @@ class Station:
         frame = self._grab()
         if frame is None:
             return None
-        now = time.monotonic()
+        now = self.clock.now()
         det, decision = None, None
         accepted = self.accepts(frame)
         if target is not None and accepted:  # a frame exposed before the last change is not even detected

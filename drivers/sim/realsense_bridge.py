@@ -64,6 +64,11 @@ class SimRealSenseDevice:
     module doc). `unplug()` / `replug()` take it away and bring a fresh one (controls at their defaults)."""
 
     def __init__(self, sim_camera, fps: int = 30, serial: str = "SIM-D455-0001"):
+        from drivers.clock import clock_of
+
+        if clock_of(sim_camera).simulated:
+            raise DeviceError("the RealSense emulation needs a simulated camera on the host's clock (librealsense "
+                              "stamps frames on it): open the simulated rig with clock=drivers.clock.MONOTONIC")
         self.rs = _rs()
         self.sim_camera = sim_camera
         self.fps = int(fps)
@@ -344,6 +349,10 @@ def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: 
     from drivers.sim.rig import open_sim_rig
 
     args = () if scenario is None else (scenario,)
+    from drivers.clock import MONOTONIC
+
+    # librealsense stamps frames on the host's clock: the simulated hardware behind it must keep the same
+    settings.setdefault("clock", MONOTONIC)
     sim = open_sim_rig(*args, seed=seed, quality=quality, **settings)
     sim.camera.start()
     return SimRealSenseRig(sim, fps)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 
 import numpy as np
 
@@ -25,6 +24,7 @@ from calib.models.camera import CameraModel
 from calib.models.result import CalibrationResult
 from calib.transforms import make_T, rotation_about, rotation_angle_deg
 from drivers.base import Frame
+from drivers.clock import Clock, SimClock
 from drivers.errors import DeviceError, DeviceTimeout
 from drivers.sim.hardware import (
     AE_TARGET_LEVEL,
@@ -80,6 +80,11 @@ class SimCamera:
         self.settings_timeline = CameraSettingsTimeline(rig.hardware)
 
     @property
+    def clock(self) -> Clock:
+        """The rig's simulated clock: frame times are on it (drivers.clock)."""
+        return self._rig.clock
+
+    @property
     def size(self) -> tuple[int, int]:
         return self._rig.scenario.rig.camera.size
 
@@ -92,7 +97,7 @@ class SimCamera:
         self._rig.renderer.warm_up()
         if not self._running:  # the clock starts; after a stop, frame numbers go on after the last one
             self._floor = self._frame_number + 1 if self._cached is not None else 0
-            self._t0 = time.monotonic() - self._floor * self._rig.hardware.period_s
+            self._t0 = self._rig.clock.now() - self._floor * self._rig.hardware.period_s
             self._cached = None
         self._running = True
 
@@ -118,16 +123,16 @@ class SimCamera:
             return self._ideal_frame(newer_than)
         hw = self._rig.hardware
         with self._lock:
-            now = time.monotonic()
+            now = self._rig.clock.now()
             n = max(self._newest_delivered(now), self._floor)
             if newer_than is not None:  # the oldest frame newer than that still in the driver's queue
                 n = max(int(newer_than) + 1, n - (FRAME_QUEUE - 1))
             delivered = self._t0 + (n + 1) * hw.period_s
             if delivered - now > timeout_s:
-                time.sleep(max(0.0, timeout_s))
+                self._rig.clock.sleep(max(0.0, timeout_s))
                 raise DeviceTimeout(f"no simulated camera frame newer than {newer_than} within {timeout_s:g} s")
             if delivered > now:
-                time.sleep(delivered - now)  # no frame from the future
+                self._rig.clock.sleep(delivered - now)  # no frame from the future
             if self._cached is not None and self._cached.frame_number == n:
                 return self._cached
             frame = self._clocked_frame(n)
@@ -139,7 +144,9 @@ class SimCamera:
         with self._lock:
             n = max(self._frame_number, -1 if newer_than is None else int(newer_than)) + 1
             self._frame_number = n
-            t = time.monotonic()
+            if self._rig.clock.simulated:  # a frame takes its period, never waits
+                self._rig.clock.advance(self._rig.hardware.period_s)
+            t = self._rig.clock.now()
             with self._rig._lock:
                 tk = self._rig.projector.ticket
             image, meta = self._rig._render_frame(n)
@@ -175,18 +182,18 @@ class SimCamera:
         return {"exposure_us": EXPOSURE_LIMITS_US, "gain": GAIN_LIMITS}
 
     def set_auto_exposure(self, enabled: bool) -> None:
-        self.settings_timeline.set(time.monotonic(), auto_exposure=bool(enabled))
+        self.settings_timeline.set(self._rig.clock.now(), auto_exposure=bool(enabled))
 
     def set_manual_exposure(self, exposure_us: float, gain: float) -> dict:
         lo, hi, step = EXPOSURE_LIMITS_US
         glo, ghi, gstep = GAIN_LIMITS
         e = float(np.clip(round(float(exposure_us) / step) * step, lo, hi))
         g = float(np.clip(round(float(gain) / gstep) * gstep, glo, ghi))
-        self.settings_timeline.set(time.monotonic(), auto_exposure=False, exposure_us=e, gain=g)
+        self.settings_timeline.set(self._rig.clock.now(), auto_exposure=False, exposure_us=e, gain=g)
         return {"exposure_us": e, "gain": g}
 
     def set_emitter(self, enabled: bool) -> None:
-        self.settings_timeline.set(time.monotonic(), emitter_enabled=bool(enabled))
+        self.settings_timeline.set(self._rig.clock.now(), emitter_enabled=bool(enabled))
 
     def factory_intrinsics(self) -> CameraModel | None:
         return self.model if self._expose else None
@@ -224,7 +231,12 @@ class SimProjector:
         self._image = np.zeros((H, W), np.uint8)
         self._image.setflags(write=False)
         self.settle_s = 0.0
-        self.timeline = ProjectorTimeline(rig.hardware, rig.scenario.seed, time.monotonic(), self._image)
+        self.timeline = ProjectorTimeline(rig.hardware, rig.scenario.seed, self._rig.clock.now(), self._image)
+
+    @property
+    def clock(self) -> Clock:
+        """The rig's simulated clock: presentation times are on it (drivers.clock)."""
+        return self._rig.clock
 
     @property
     def size(self) -> tuple[int, int]:
@@ -261,7 +273,7 @@ class SimProjector:
             self._image = img
             self._ticket += 1
             t = self._ticket
-            self.timeline.add(t, img, time.monotonic())
+            self.timeline.add(t, img, self._rig.clock.now())
         return t
 
     def wait_presented(self, ticket: int, timeout_s: float = 2.0) -> float:
@@ -269,11 +281,11 @@ class SimProjector:
         if swap is None:
             raise DeviceError(f"unknown projector ticket {ticket}")
         visible = swap + float(self.settle_s)
-        delay = visible - time.monotonic()
+        delay = visible - self._rig.clock.now()
         if delay > timeout_s:
             raise DeviceTimeout(f"projector image {ticket} is not visible within {timeout_s:g} s")
         if delay > 0:
-            time.sleep(delay)
+            self._rig.clock.sleep(delay)
         return visible
 
     def true_visible_s(self, ticket: int) -> float:
@@ -353,7 +365,8 @@ class SimRig:
 
     def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
-                 latency_ms: float | None = None, hardware: HardwareModel | None = None, **settings):
+                 latency_ms: float | None = None, hardware: HardwareModel | None = None,
+                 clock: Clock | None = None, realtime: bool = True, **settings):
         if quality not in QUALITIES:
             raise SpecError(f"unknown quality '{quality}' (one of {', '.join(QUALITIES)})")
         self.scenario = scenario
@@ -383,6 +396,9 @@ class SimRig:
         self._frames_since_move = 0
         self._move_id = 0
         self._other_mirror: dict = {}
+        #: the one clock camera, projector and operator share: simulated time (drivers.clock), so a
+        #: starved CPU changes nothing the simulated hardware does
+        self.clock = clock if clock is not None else SimClock(realtime=realtime)
         self.camera = SimCamera(self, expose_intrinsics)
         self.projector = SimProjector(self)
         self.operator = SimOperator(self, settling_frames)
@@ -507,7 +523,9 @@ def open_sim_rig(scenario: str = DEFAULT_SCENARIO, seed: int = 0, quality: str =
                  **settings) -> SimRig:
     """A simulated rig for a named scenario. Keyword settings: expose_intrinsics, settling_frames,
     motion_jitter_mm, ideal (no latency, no frame clock, no exposure model: the fast mode for unit tests),
-    latency_ms (the projector's latency; default drawn in 60-120 ms from the seed), and any RenderSettings field (ambient, projector_gain, blur_sigma_px, read_noise_dn,
+    latency_ms (the projector's latency; default drawn in 60-120 ms from the seed), realtime (False: the
+    simulated clock never waits for the wall clock; drivers.clock.SimClock), clock (another clock: the
+    RealSense emulation runs the rig on drivers.clock.MONOTONIC, the clock librealsense stamps on), and any RenderSettings field (ambient, projector_gain, blur_sigma_px, read_noise_dn,
     electrons_per_dn, ...). bump: 'projector' | 'mirror' | 'camera' | 'none' (drivers.sim.bump): the
     rig as it is after that part was bumped on site; its ground truth is the bumped rig."""
     sc = get_scenario(scenario, seed)
