@@ -40,14 +40,16 @@ METHODS: dict[str, Method] = {"paper": calibrate_paper, "joint": calibrate_joint
 TRUST_MODES = ("check", "accept", None)
 
 
-def apply_trust_check(result: CalibrationResult, trust: str | None = "check") -> CalibrationResult:
+def apply_trust_check(result: CalibrationResult, trust: str | None = "check",
+                      observations: SessionObservations | None = None) -> CalibrationResult:
     """The result with its trust report in diagnostics["trust"]; raises UntrustedCalibration (carrying
-    the report and that result) when it fails and `trust` is "check"."""
+    the report and that result) when it fails and `trust` is "check". With the `observations` it came
+    from, the check also casts them through the result (calib.quality.trust)."""
     if trust not in TRUST_MODES:
         raise CalibrationError(f"unknown trust mode '{trust}' (check, accept or None)")
     if trust is None:
         return result
-    report = check_calibration(result)
+    report = check_calibration(result, observations=observations)
     if not report.passed and trust == "accept":
         report = replace(report, accepted_by_user=True)
     result = result.with_(diagnostics=dict(result.diagnostics, trust=report.to_dict()))
@@ -70,7 +72,7 @@ def calibrate_observations(obs: SessionObservations, method: str = "joint", came
     timing = dict(diag.get("timing_s", {}))
     timing["total"] = round(time.perf_counter() - t0, 4)
     diag["timing_s"] = timing
-    return apply_trust_check(result.with_(diagnostics=diag), trust)
+    return apply_trust_check(result.with_(diagnostics=diag), trust, obs)
 
 
 def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, workers: int = 2,
@@ -104,7 +106,7 @@ def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, wor
     diag = dict(result.diagnostics)
     diag["timing_s"] = dict(diag.get("timing_s", {}), detection=round(t_detect, 4))
     diag["session"] = str(Path(folder))
-    return apply_trust_check(result.with_(skipped=tuple(skipped), diagnostics=diag), trust)
+    return apply_trust_check(result.with_(skipped=tuple(skipped), diagnostics=diag), trust, obs)
 
 
 # ---- camera intrinsics from a file ------------------------------------------------------------------

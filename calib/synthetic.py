@@ -414,3 +414,76 @@ def imaged_circle_centroids(rig: SyntheticRig, T_cam_board: np.ndarray, q_px: np
     c = x * y1 - x1 * y
     a6 = 3.0 * c.sum(axis=1)
     return np.column_stack([((x + x1) * c).sum(axis=1) / a6, ((y + y1) * c).sum(axis=1) / a6])
+
+
+# ---- a family of random, physically valid rigs (the trust check's property test) ----------------------
+_CAMERA_SIZES = ((640, 480), (1280, 720), (1280, 800), (1920, 1080), (2448, 2048))
+_PROJECTOR_SIZES = ((1280, 800), (1920, 1080), (1024, 768), (3840, 2160))
+
+
+def random_session(seed: int, per_position: int = 1, mirror_count: int = 6) -> SyntheticSession:
+    """A random rig of the family valid rigs are drawn from, with a session on it: a direct rig (camera
+    and projector side by side, 0-60 deg between their axes, 5 cm to 3 m apart) or a mirrored one (60-180
+    deg); cameras from 35 to 110 deg of horizontal field of view with distortion that does not fold the
+    image; projectors from short throw (0.3) to long (2.2), lens shift up to 15% of the image beyond the
+    bottom edge; boards of 20-80 mm squares held as close as the projector's throw puts the pattern on
+    their blank area, tilted up to 20-45 deg. Deterministic in `seed`; a draw for which no session is
+    possible (no board pose lights the blank area, no mirror placement seen twice) is drawn again."""
+    from calib.quality.trust import radial_fold_fraction
+
+    rng = np.random.default_rng([seed, 7707])
+    for _ in range(200):
+        cw, ch = _CAMERA_SIZES[rng.integers(len(_CAMERA_SIZES))]
+        hfov = rng.uniform(35.0, 110.0)
+        fx = (cw / 2) / np.tan(np.radians(hfov) / 2)
+        k1 = rng.uniform(-0.25, 0.1) * (1.0 if hfov > 60 else 0.5)
+        cam = CameraModel(cw, ch, [[fx, 0, (cw - 1) / 2 + rng.uniform(-0.03, 0.03) * cw],
+                                   [0, fx * rng.uniform(0.997, 1.003), (ch - 1) / 2 + rng.uniform(-0.03, 0.03) * ch],
+                                   [0, 0, 1]],
+                          [k1, rng.uniform(-0.03, 0.08), rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3), 0.0])
+        pw, ph = _PROJECTOR_SIZES[rng.integers(len(_PROJECTOR_SIZES))]
+        throw = rng.choice([rng.uniform(0.3, 0.6), rng.uniform(0.6, 2.2)])  # short-throw projectors too
+        pf = throw * pw
+        proj = CameraModel(pw, ph, [[pf, 0, (pw - 1) / 2 + rng.uniform(-0.05, 0.05) * pw],
+                                    [0, pf * rng.uniform(0.998, 1.002), ph * rng.uniform(0.5, 1.15)], [0, 0, 1]],
+                           [rng.uniform(-0.08, 0.08), rng.uniform(-0.05, 0.05), 0.0, 0.0, 0.0])
+        if radial_fold_fraction(cam) is not None or radial_fold_fraction(proj) is not None:
+            continue
+        pattern = PatternSpec.default_for(pw, ph)
+        extent_px = float(np.ptp(pattern.points_px(pw, ph, 0), axis=0).max()) + 2 * pattern.radius_px
+        square = rng.uniform(20.0, 80.0)
+        board = CharucoSpec(8, 6, "DICT_5X5_50", square, 0.5 * square, "mm")
+        # the pattern covers about half the board's height at the board's distance from the projector
+        D = rng.uniform(0.35, 0.6) * 6 * square * pf / extent_px
+        layout = BoardLayout(board, blank_width=max(6 * square, 1.2 * D * extent_px / pf), gap=0.4 * square)
+        try:
+            if rng.uniform() < 0.35:
+                # side by side: the board as far from the camera as from the projector, give or take
+                a = np.radians(rng.uniform(0.5, 60.0))
+                baseline = float(np.clip(D * np.sin(a), 50.0, 3000.0))
+                dist_cam = float(np.sqrt(max(D * D - baseline * baseline, (0.3 * D) ** 2)))
+                angle = float(np.degrees(np.arctan2(baseline, dist_cam)))
+                rig = make_direct_rig(cam, proj, board_distance_mm=float(dist_cam), baseline_mm=baseline)
+                mirror_board = None
+            else:
+                angle = rng.uniform(60.0, 180.0)
+                mirror_d = rng.uniform(200.0, 900.0)
+                rig = make_rig(angle, cam, proj, mirror_distance_mm=mirror_d,
+                               board_distance_mm=rng.uniform(250.0, 1500.0), projector_distance_mm=float(D),
+                               mirror_size_mm=(rng.uniform(400, 900), rng.uniform(300, 600)))
+                ms = rng.uniform(12.0, 30.0)
+                mirror_board = CharucoSpec(8, 6, "DICT_5X5_50", ms, 0.5 * ms, "mm")
+            poses = projector_poses(rig, layout, pattern, per_position, int(rng.integers(1 << 30)),
+                                    max_tilt_deg=float(rng.uniform(20.0, 45.0)))
+            mposes, method = [], None
+            if rig.mirror is not None:
+                method = "real-virtual" if rng.uniform() < 0.7 else "real-mirror"
+                mposes = mirror_poses(rig, mirror_board, method, mirror_count, int(rng.integers(1 << 30)), 3.0)
+        except RuntimeError:
+            continue
+        return SyntheticSession(rig, layout, mirror_board, pattern, poses, mposes, method,
+                                3.0 if method == "real-mirror" else 0.0,
+                                extras={"seed": seed, "hfov_deg": float(hfov), "throw": float(throw),
+                                        "angle_deg": float(angle),
+                                        "baseline_mm": float(np.linalg.norm(rig.T_cam_proj[:3, 3]))})
+    raise RuntimeError(f"no valid rig drawn for seed {seed}")

@@ -12,7 +12,7 @@ from calib.errors import CalibrationError, UntrustedCalibration
 from calib.models.observations import BoardObservation, ProjectorView
 from calib.models.result import CalibrationResult, MirrorPlane
 from calib.pipeline import calibrate_observations
-from calib.quality.trust import CODES, TrustThresholds, check_calibration, radial_fold_fraction
+from calib.quality.trust import CODES, TrustThresholds, check_calibration, field_of_view_deg, radial_fold_fraction
 from calib.synthetic import SyntheticSession, make_rig, observe
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
@@ -70,7 +70,8 @@ def test_copied_projector_capture_is_rejected(method):
     assert set(e.codes) <= set(CODES)
     if method == "paper":  # it runs to the end with an absurd projector: fy ~ 2.5e5 px, stereo RMS ~ 33 px
         assert {"focal_out_of_range", "aspect_ratio", "rms_high"} <= set(e.codes)
-        assert e.result.projector.fy > TrustThresholds().fx_per_width_max * e.result.projector.width
+        pj = e.result.projector
+        assert field_of_view_deg(pj.fy, pj.cy, pj.height) < TrustThresholds().fov_min_deg
     else:  # the refinement meets NaN from that starting point: no crash, the reason, the start kept
         # (OpenCV's threads make the degenerate starting point vary from run to run: the refinement either
         # meets NaN and reports its absurd start, or ends absurd itself)
@@ -159,7 +160,8 @@ def test_uncertainty_and_conditioning_checks(truth):
     cov = np.eye(3)
     unc = {"T_cam_proj": {"t_total": th.sigma_t_mm * 24, "rot_total_deg": 0.01},
            "camera": {"fx": 0.2, "fy": 0.2, "cx": 0.3, "cy": 0.2},
-           "projector": {"fx": th.sigma_intrinsics_px * 2, "fy": 1, "cx": 1, "cy": 1},
+           "projector": {"fx": max(th.sigma_intrinsics_px, th.sigma_intrinsics_fraction * truth.projector.fx) * 2,
+                         "fy": 1, "cx": 1, "cy": 1},
            "mirror": {"normal_deg": 0.03, "d": 0.1}, "covariance": {"matrix": cov.tolist()}}
     rep = check_calibration(truth.with_(uncertainty=unc))
     assert rep.codes == ["uncertainty_pose", "uncertainty_intrinsics"]
@@ -167,7 +169,10 @@ def test_uncertainty_and_conditioning_checks(truth):
     # a cm session: the same number is 10x the length
     unc_cm = dict(unc, T_cam_proj={"t_total": th.sigma_t_mm / 5, "rot_total_deg": 0.01},
                   projector={"fx": 1, "fy": 1, "cx": 1, "cy": 1})
-    assert check_calibration(truth.with_(uncertainty=unc_cm, units="cm")).codes == ["uncertainty_pose"]
+    T_cm = np.array(truth.T_cam_proj, float)
+    T_cm[:3, 3] /= 10.0  # the same rig, its lengths in cm
+    truth_cm = truth.with_(T_cam_proj=T_cm, mirror=MirrorPlane(truth.mirror.normal, truth.mirror.d / 10.0), units="cm")
+    assert check_calibration(truth_cm.with_(uncertainty=unc_cm)).codes == ["uncertainty_pose"]
     assert check_calibration(truth.with_(uncertainty=unc_cm)).passed
     # a covariance that could not be computed (NaN) fails, it does not pass silently
     unc_nan = dict(unc_cm, T_cam_proj={"t_total": float("nan"), "rot_total_deg": 0.01},

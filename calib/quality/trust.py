@@ -38,6 +38,7 @@ CODES = {
     "mirror_behind_camera": "the mirror plane is not in front of the camera",
     "projector_too_far": "the projector is absurdly far from the camera",
     "board_behind_projector": "boards the projector lit are behind it",
+    "observations_disagree": "the result does not reproduce the pattern points it was calibrated from",
     "uncertainty_pose": "the camera-projector pose is far more uncertain than a full session's",
     "uncertainty_intrinsics": "intrinsics far more uncertain than a full session's",
     "uncertainty_mirror": "the mirror normal is far more uncertain than a full session's",
@@ -51,17 +52,22 @@ class TrustThresholds:
     simulated full sessions at 0.3 px noise (benchmarks/trust_thresholds.py; the values measured are in
     docs/CALIBRATION.md): what a full session would give with 3 px of noise."""
 
-    fx_per_width_min: float = 0.15  # horizontal field of view below 146 deg
-    fx_per_width_max: float = 15.0  # ... above 3.8 deg
+    fov_min_deg: float = 1.0  # the angle the image spans between its edges (either axis), lens shift included
+    fov_max_deg: float = 175.0  # a pinhole model never reaches 180 deg; this far only from an absurd focal
     aspect_min: float = 0.8
     aspect_max: float = 1.25
     principal_point_margin: float = 1.0  # image sizes beyond the edges (lens shift of offset projectors)
     rms_camera_px: float = 3.0  # residuals measured in camera pixels (every joint class; paper camera)
     rms_projector_px: float = 20.0  # the paper method's projector and stereo RMS (projector pixels)
     max_projector_distance_mm: float = 10000.0
-    sigma_t_mm: float = 20.0  # 1-sigma of T_cam_proj's translation (all axes together)
+    sigma_t_mm: float = 20.0  # 1-sigma of T_cam_proj's translation (all axes together) ...
+    sigma_t_fraction: float = 0.02  # ... or this share of the projector's distance, whichever is larger
+    observation_rms_px: float = 1.5  # the result re-derives the pattern points it was given (camera px, median view) ...
+    observation_rms_factor: float = 4.0  # ... or this many times the camera-pixel RMS it recorded, if larger
+    min_mirror_distance_mm: float = 1.0  # a mirror plane through the camera centre is no mirror
     sigma_rot_deg: float = 1.5  # 1-sigma of T_cam_proj's rotation
-    sigma_intrinsics_px: float = 50.0  # 1-sigma of any of fx, fy, cx, cy (joint covariance)
+    sigma_intrinsics_px: float = 50.0  # 1-sigma of any of fx, fy, cx, cy (joint covariance) ...
+    sigma_intrinsics_fraction: float = 0.05  # ... or this share of the device's fx, whichever is larger
     sigma_intrinsics_opencv_px: float = 500.0  # ... as OpenCV reports it (paper method, looser: see doc)
     sigma_mirror_normal_deg: float = 1.0
     condition_max: float = 1e8  # of the correlation matrix of the geometric parameters (not distortion)
@@ -180,9 +186,11 @@ class TrustReport:
 
 
 def check_calibration(result, thresholds: TrustThresholds | None = None,
-                      quality_thresholds: QualityThresholds | None = None) -> TrustReport:
+                      quality_thresholds: QualityThresholds | None = None, observations=None) -> TrustReport:
     """Check a CalibrationResult (any method) for the failures listed in CODES, and its quality
-    (QUALITY_CODES); never raises on a bad result (that is what the report is for)."""
+    (QUALITY_CODES); never raises on a bad result (that is what the report is for). With the
+    `observations` it was calibrated from (calib.models.observations.SessionObservations), the result
+    must also reproduce them (observations_disagree) and the lit points are the pattern's own."""
     th = thresholds or TrustThresholds()
     qth = quality_thresholds or QualityThresholds()
     reasons: list[TrustReason] = []
@@ -195,10 +203,13 @@ def check_calibration(result, thresholds: TrustThresholds | None = None,
     if finite:
         fail("non_finite", f"non-finite (NaN or infinite) values in {', '.join(finite)}")
         return TrustReport(tuple(reasons), metrics, th)
+    reach = _observed_reach(result, observations) if observations is not None else {}
     for name, dev in (("camera", result.camera), ("projector", result.projector)):
-        _check_device(name, dev, th, fail, metrics)
+        _check_device(name, dev, th, fail, metrics, reach.get(name, 1.0))
     _check_rms(result, th, fail, metrics)
-    _check_geometry(result, th, fail, metrics)
+    _check_geometry(result, th, fail, metrics, observations is None)
+    if observations is not None:
+        _check_observations(result, observations, th, fail, metrics)
     _check_uncertainty(result, th, fail, metrics)
     quality = check_quality(result, metrics, qth)
     return TrustReport(tuple(reasons), metrics, th, quality=quality, quality_thresholds=qth)
@@ -318,7 +329,36 @@ def _finite_parameters(result) -> list[str]:
     return bad
 
 
-def _check_device(name: str, dev: CameraModel, th: TrustThresholds, fail, metrics: dict) -> None:
+def _observed_reach(result, obs) -> dict:
+    """How far out each device's observations reach, as a fraction of the distance to its image's farthest
+    corner (the radius radial_fold_fraction measures in): a distortion polynomial is only determined where
+    there are observations, so it may bend back beyond them without harm to any pixel that was measured."""
+    cam_px = [np.asarray(pv.board.corners_px, float).reshape(-1, 2) for pv in obs.projector_views]
+    cam_px += [np.asarray(pv.pattern_cam_px, float).reshape(-1, 2) for pv in obs.projector_views]
+    for mv in obs.mirror_views:
+        for b in (mv.real, getattr(mv, "virtual", None)):
+            if b is not None:
+                cam_px.append(np.asarray(b.corners_px, float).reshape(-1, 2))
+    proj_px = [np.asarray(pv.pattern_proj_px, float).reshape(-1, 2) for pv in obs.projector_views]
+    out = {}
+    for name, dev, pts in (("camera", result.camera, cam_px), ("projector", result.projector, proj_px)):
+        if not pts:
+            continue
+        uv = np.concatenate(pts)
+        uv = uv[np.all(np.isfinite(uv), axis=1)]
+        if len(uv) == 0 or dev.fx <= 0 or dev.fy <= 0:
+            continue
+        corners = np.array([[-0.5, -0.5], [dev.width - 0.5, -0.5], [-0.5, dev.height - 0.5],
+                            [dev.width - 0.5, dev.height - 0.5]])
+        scale = np.array([dev.fx, dev.fy])
+        r_obs = float(np.max(np.hypot(*((uv - [dev.cx, dev.cy]) / scale).T)))
+        r_max = float(np.max(np.hypot(*((corners - [dev.cx, dev.cy]) / scale).T)))
+        out[name] = min(1.0, r_obs / r_max) if r_max > 0 else 1.0
+    return out
+
+
+def _check_device(name: str, dev: CameraModel, th: TrustThresholds, fail, metrics: dict,
+                  reach: float = 1.0) -> None:
     w, h = dev.width, dev.height
     fx, fy, cx, cy = dev.fx, dev.fy, dev.cx, dev.cy
     metrics[f"{name}.fx_per_width"] = fx / w
@@ -327,11 +367,15 @@ def _check_device(name: str, dev: CameraModel, th: TrustThresholds, fail, metric
         fail("focal_nonpositive", f"the {name}'s focal length is not positive (fx {fx:.4g}, fy {fy:.4g} px)",
              min(fx, fy), 0.0)
         return
-    lo, hi = th.fx_per_width_min * w, th.fx_per_width_max * w
-    for axis, f in (("fx", fx), ("fy", fy)):
-        if not lo <= f <= hi:
-            fail("focal_out_of_range", f"the {name}'s {axis} of {f:.4g} px is outside {lo:.0f}-{hi:.0f} px "
-                 f"(a field of view no {name} has)", f, hi if f > hi else lo)
+    # the field of view is the angle between the image's edges seen from the lens: with the principal
+    # point where it is (a projector's lens shift puts it near or beyond an edge), not fx / width
+    for axis, f, c, n in (("fx", fx, cx, w), ("fy", fy, cy, h)):
+        span = field_of_view_deg(f, c, n)
+        metrics[f"{name}.fov_{axis[1]}_deg"] = span
+        if not th.fov_min_deg <= span <= th.fov_max_deg:
+            fail("focal_out_of_range", f"the {name}'s {axis} of {f:.4g} px gives a {span:.3g} deg field of view "
+                 f"across its {n} px (outside {th.fov_min_deg:g}-{th.fov_max_deg:g} deg: no {name} has it)", span,
+                 th.fov_max_deg if span > th.fov_max_deg else th.fov_min_deg)
     if not th.aspect_min <= fy / fx <= th.aspect_max:
         fail("aspect_ratio", f"the {name}'s fy / fx = {fy / fx:.3g} (pixels are square: expected near 1)",
              fy / fx, th.aspect_max if fy / fx > 1 else th.aspect_min)
@@ -341,9 +385,17 @@ def _check_device(name: str, dev: CameraModel, th: TrustThresholds, fail, metric
              f"{w}x{h} image", None, m)
     fold = radial_fold_fraction(dev)
     metrics[f"{name}.fold_at_fraction_of_corner_radius"] = fold
-    if fold is not None:
+    metrics[f"{name}.observed_fraction_of_corner_radius"] = reach
+    if fold is not None and fold < reach:
+        where = "the image corners" if reach >= 1.0 else f"the farthest observation ({100 * reach:.0f}% of that)"
         fail("distortion_folds", f"the {name}'s radial distortion folds the image: the mapping stops "
-             f"increasing at {100 * fold:.0f}% of the distance to the image corners", fold, 1.0)
+             f"increasing at {100 * fold:.0f}% of the distance to the image corners, inside {where}", fold, reach)
+
+
+def field_of_view_deg(f: float, c: float, n: int) -> float:
+    """The angle (deg) between the rays through the two edges (-0.5 and n - 0.5 px) of an image axis of
+    focal length f and principal point c, pinhole model."""
+    return float(np.degrees(np.arctan((c + 0.5) / f) + np.arctan((n - 0.5 - c) / f)))
 
 
 def radial_fold_fraction(dev: CameraModel, samples: int = 4000) -> float | None:
@@ -391,7 +443,7 @@ def _check_rms(result, th: TrustThresholds, fail, metrics: dict) -> None:
                  f"{limit:g}): the observations do not fit one rig", v, limit)
 
 
-def _check_geometry(result, th: TrustThresholds, fail, metrics: dict) -> None:
+def _check_geometry(result, th: TrustThresholds, fail, metrics: dict, lit_from_poses: bool = True) -> None:
     T = np.asarray(result.T_cam_proj, float)
     proj_centre = T[:3, 3]
     mm = _MM_PER_UNIT.get(result.units)
@@ -407,19 +459,87 @@ def _check_geometry(result, th: TrustThresholds, fail, metrics: dict) -> None:
         rays = cam.rays(np.column_stack([us.ravel(), vs.ravel()]))
         hit = float(np.mean(rays @ n < 0))  # the plane's camera side faces the camera: ray meets it at s > 0
         metrics["mirror_fraction_of_view"] = hit
-        if hit == 0.0:
+        d_mm = float(result.mirror.d) * (mm if mm is not None else 1.0)
+        metrics["mirror_distance_mm"] = d_mm
+        if d_mm < th.min_mirror_distance_mm:
+            fail("mirror_behind_camera", f"the mirror plane passes {d_mm:.3g} mm from the camera's centre: a mirror "
+                 "there would reflect nothing the camera sees; the mirror estimate is wrong", d_mm,
+                 th.min_mirror_distance_mm)
+        elif hit == 0.0:
             fail("mirror_behind_camera", "the mirror plane is not in front of the camera (no pixel's ray meets "
                  "it): the mirror estimate is wrong", hit, 0.0)
     diag = result.diagnostics if isinstance(result.diagnostics, dict) else {}
     poses = diag.get("board_poses")
     steps = {pv.get("capture_id"): pv.get("step") for pv in result.per_view if isinstance(pv, dict)}
-    if isinstance(poses, dict) and poses:
+    if lit_from_poses and isinstance(poses, dict) and poses:
         behind = [cid for cid, Tb in poses.items()
                   if steps.get(cid) == "projector" and not _projector_lights_board(result.projector, T, Tb)]
         metrics["boards_behind_projector"] = len(behind)
         if behind:
             fail("board_behind_projector", f"{len(behind)} board(s) the projector lit are behind it "
                  f"({', '.join(behind[:3])}{'...' if len(behind) > 3 else ''})", len(behind), 0.0)
+
+
+def _check_observations(result, obs, th: TrustThresholds, fail, metrics: dict) -> None:
+    """Re-derive every projector view from the result alone: the board's pose from its corners (PnP with
+    the result's camera, through the result's mirror when the view is mirrored), the pattern's projector
+    pixels cast onto that board by the result's projector and T_cam_proj, and imaged by the camera.
+
+    A correct result lands on the observed pattern points within the detection noise; a wrong pose, a
+    wrong mirror or wrong intrinsics does not, whatever residuals the result itself records. The median
+    over the views is judged, so one bad detection is not a bad calibration. The same pass tests the
+    lit points themselves (the pattern's pixels on each board) for lying in front of the projector."""
+    from calib.joint.method import _pnp, _pose_through_mirror
+
+    cam, proj = result.camera, result.projector
+    T = np.asarray(result.T_cam_proj, float)
+    S = result.mirror.reflection() if result.mirror is not None else np.eye(4)
+    corners = obs.projector_board.corner_points()
+    per_view, behind = [], []
+    for pv in obs.projector_views:
+        ids = np.asarray(pv.board.ids, int)
+        if len(ids) < 6 or len(pv.pattern_proj_px) == 0:
+            continue
+        uv = np.asarray(pv.board.corners_px, float)
+        if pv.board.mirrored and result.mirror is None:
+            continue
+        Tb = _pose_through_mirror(cam, S, corners[ids], uv) if pv.board.mirrored else _pnp(cam, corners[ids], uv)
+        if Tb is None:
+            continue
+        T_board_proj = invert_T(Tb) @ T
+        rays = proj.rays(np.asarray(pv.pattern_proj_px, float)) @ T_board_proj[:3, :3].T
+        o = T_board_proj[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -o[2] / rays[:, 2]
+        if not np.all(np.isfinite(t) & (t > 0)):
+            behind.append(pv.capture_id)
+            continue
+        Xb = o + t[:, None] * rays
+        Sv = S if pv.board.mirrored else np.eye(4)
+        X_cam = (Sv @ Tb @ np.column_stack([Xb, np.ones(len(Xb))]).T).T[:, :3]
+        with np.errstate(all="ignore"):
+            pred = cam.project(X_cam)
+            r = np.linalg.norm(pred - np.asarray(pv.pattern_cam_px, float), axis=1)
+        per_view.append(float(np.sqrt(np.mean(r ** 2))) if np.all(np.isfinite(r)) else float("inf"))
+    metrics["boards_behind_projector"] = len(behind)
+    if behind:
+        fail("board_behind_projector", f"{len(behind)} board(s) the projector lit are behind it: its pattern's rays "
+             f"meet them behind the lens ({', '.join(behind[:3])}{'...' if len(behind) > 3 else ''})",
+             len(behind), 0.0)
+    if per_view:
+        med = float(np.median(per_view))
+        metrics["observations.pattern_rms_px"] = med if math.isfinite(med) else float("nan")
+        # noisier detections re-derive less exactly: the limit grows with the residual the result recorded
+        # in camera pixels (joint: every class; paper: the camera's)
+        rms = result.rms if isinstance(result.rms, dict) else {}
+        rec = rms.get("joint", rms.get("camera"))
+        rec = float(rec) if isinstance(rec, (int, float)) and math.isfinite(rec) and rec > 0 else 0.0
+        limit = max(th.observation_rms_px, th.observation_rms_factor * rec)
+        metrics["observations.limit_px"] = limit
+        if not med <= limit:
+            fail("observations_disagree", f"cast through the result, the pattern lands {_fmt(med, 'camera px')} from "
+                 f"where the camera saw it (median of {len(per_view)} views; limit {limit:.3g} px): "
+                 "the poses, the mirror or the intrinsics are wrong", med, limit)
 
 
 def _projector_lights_board(proj: CameraModel, T_cam_proj: np.ndarray, T_cam_board) -> bool:
@@ -446,9 +566,12 @@ def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None
         if isinstance(T.get("t_total"), (int, float)):
             s_t = float(T["t_total"]) * mm
             metrics["sigma.t_mm"] = s_t
-            if not s_t <= th.sigma_t_mm:  # NaN too: a covariance that could not be computed
+            # a far projector is located less precisely by the same poses: the limit grows with its distance
+            lim_t = max(th.sigma_t_mm, th.sigma_t_fraction * float(np.linalg.norm(np.asarray(result.T_cam_proj,
+                                                                                              float)[:3, 3])) * mm)
+            if not s_t <= lim_t:  # NaN too: a covariance that could not be computed
                 fail("uncertainty_pose", f"the projector's position is uncertain by {_fmt(s_t, 'mm')} (1 sigma; limit "
-                     f"{th.sigma_t_mm:g} mm): the poses do not constrain it", s_t, th.sigma_t_mm)
+                     f"{lim_t:.3g} mm): the poses do not constrain it", s_t, lim_t)
         if isinstance(T.get("rot_total_deg"), (int, float)):
             s_r = float(T["rot_total_deg"])
             metrics["sigma.rot_deg"] = s_r
@@ -463,9 +586,12 @@ def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None
             if vals:
                 s = max(vals) if all(math.isfinite(v) for v in vals) else float("inf")
                 metrics[f"sigma.{dev}_intrinsics_px"] = s
-                if not s <= th.sigma_intrinsics_px:
+                # a long focal length (a tele lens, a 4K projector) is as well determined at the same share
+                f_dev = getattr(result, dev).fx
+                lim = max(th.sigma_intrinsics_px, th.sigma_intrinsics_fraction * abs(float(f_dev)))
+                if not s <= lim:
                     fail("uncertainty_intrinsics", f"the {dev}'s intrinsics are uncertain by up to {s:.3g} px "
-                         f"(1 sigma; limit {th.sigma_intrinsics_px:g} px)", s, th.sigma_intrinsics_px)
+                         f"(1 sigma; limit {lim:.3g} px)", s, lim)
         m = unc.get("mirror")
         if isinstance(m, dict) and isinstance(m.get("normal_deg"), (int, float)):
             s_n = float(m["normal_deg"])
