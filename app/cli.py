@@ -81,6 +81,20 @@ def write_traceback(command: str, exc: BaseException) -> str | None:
         return None
 
 
+def terminal_safe(text: str) -> str:
+    """`text` with every control character but newline and tab shown as an escape (\\x1b, \\r, ...):
+    an error message can quote a file name or a session file's value, and neither may drive the terminal
+    (colour, cursor moves, a line overwritten by a carriage return)."""
+    out = []
+    for ch in str(text):
+        o = ord(ch)
+        if ch in "\n\t" or not (o < 32 or 127 <= o < 160):
+            out.append(ch)
+        else:
+            out.append(repr(ch)[1:-1] if o < 256 else f"\\u{o:04x}")
+    return "".join(out)
+
+
 def unexpected_error_line(command: str, exc: BaseException) -> str:
     """One line for an exception procam does not expect: what failed and where the traceback went."""
     path = write_traceback(command, exc)
@@ -106,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._run(args) or 0)
     except ProcamError as e:
-        print(f"procam {args.command}: error: {e}", file=sys.stderr)
+        print(terminal_safe(f"procam {args.command}: error: {e}"), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"procam {args.command}: interrupted", file=sys.stderr)
@@ -120,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
             pass
         return 141
     except Exception as e:  # noqa: BLE001  (the last line of defence: never a bare traceback)
-        print(unexpected_error_line(args.command, e), file=sys.stderr)
+        print(terminal_safe(unexpected_error_line(args.command, e)), file=sys.stderr)
         return 2
 
 

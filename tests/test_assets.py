@@ -249,3 +249,22 @@ def test_sheet_is_the_smallest_that_holds_everything_inside_the_margins(text, un
         smaller = {"a1": "a2", "a2": "a3", "custom": "a0"}[paper]
         with pytest.raises(SpecError, match=f"does not fit {smaller.upper()}"):
             layout_sheet(spec, BlankArea.parse(blank, units) if blank else None, smaller)
+
+
+def test_a_board_of_implausible_size_is_drawn_with_a_warning_naming_the_unit(tmp_path, capsys):
+    """`--board 8x6:DICT_5X5_50:4.43` without `--units cm` is a 35 x 27 mm board: drawn (the operator may
+    mean it) but with a warning that names the unit and the fix; a realistic size gets none."""
+    from app.cli import main
+
+    assert main(["board", "--board", "8x6:DICT_5X5_50:4.43", "--out", str(tmp_path / "small.svg")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: squares of 4.43 mm make a board of 35.44 x 26.58 mm" in err and "add --units cm" in err
+    assert (tmp_path / "small.svg").exists()
+    assert main(["board", "--board", "8x6:DICT_5X5_50:4.43", "--units", "cm", "--out", str(tmp_path / "ok.svg")]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert main(["board", "--board", "8x6:DICT_5X5_50:900", "--out", str(tmp_path / "big.svg")]) == 0
+    err = capsys.readouterr().err
+    assert "larger than any calibration board" in err and "add --units" not in err
+    help_text = subprocess.run([sys.executable, "-m", "app", "board", "--help"], capture_output=True, text=True,
+                               timeout=60).stdout
+    assert "8x6:DICT_5X5_50:44.3 (squares of 44.3 mm" in " ".join(help_text.split())

@@ -423,3 +423,15 @@ def test_board_out_never_replaces_a_session_image(sim_session, capsys):
     assert main(["board", "--assets", str(sim_session / "images" / "assets")]) == 2
     assert "inside the session" in one_error_line(capsys.readouterr().err, "board")
     assert snapshot(sim_session) == before
+
+
+def test_error_lines_never_carry_terminal_control_characters(tmp_path, capsys):
+    """A file name (or a session file's value) quoted in an error is shown with its control characters
+    escaped: it cannot clear the screen, colour the terminal or overwrite the line with a carriage return."""
+    from app.cli import main
+
+    hostile = str(tmp_path / "no\x1b[2J\rsuch\x07")
+    assert main(["calibrate", hostile]) == 2
+    err = capsys.readouterr().err
+    assert "\\x1b[2J\\rsuch\\x07" in err
+    assert not any(ord(c) < 32 and c not in "\n\t" for c in err) and "\x9b" not in err

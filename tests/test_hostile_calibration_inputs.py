@@ -34,3 +34,26 @@ def test_unknown_board_unit_is_refused_naming_the_field(manifest_dict):
     d["mirror_board"]["units"] = "furlong"
     with pytest.raises(FormatError, match="mirror_board.units"):
         SessionManifest.from_dict(d)
+
+
+def test_a_camera_from_a_file_holds_numbers_only():
+    """CameraModel.from_dict reads untrusted files: numpy would turn "600", true and null into numbers;
+    a file that says so is refused naming the field. Absurd but numeric values load (the trust check
+    judges them)."""
+    from calib.errors import FormatError
+    from calib.models.camera import CameraModel
+
+    good = {"width": 1280, "height": 800, "K": [[600, 0, 640], [0, 600, 400], [0, 0, 1]], "dist": [0.1, 0, 0, 0, 0]}
+    assert CameraModel.from_dict(good).fx == 600
+    assert CameraModel.from_dict(dict(good, K=[[-642, 0, 640], [0, 600, 400], [0, 0, 1]])).fx == -642
+    cases = {"K": dict(good, K=[["600", 0, 640], [0, 600, 400], [0, 0, 1]]),
+             "dist": dict(good, dist=[True, 0, 0, 0, 0]),
+             "width": dict(good, width=True),
+             "height": dict(good, height=10 ** 9)}
+    for field, bad in cases.items():
+        with pytest.raises(FormatError, match=f"camera.{field}"):
+            CameraModel.from_dict(bad)
+    with pytest.raises(FormatError, match="last row"):
+        CameraModel.from_dict(dict(good, K=[[600, 0, 640], [0, 600, 400], [0, 0, 2]]))
+    with pytest.raises(FormatError, match="must be an object"):
+        CameraModel.from_dict(["not", "a", "camera"])

@@ -1,6 +1,6 @@
 """`procam board`: a printable board at true scale (PDF, SVG or PNG), or every file of assets/.
 
-`procam board --board 8x6:DICT_5X5_50:4.43 --units cm --out board.pdf` draws the board the station's
+`procam board --board 8x6:DICT_5X5_50:44.3 --out board.pdf` draws the board the station's
 `--board` option describes (the same CharucoSpec and OpenCV board the detector uses: app/board_sheet.py),
 with a 10 cm scale bar, the spec to give the station, and crop marks. `--blank-area WIDTH[:GAP]` adds the
 projector board's blank area, where the projected circle grid lands.
@@ -11,7 +11,29 @@ repository, byte for byte: tests/test_assets.py regenerates and compares).
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
+
+#: squares outside this range (mm) are most likely a length given in the wrong unit
+PLAUSIBLE_SQUARE_MM = (10.0, 500.0)
+
+
+def size_warning(spec) -> str | None:
+    """A warning naming the unit when a board's squares are implausibly small or large (a square of 4.43
+    read as mm when cm was meant), else None."""
+    from calib.models.boards import MM_PER_UNIT
+
+    mm = spec.square_length * MM_PER_UNIT.get(spec.units, 1.0)
+    lo, hi = PLAUSIBLE_SQUARE_MM
+    if lo <= mm <= hi:
+        return None
+    w, h = spec.size
+    alt = [u for u in ("mm", "cm", "m", "in") if u != spec.units
+           and lo <= spec.square_length * MM_PER_UNIT[u] <= hi]
+    hint = f"; if the lengths are in {alt[0]}, add --units {alt[0]}" if alt else ""
+    return (f"squares of {spec.square_length:g} {spec.units} make a board of {w:g} x {h:g} {spec.units}, "
+            f"{'smaller' if mm < lo else 'larger'} than any calibration board ({lo:g}-{hi:g} mm squares){hint}")
+
 
 NAME = "board"
 HELP = "a printable board at true scale (PDF, SVG, PNG), or regenerate assets/"
@@ -28,7 +50,7 @@ PATTERN_SIZES = ((1280, 720), (1920, 1080))  # the default projector resolutions
 
 def add_arguments(p) -> None:
     p.add_argument("--board", metavar="SPEC", help="COLSxROWS:DICT:SQUARE[:MARKER], as given to the station, "
-                   "e.g. 8x6:DICT_5X5_50:4.43 (marker defaults to half the square)")
+                   "e.g. 8x6:DICT_5X5_50:44.3 (squares of 44.3 mm; marker defaults to half the square)")
     p.add_argument("--units", default="mm", help="unit of the board lengths: mm (default), cm, m, in")
     p.add_argument("--blank-area", metavar="WIDTH[:GAP]",
                    help="projector board: a blank area WIDTH wide, GAP (default 20 mm) right of the squares, "
@@ -127,7 +149,7 @@ def run(args) -> int:
         return 0
 
     if not args.board:
-        raise SpecError("give the board: --board COLSxROWS:DICT:SQUARE[:MARKER] (e.g. 8x6:DICT_5X5_50:4.43), "
+        raise SpecError("give the board: --board COLSxROWS:DICT:SQUARE[:MARKER] (e.g. 8x6:DICT_5X5_50:44.3), "
                         "or --assets DIR")
     if not args.out:
         raise SpecError("give the file to write: --out FILE.pdf (or .svg, .png)")
@@ -137,6 +159,9 @@ def run(args) -> int:
     if args.dpi is not None and fmt != ".png":
         raise SpecError(f"--dpi applies to PNG output only; {fmt[1:].upper()} is vector (true size at any zoom)")
     spec = CharucoSpec.parse(args.board, args.units)
+    warning = size_warning(spec)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     blank = _blank_for(spec, args.blank_area)
     data, sheet = board_file(spec, blank, fmt, args.paper.lower(), DEFAULT_DPI if args.dpi is None else args.dpi)
     try:

@@ -20,7 +20,7 @@ def add_arguments(p) -> None:
     p.add_argument("recording", metavar="RECORDING", help="recording folder of numbered PNGs (S... = mirrored)")
     p.add_argument("patterns", metavar="PATTERNS", help="patterns folder named <Name>_<cols>_<rows>, e.g. Asym_4_9")
     p.add_argument("--board", required=True, metavar="SPEC",
-                   help="board of the projector step: COLSxROWS:DICT:SQUARE[:MARKER], e.g. 8x6:DICT_5X5_50:4.43 "
+                   help="board of the projector step: COLSxROWS:DICT:SQUARE[:MARKER], e.g. 8x6:DICT_5X5_50:4.43 with --units cm "
                         "(marker defaults to half the square)")
     p.add_argument("--mirror", metavar="DIR", help="mirror-calibration folder (M... real-virtual, F... real-mirror)")
     p.add_argument("--mirror-board", metavar="SPEC", help="board of the mirror step (default: --board)")

@@ -26,6 +26,27 @@ def _frozen_array(a, shape=None) -> np.ndarray:
     return a
 
 
+#: the largest image side (px) a camera or projector file may state: beyond any sensor or projector
+MAX_IMAGE_SIDE = 65536
+
+
+def _non_number(value) -> str | None:
+    """None when `value` is a number or (nested) list of numbers, else a description of the first other thing."""
+    if isinstance(value, np.ndarray):
+        return None if value.dtype.kind in "iuf" else f"an array of {value.dtype}"
+    if isinstance(value, (np.integer, np.floating)):
+        return None
+    if isinstance(value, (list, tuple)):
+        for v in value:
+            bad = _non_number(v)
+            if bad is not None:
+                return bad
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return f"{type(value).__name__} {value!r}"[:60]
+    return None
+
+
 @dataclass(frozen=True, eq=False)
 class CameraModel:
     width: int
@@ -193,9 +214,19 @@ class CameraModel:
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "camera", path="<dict>") -> "CameraModel":
+        """A camera from a file's dict (untrusted): every number a JSON number (a string, a boolean or null
+        is not one, though numpy would convert them), the image size a positive integer no larger than
+        MAX_IMAGE_SIDE, K's last row (0, 0, 1). Values that are numbers but absurd (a negative focal
+        length) load: the trust check says what is wrong with them."""
+        if not isinstance(d, dict):
+            raise FormatError(path, where, f"must be an object with width, height, K and dist, got {type(d).__name__}")
         for key in ("width", "height", "K", "dist"):
             if key not in d:
                 raise FormatError(path, f"{where}.{key}", "missing")
+        for key in ("K", "dist"):
+            bad = _non_number(d[key])
+            if bad is not None:
+                raise FormatError(path, f"{where}.{key}", f"must hold numbers only, got {bad}")
         try:
             K = np.array(d["K"], float)
         except (TypeError, ValueError):
@@ -208,7 +239,11 @@ class CameraModel:
             raise FormatError(path, f"{where}.dist", "must be a list of numbers") from None
         if dist.size not in _ALLOWED_DIST:
             raise FormatError(path, f"{where}.dist", f"must have 0, 4, 5 or 8 coefficients, got {dist.size}")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0]):
+            raise FormatError(path, f"{where}.K", f"its last row must be [0, 0, 1], got {K[2].tolist()}")
         for key in ("width", "height"):
-            if not isinstance(d[key], int) or d[key] <= 0:
-                raise FormatError(path, f"{where}.{key}", "must be a positive integer")
+            v = d[key]
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 < v <= MAX_IMAGE_SIDE:
+                raise FormatError(path, f"{where}.{key}", f"must be a positive integer up to {MAX_IMAGE_SIDE}, "
+                                  f"got {v!r}")
         return cls(d["width"], d["height"], K, dist)
