@@ -17,7 +17,6 @@ from pathlib import Path
 
 from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target
 from app.station.station import Station
-from drivers.clock import clock_of
 from calib.errors import SessionError
 from calib.formats.fileio import atomic_write_text
 from calib.formats.session import MANIFEST, SessionStore
@@ -25,6 +24,7 @@ from calib.models.boards import CharucoSpec
 from calib.models.observations import STEP_PROJECTOR, VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult
+from drivers.clock import clock_of
 
 PREVIOUS_DIR = "previous"
 RECALIBRATION_FILE = "recalibration.json"

@@ -52,7 +52,7 @@ from calib.models.camera import CameraModel
 from calib.models.observations import BoardObservation, SessionObservations
 from calib.models.result import CalibrationResult, MirrorPlane
 from calib.paper.board_pose import solve_board_pose
-from calib.transforms import make_T, rotation_angle_deg, transform_points
+from calib.transforms import make_T, rays_to_board_plane, rotation_angle_deg, transform_points
 
 PARTS = ("camera", "mirror", "projector")
 BLOCK_SIZE = {"camera": 4, "mirror": 3, "projector": 6}
@@ -212,11 +212,7 @@ def _residuals(cal: CalibrationResult, v: _View, T: np.ndarray, sig: dict, mirro
         uv = cam.project(transform_points(S @ T, X[v.virtual.ids]))
         parts.append(((uv - v.virtual.corners_px) / sig["mirror_virtual" if mirror_view else "board"]).ravel())
     if v.pattern_cam_px is not None:
-        Tbp = np.linalg.inv(T) @ cal.T_cam_proj
-        rays = cal.projector.rays(v.pattern_proj_px) @ Tbp[:3, :3].T
-        o = Tbp[:3, 3]
-        t = -o[2] / rays[:, 2]
-        Xb = o + t[:, None] * rays
+        Xb, _ = rays_to_board_plane(np.linalg.inv(T) @ cal.T_cam_proj, cal.projector.rays(v.pattern_proj_px))
         uv = cam.project(transform_points(S @ T, Xb))
         parts.append(((uv - v.pattern_cam_px) / sig["pattern"]).ravel())
     r = np.concatenate(parts) if parts else np.zeros(0)

@@ -29,7 +29,7 @@ from calib.models.observations import (
 )
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult, MirrorPlane
-from calib.transforms import invert_T, make_T, rotation_about, transform_points
+from calib.transforms import invert_T, make_T, rays_to_board_plane, rotation_about, transform_points
 
 
 def d455_camera() -> CameraModel:
@@ -249,11 +249,7 @@ def _visible(rig: SyntheticRig, X_cam: np.ndarray, T_cam_board: np.ndarray, max_
 
 def projector_points_on_board(rig: SyntheticRig, T_cam_board: np.ndarray, q_px: np.ndarray) -> np.ndarray:
     """Board-frame (z = 0) points lit by projector pixels `q_px` (exact, with projector distortion)."""
-    T_board_proj = invert_T(T_cam_board) @ rig.T_cam_proj
-    rays = rig.projector.rays(q_px) @ T_board_proj[:3, :3].T
-    o = T_board_proj[:3, 3]
-    t = -o[2] / rays[:, 2]
-    return o + t[:, None] * rays
+    return rays_to_board_plane(invert_T(T_cam_board) @ rig.T_cam_proj, rig.projector.rays(q_px))[0]
 
 
 def mirror_poses(rig: SyntheticRig, board: CharucoSpec, method: str, count: int = 7, seed: int = 0,

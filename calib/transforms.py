@@ -80,3 +80,14 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_T(np.column_stack([x, y, z]), eye)
+
+
+def rays_to_board_plane(T_board_dev: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where rays from a device (directions in its frame) meet a board's plane z = 0, in board coordinates;
+    `T_board_dev` maps the device's frame into the board's. Returns (points (N, 3), t (N,)), each point
+    = origin + t x ray: t <= 0 (or not finite) where the ray meets the plane behind the device, or never."""
+    dirs = np.asarray(rays, float) @ np.asarray(T_board_dev, float)[:3, :3].T
+    o = np.asarray(T_board_dev, float)[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -o[2] / dirs[:, 2]
+        return o + t[:, None] * dirs, t

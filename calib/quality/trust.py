@@ -21,7 +21,7 @@ import numpy as np
 
 from calib.models.camera import CameraModel
 from calib.quality.projection_uncertainty import large_regions, where_max
-from calib.transforms import invert_T
+from calib.transforms import invert_T, rays_to_board_plane
 
 #: length units of a session -> millimetres (limits on lengths are stated in mm)
 from calib.models.boards import MM_PER_UNIT as _MM_PER_UNIT
@@ -329,6 +329,18 @@ def _finite_parameters(result) -> list[str]:
     return bad
 
 
+def _image_corners(dev: CameraModel) -> np.ndarray:
+    """The outer corners of a device's image (pixel centres at integers: the edges at -0.5 and size - 0.5)."""
+    return np.array([[-0.5, -0.5], [dev.width - 0.5, -0.5], [-0.5, dev.height - 0.5],
+                     [dev.width - 0.5, dev.height - 0.5]])
+
+
+def _normalised_radius(dev: CameraModel, uv: np.ndarray) -> float:
+    """The largest distance of pixels `uv` from the principal point in focal lengths (distorted radius)."""
+    m = (np.asarray(uv, float).reshape(-1, 2) - [dev.cx, dev.cy]) / [dev.fx, dev.fy]
+    return float(np.max(np.hypot(m[:, 0], m[:, 1])))
+
+
 def _observed_reach(result, obs) -> dict:
     """How far out each device's observations reach, as a fraction of the distance to its image's farthest
     corner (the radius radial_fold_fraction measures in): a distortion polynomial is only determined where
@@ -348,12 +360,8 @@ def _observed_reach(result, obs) -> dict:
         uv = uv[np.all(np.isfinite(uv), axis=1)]
         if len(uv) == 0 or dev.fx <= 0 or dev.fy <= 0:
             continue
-        corners = np.array([[-0.5, -0.5], [dev.width - 0.5, -0.5], [-0.5, dev.height - 0.5],
-                            [dev.width - 0.5, dev.height - 0.5]])
-        scale = np.array([dev.fx, dev.fy])
-        r_obs = float(np.max(np.hypot(*((uv - [dev.cx, dev.cy]) / scale).T)))
-        r_max = float(np.max(np.hypot(*((corners - [dev.cx, dev.cy]) / scale).T)))
-        out[name] = min(1.0, r_obs / r_max) if r_max > 0 else 1.0
+        r_max = _normalised_radius(dev, _image_corners(dev))
+        out[name] = min(1.0, _normalised_radius(dev, uv) / r_max) if r_max > 0 else 1.0
     return out
 
 
@@ -406,10 +414,7 @@ def radial_fold_fraction(dev: CameraModel, samples: int = 4000) -> float | None:
     dist = np.asarray(dev.dist, float).reshape(-1)[:8]
     d[: dist.size] = dist
     k1, k2, _p1, _p2, k3, k4, k5, k6 = d
-    corners = np.array([[-0.5, -0.5], [dev.width - 0.5, -0.5], [-0.5, dev.height - 0.5],
-                        [dev.width - 0.5, dev.height - 0.5]])
-    m = (corners - [dev.cx, dev.cy]) / [dev.fx, dev.fy]
-    rd_max = float(np.max(np.hypot(m[:, 0], m[:, 1])))
+    rd_max = _normalised_radius(dev, _image_corners(dev))
     # undistorted radius up to a ray 89.4 deg off-axis; r_d must reach rd_max increasing all the way
     r = np.linspace(0.0, max(100.0, 10 * rd_max), samples * 25)
     r2 = r * r
@@ -506,15 +511,10 @@ def _check_observations(result, obs, th: TrustThresholds, fail, metrics: dict) -
         Tb = _pose_through_mirror(cam, S, corners[ids], uv) if pv.board.mirrored else _pnp(cam, corners[ids], uv)
         if Tb is None:
             continue
-        T_board_proj = invert_T(Tb) @ T
-        rays = proj.rays(np.asarray(pv.pattern_proj_px, float)) @ T_board_proj[:3, :3].T
-        o = T_board_proj[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = -o[2] / rays[:, 2]
+        Xb, t = rays_to_board_plane(invert_T(Tb) @ T, proj.rays(np.asarray(pv.pattern_proj_px, float)))
         if not np.all(np.isfinite(t) & (t > 0)):
             behind.append(pv.capture_id)
             continue
-        Xb = o + t[:, None] * rays
         Sv = S if pv.board.mirrored else np.eye(4)
         X_cam = (Sv @ Tb @ np.column_stack([Xb, np.ones(len(Xb))]).T).T[:, :3]
         with np.errstate(all="ignore"):
@@ -548,14 +548,10 @@ def _projector_lights_board(proj: CameraModel, T_cam_proj: np.ndarray, T_cam_boa
     The lit points are where the projector's rays meet the board, not the board frame's origin (a ChArUco
     corner): on a strongly tilted board near the projector that corner can lie behind the projector's
     lens plane while every lit point is far in front of it."""
-    T_proj_board = invert_T(T_cam_proj) @ np.asarray(T_cam_board, float)
-    n = T_proj_board[:3, 2]  # the board's plane in the projector frame: n . x = n . o
-    o = T_proj_board[:3, 3]
     us, vs = np.meshgrid(np.linspace(0, proj.width - 1, 9), np.linspace(0, proj.height - 1, 9))
-    rays = proj.rays(np.column_stack([us.ravel(), vs.ravel()]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (n @ o) / (rays @ n)
-    return bool(np.any(np.isfinite(s) & (s > 0)))
+    _, t = rays_to_board_plane(invert_T(np.asarray(T_cam_board, float)) @ T_cam_proj,
+                               proj.rays(np.column_stack([us.ravel(), vs.ravel()])))
+    return bool(np.any(np.isfinite(t) & (t > 0)))
 
 
 def _check_uncertainty(result, th: TrustThresholds, fail, metrics: dict) -> None:
