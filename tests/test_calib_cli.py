@@ -10,6 +10,7 @@ import pytest
 from _calib_helpers import write_session
 from app.cli import main
 from calib.errors import FormatError
+from calib.export import opencv
 from calib.formats.session import RigInfo, SessionManifest, SessionStore
 from calib.models.result import CalibrationResult
 from calib.pipeline import load_camera_intrinsics
@@ -125,7 +126,7 @@ def test_camera_intrinsics_files(tmp_path):
     gt.save_json(tmp_path / "c.json")
     cam = load_camera_intrinsics(tmp_path / "c.json")
     assert np.allclose(cam.K, rig.camera.K) and cam.size == rig.camera.size
-    gt.save_opencv_yaml(tmp_path / "c.yaml")  # our own export: camera_distortion, camera_width
+    opencv.write(gt, [tmp_path / "c.yaml"])  # our own export: camera_distortion, camera_width
     cam = load_camera_intrinsics(tmp_path / "c.yaml")
     assert np.allclose(cam.dist, rig.camera.dist) and cam.size == rig.camera.size
     # a minimal OpenCV file without a size takes the session's
