@@ -43,15 +43,19 @@ def unity_lens(model, near: float, far: float) -> dict:
 
 
 def threejs_lens(model, near: float, far: float) -> dict:
-    """three.js PerspectiveCamera arguments and view offset of `model`'s pinhole part (no skew)."""
+    """three.js PerspectiveCamera arguments and view offset of `model`'s pinhole part (no skew).
+
+    setViewOffset sets the camera's aspect to fullWidth / fullHeight, so the view's horizontal numbers
+    are the image's pixels scaled by fy / fx (square pixels): only their ratios enter the projection."""
     cx, cy = model.cx + 0.5, model.cy + 0.5  # the principal point from the image's top-left corner
     hx, hy = max(cx, model.width - cx), max(cy, model.height - cy)
+    square = model.fy / model.fx
     fov_deg = math.degrees(2 * math.atan(hy / model.fy))
-    aspect = (hx / model.fx) / (hy / model.fy)
+    aspect = (hx * square) / hy
     film_height = FILM_GAUGE_MM / max(aspect, 1.0)
     return {"fov": fov_deg, "aspect": aspect, "near": near, "far": far,
-            "view": {"fullWidth": 2 * hx, "fullHeight": 2 * hy, "offsetX": hx - cx, "offsetY": hy - cy,
-                     "width": model.width, "height": model.height},
+            "view": {"fullWidth": 2 * hx * square, "fullHeight": 2 * hy, "offsetX": (hx - cx) * square,
+                     "offsetY": hy - cy, "width": model.width * square, "height": model.height},
             "filmGauge": FILM_GAUGE_MM, "focalLength": 0.5 * film_height / math.tan(math.radians(fov_deg) / 2)}
 
 
