@@ -31,7 +31,7 @@ def rendered(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_calibrate_and_evaluate_a_rendered_session(rendered, capsys):
+def test_calibrate_and_evaluate_a_rendered_session(rendered, tmp_path, capsys):
     folder, truth, rig = rendered
     rc = main(["calibrate", str(folder), "--method", "paper", "--workers", "2"])
     out, err = capsys.readouterr()
@@ -54,6 +54,10 @@ def test_calibrate_and_evaluate_a_rendered_session(rendered, capsys):
     assert np.allclose(fs.getNode("camera_matrix").mat(), result.camera.K)
     assert np.allclose(fs.getNode("T_cam_proj").mat(), result.T_cam_proj)
     fs.release()
+    # procam export of the session writes the same YAML as procam calibrate did (one registry), byte for byte
+    assert main(["export", str(folder), "--format", "opencv,mrcal", "--out", str(tmp_path / "x")]) == 0
+    capsys.readouterr()
+    assert (tmp_path / "x" / "calibration.yaml").read_bytes() == (folder / "calibration.yaml").read_bytes()
 
     rc = main(["evaluate", str(folder / "calibration.json"), str(truth)])
     out, _ = capsys.readouterr()
