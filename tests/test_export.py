@@ -376,3 +376,23 @@ def test_a_session_folder_exports_its_calibration_with_every_format(tmp_path, ca
         "calibration.yaml", "calibration-camera.ros.yaml", "calibration-projector.ros.yaml",
         "calibration-camera.cameramodel", "calibration-projector.cameramodel", "calibration-opengl.json",
         "calibration-unity.json", "calibration-threejs.json"])
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--near", "5", "--far", "1"], "--far (1 m) must be beyond --near (5 m)"),
+    (["--near", "nan"], "--near must be a positive number of metres, got nan"),
+    (["--far", "-3"], "--far must be a positive number of metres, got -3.0"),
+])
+def test_bad_clipping_planes_are_named(tmp_path, capsys, extra, message):
+    _result().save_json(tmp_path / "calibration.json")
+    rc = main(["export", str(tmp_path / "calibration.json"), "--format", "opengl", "--out", str(tmp_path / "out"), *extra])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_out_that_is_a_file_is_refused(tmp_path, capsys):
+    _result().save_json(tmp_path / "calibration.json")
+    rc = main(["export", str(tmp_path / "calibration.json"), "--format", "ros", "--out", str(tmp_path / "calibration.json")])
+    assert rc == 2 and "is a file; give a folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json"]
