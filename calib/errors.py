@@ -32,6 +32,10 @@ class CalibrationError(ProcamError):
         self.code = code
 
 
+class ExportError(ProcamError):
+    """A calibration cannot be exported: an unknown format, a rejected calibration, a bad option."""
+
+
 class DiskFullError(ProcamError, OSError):
     """The disk (or the user's quota) filled up while writing `filename`. Writes are atomic, so the file
     being replaced is intact and nothing written before was lost; an OSError, so code that tolerates a

@@ -10,6 +10,7 @@ import pytest
 from _calib_helpers import write_session
 from app.cli import main
 from calib.errors import FormatError
+from calib.export import opencv
 from calib.formats.session import RigInfo, SessionManifest, SessionStore
 from calib.models.result import CalibrationResult
 from calib.pipeline import load_camera_intrinsics
@@ -30,7 +31,7 @@ def rendered(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_calibrate_and_evaluate_a_rendered_session(rendered, capsys):
+def test_calibrate_and_evaluate_a_rendered_session(rendered, tmp_path, capsys):
     folder, truth, rig = rendered
     rc = main(["calibrate", str(folder), "--method", "paper", "--workers", "2"])
     out, err = capsys.readouterr()
@@ -53,6 +54,10 @@ def test_calibrate_and_evaluate_a_rendered_session(rendered, capsys):
     assert np.allclose(fs.getNode("camera_matrix").mat(), result.camera.K)
     assert np.allclose(fs.getNode("T_cam_proj").mat(), result.T_cam_proj)
     fs.release()
+    # procam export of the session writes the same YAML as procam calibrate did (one registry), byte for byte
+    assert main(["export", str(folder), "--format", "opencv,mrcal", "--out", str(tmp_path / "x")]) == 0
+    capsys.readouterr()
+    assert (tmp_path / "x" / "calibration.yaml").read_bytes() == (folder / "calibration.yaml").read_bytes()
 
     rc = main(["evaluate", str(folder / "calibration.json"), str(truth)])
     out, _ = capsys.readouterr()
@@ -125,7 +130,7 @@ def test_camera_intrinsics_files(tmp_path):
     gt.save_json(tmp_path / "c.json")
     cam = load_camera_intrinsics(tmp_path / "c.json")
     assert np.allclose(cam.K, rig.camera.K) and cam.size == rig.camera.size
-    gt.save_opencv_yaml(tmp_path / "c.yaml")  # our own export: camera_distortion, camera_width
+    opencv.write(gt, [tmp_path / "c.yaml"])  # our own export: camera_distortion, camera_width
     cam = load_camera_intrinsics(tmp_path / "c.yaml")
     assert np.allclose(cam.dist, rig.camera.dist) and cam.size == rig.camera.size
     # a minimal OpenCV file without a size takes the session's

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from calib.errors import FormatError, SessionError
+from calib.export import opencv
 from calib.formats.session import MANIFEST, Capture, RigInfo, SessionManifest, SessionStore
 from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
@@ -270,7 +271,7 @@ def test_calibration_json_unreadable(tmp_path):
 def test_opencv_yaml_export_reads_back(tmp_path):
     res = _result()
     path = tmp_path / "calibration.yaml"
-    res.save_opencv_yaml(path)
+    opencv.write(res, [path])
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     assert fs.isOpened()
     try:
@@ -292,7 +293,7 @@ def test_opencv_yaml_export_reads_back(tmp_path):
         fs.release()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.yaml"]  # written via a temporary file
     # without a mirror there are no mirror keys
-    res.with_(mirror=None).save_opencv_yaml(path)
+    opencv.write(res.with_(mirror=None), [path])
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     assert fs.getNode("mirror_normal").empty() and fs.getNode("mirror_d").empty()
     fs.release()

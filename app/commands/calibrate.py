@@ -12,7 +12,8 @@ HELP = "calibrate a saved capture session (camera, mirror, projector) and write 
 DESCRIPTION = (
     "Runs detection and the calibration pipeline on a session folder, prints a summary (intrinsics, "
     "camera-projector pose, mirror plane, RMS per stage, skipped images and why) and writes "
-    "calibration.json plus an OpenCV FileStorage export (calibration.yaml) beside it."
+    "calibration.json plus the default exports beside it (an OpenCV FileStorage YAML, calibration.yaml; "
+    "others with `procam export`)."
 )
 
 
@@ -92,10 +93,12 @@ def default_output(session: Path, method: str) -> tuple[Path, str | None]:
 
 def validate(args):
     """Every check that needs no detection: the session, the options, the intrinsics file, the outputs.
-    Returns (session, camera model or None, JSON path, YAML path, note or None)."""
+    Returns (session, camera model or None, JSON path, the default exports' paths, note or None)."""
     from calib.errors import SessionError
     from calib.formats.session import SessionStore
     from calib.pipeline import METHODS, load_camera_intrinsics
+
+    from calib.export.registry import DEFAULTS, output_paths
 
     from app.commands._outputs import check_output_file, result_paths
 
@@ -121,23 +124,22 @@ def validate(args):
                                f"session's resolution")
     note = None
     if args.out:
-        json_path, yaml_path = result_paths(args.out)
+        json_path, _ = result_paths(args.out)
     else:
         json_path, note = default_output(session, args.method)
-        yaml_path = json_path.with_suffix(".yaml")
-    for p in (json_path, yaml_path):
+    exports = output_paths(DEFAULTS, json_path.parent, json_path.stem)
+    for p in (json_path, *exports):
         check_output_file(p, "--out" if args.out else "the result file", inputs=[args.camera_intrinsics])
-    return session, camera, json_path, yaml_path, note
+    return session, camera, json_path, exports, note
 
 
 def run(args) -> int:
     from calib.errors import CalibrationError, UntrustedCalibration
     from calib.pipeline import calibrate_session
 
-    from app.commands._outputs import write_error
     from app.commands._progress import Progress, progress_mode
 
-    session, camera, out, yaml_path, note = validate(args)
+    session, camera, out, exports, note = validate(args)
     bars = Progress(progress_mode(args.no_progress))
     try:
         opts = {k: v for k, v in (("camera_model", args.camera_model), ("projector_model", args.projector_model))
@@ -159,14 +161,9 @@ def run(args) -> int:
               file=sys.stderr)
         for r in trust["reasons"]:
             print(f"  [{r['code']}] {r['message']}", file=sys.stderr)
-    for path, save in ((out, result.save_json), (yaml_path, result.save_opencv_yaml)):
-        try:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            save(path)
-        except OSError as e:
-            raise write_error(path, e) from None
+    write_result(result, out)
     print(format_summary(result))
-    print(f"\nwrote {out}\nwrote {yaml_path}")
+    print("\n" + "\n".join(f"wrote {p}" for p in (out, *exports)))
     if note:
         print(note)
     stale = stale_verification_note(session, out)
@@ -175,6 +172,21 @@ def run(args) -> int:
     from app.commands._quality import EXIT_LOW_QUALITY, report_low_quality
 
     return EXIT_LOW_QUALITY if report_low_quality(result) else 0
+
+
+def write_result(result, out: Path) -> None:
+    """calibration.json at `out` and the default exports beside it (calib.export.registry.DEFAULTS)."""
+    from calib.export.registry import DEFAULTS, write_exports
+
+    from app.commands._outputs import write_error
+
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        result.save_json(out)
+        for warning in write_exports(result, DEFAULTS, out.parent, out.stem):
+            print(f"warning: {warning}", file=sys.stderr)
+    except OSError as e:
+        raise write_error(e.filename or out, e) from None
 
 
 def stale_verification_note(session: Path, written: Path) -> str | None:

@@ -54,7 +54,6 @@ _OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake",
                    "camera_intrinsics", "plan", "calibrated", "result_stale", "verified", "updated_unix_s")
 
 CALIBRATION_FILE = "calibration.json"
-CALIBRATION_YAML = "calibration.yaml"
 CALIBRATION_REJECTED = "calibration.rejected.json"  # an untrusted result, for diagnosis only
 
 
@@ -644,10 +643,13 @@ class SessionMachine:
             self.store.folder, self.camera_intrinsics, progress)), "calibration_error", "calibration failed")
         with self._lock:
             result.save_json(self.store.folder / CALIBRATION_FILE)
+            from calib.export.registry import DEFAULTS, write_exports
+
             try:
-                result.save_opencv_yaml(self.store.folder / CALIBRATION_YAML)
-            except Exception as e:  # the YAML export is a convenience; the JSON is the result
-                self._log(f"OpenCV YAML export failed: {e}")
+                for warning in write_exports(result, DEFAULTS, self.store.folder, Path(CALIBRATION_FILE).stem):
+                    self._log(f"export: {warning}")
+            except Exception as e:  # the exports are a convenience; the JSON is the result
+                self._log(f"export of {', '.join(DEFAULTS)} failed: {e}")
             self.result = result
             self.result_stale = False
             self.busy = None

@@ -1,4 +1,4 @@
-"""The calibration result: a frozen dataclass and its files (calibration.json, OpenCV YAML).
+"""The calibration result: a frozen dataclass and its file (calibration.json; exports: calib.export).
 
 calibration.json keys (other tools read them; keep their meaning):
   camera, projector: {"width", "height", "K": 3x3, "dist": [k1, k2, p1, p2, k3, ...]}
@@ -16,11 +16,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from calib.errors import FormatError
@@ -159,34 +157,6 @@ class CalibrationResult:
         except json.JSONDecodeError as e:
             raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
         return cls.from_dict(data, path)
-
-    def save_opencv_yaml(self, path) -> None:
-        """OpenCV FileStorage YAML: camera_matrix, camera_distortion, projector_matrix,
-        projector_distortion, T_cam_proj, R_cam_proj, t_cam_proj, mirror_normal, mirror_d, sizes, rms."""
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-        fs.write("units", self.units)
-        fs.write("method", self.method)
-        fs.write("camera_width", self.camera.width)
-        fs.write("camera_height", self.camera.height)
-        fs.write("camera_matrix", np.array(self.camera.K))
-        fs.write("camera_distortion", np.array(self.camera.dist).reshape(1, -1))
-        fs.write("projector_width", self.projector.width)
-        fs.write("projector_height", self.projector.height)
-        fs.write("projector_matrix", np.array(self.projector.K))
-        fs.write("projector_distortion", np.array(self.projector.dist).reshape(1, -1))
-        fs.write("T_cam_proj", np.array(self.T_cam_proj))
-        fs.write("R_cam_proj", np.array(self.T_cam_proj[:3, :3]))
-        fs.write("t_cam_proj", np.array(self.T_cam_proj[:3, 3]).reshape(3, 1))
-        if self.mirror is not None:
-            fs.write("mirror_normal", np.array(self.mirror.normal).reshape(3, 1))
-            fs.write("mirror_d", float(self.mirror.d))
-        for k, v in self.rms.items():
-            if isinstance(v, (int, float)) and v is not None:
-                fs.write(f"rms_{k}", float(v))
-        fs.release()
-        os.replace(tmp, path)
 
 
 def _read_projection_uncertainty(pu, path):
