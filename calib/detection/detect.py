@@ -898,7 +898,9 @@ def _run_job(job: _Job, seen: dict | None = None):
         same = (digest, job.step, job.mirrored)
         if seen is not None and same in seen:
             res = seen[same]
-            return job.capture_id, replace(res, capture_id=job.capture_id) if isinstance(res, MirrorView) else res, digest
+            if isinstance(res, MirrorView):  # a mirror result names its capture
+                res = replace(res, capture_id=job.capture_id)
+            return job.capture_id, res, digest
         res = _cached_result(job, digest)
         if res is None:
             res = _detect_job(job, data)
