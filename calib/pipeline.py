@@ -72,6 +72,9 @@ def calibrate_observations(obs: SessionObservations, method: str = "joint", came
     timing = dict(diag.get("timing_s", {}))
     timing["total"] = round(time.perf_counter() - t0, 4)
     diag["timing_s"] = timing
+    copies = {s.capture_id: s.copy_of for s in obs.skipped if s.copy_of}
+    if copies:  # counted once (calib.detection.detect): said apart from the other skipped captures
+        diag["copies"] = copies
     return apply_trust_check(result.with_(diagnostics=diag), trust, obs)
 
 

@@ -1,5 +1,17 @@
+import atexit
+import os
+import shutil
+import tempfile
+
 import numpy as np
 import pytest
+
+# the detection cache's signing key (calib.detection.cache): one private to this test run, never the
+# user's own (subprocesses inherit it)
+if "PROCAM_CACHE_KEY_FILE" not in os.environ:
+    _key_dir = tempfile.mkdtemp(prefix="procam-key-")
+    atexit.register(shutil.rmtree, _key_dir, True)
+    os.environ["PROCAM_CACHE_KEY_FILE"] = os.path.join(_key_dir, "cache.key")
 
 
 @pytest.fixture

@@ -5,6 +5,7 @@ import json
 import shutil
 from collections import Counter
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,7 +13,9 @@ import calib.detection.detect as D
 from calib.detection import cache as detect_cache
 from calib.detection.detect import DetectionFailure, detect_session
 from calib.formats.session import SessionStore
+from calib.models.boards import CharucoSpec
 from calib.models.observations import BoardObservation, MirrorView
+from calib.models.pattern import PatternSpec
 from test_detect_session import session  # noqa: F401  (the module-scoped session fixture)
 
 
@@ -69,14 +72,16 @@ def test_second_run_detects_nothing_and_gives_identical_observations(store, monk
 def test_changed_image_or_job_is_detected_again(store, monkeypatch):
     st, ids = store
     first = detect_session(st, workers=1)
-    # p0001 replaced by p0000's image: its entry no longer matches the file's bytes
-    (st.folder / "images" / "p0001.png").write_bytes((st.folder / "images" / "p0000.png").read_bytes())
+    # p0001 replaced by p0000's pixels in other PNG bytes: its entry no longer matches the file's bytes,
+    # and what it finds is p0000's detections again (a copy, counted once: test_duplicate_captures.py)
+    pixels = cv2.imread(str(st.folder / "images" / "p0000.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(st.folder / "images" / "p0001.png"), pixels, [cv2.IMWRITE_PNG_COMPRESSION, 0])
     detected = _count_detections(monkeypatch)
     again = detect_session(st, workers=1)
     assert set(detected) == {"p0001"}
-    v0, v1 = again.projector_views[0], again.projector_views[1]
-    assert np.array_equal(v0.board.corners_px, v1.board.corners_px)
-    assert not np.array_equal(v1.board.corners_px, first.projector_views[1].board.corners_px)
+    assert [v.capture_id for v in again.projector_views] == ["p0000", "p0002"]
+    assert next(s for s in again.skipped if s.capture_id == "p0001").copy_of == "p0000"
+    assert first.projector_views[1].capture_id == "p0001"
     # another board spec in the manifest: every board job changed, nothing may come from the cache
     data = json.loads((st.folder / "session.json").read_text())
     data["mirror_board"]["marker_length"] = 17.0
@@ -115,7 +120,8 @@ def test_other_detector_or_broken_file_means_detecting_again(store, monkeypatch)
     data["captures"]["p0000"]["result"] = {"board": {"ids": [1]}}
     path.write_text(json.dumps(data))
     detected = _count_detections(monkeypatch)
-    _same(first, detect_session(st, workers=1))
+    with pytest.warns(RuntimeWarning, match="1 of the 8 entries .* not written by this station"):
+        _same(first, detect_session(st, workers=1))
     assert set(detected) == {"p0000"}
 
 
@@ -124,9 +130,13 @@ def test_results_round_trip_exactly():
     board = BoardObservation(np.array([0, 3, 7]), rng.uniform(0, 1000, (3, 2)), True)
     real = BoardObservation(np.array([1, 2]), rng.uniform(0, 1000, (2, 2)), False)
     pts = rng.uniform(0, 1000, (36, 2))
-    for res in (DetectionFailure("pattern partial: 30 of 36 points"), (board, pts),
-                MirrorView("mrv0002", "mirror-real-virtual", real, board), MirrorView("mrm0000", "mirror-real-mirror", real)):
-        back = detect_cache.decode_result(json.loads(json.dumps(detect_cache.encode_result(res))))
+    spec, pattern = CharucoSpec(12, 9, "DICT_5X5_100", 30.0, 22.0), PatternSpec(cols=4, rows=9)
+    for res, cid, step in ((DetectionFailure("pattern partial: 30 of 36 points"), "p0003", "projector"),
+                           ((board, pts), "p0001", "projector"),
+                           (MirrorView("mrv0002", "mirror-real-virtual", real, board), "mrv0002", "mirror-real-virtual"),
+                           (MirrorView("mrm0000", "mirror-real-mirror", real), "mrm0000", "mirror-real-mirror")):
+        back = detect_cache.decode_result(json.loads(json.dumps(detect_cache.encode_result(res))), cid, step,
+                                          True, spec, pattern, (1024, 1024))
         if isinstance(res, DetectionFailure):
             assert back == res
         elif isinstance(res, MirrorView):

@@ -139,8 +139,11 @@ def test_import_then_detect(recording, tmp_path):
         assert np.array_equal(store.load_image(cap, cv2.IMREAD_COLOR),
                               cv2.imread(str(rdir / f"{k}.png"), cv2.IMREAD_UNCHANGED))
     obs = detect_session(store, workers=1)
-    assert not obs.skipped, obs.skipped
-    assert len(obs.projector_views) == 12 and len(obs.mirror_views) == 2
+    # the PER images of a position differ in one pixel only, outside the board: identical detections,
+    # so each position's first counts and the others are skipped as its copies
+    assert {s.capture_id: s.copy_of for s in obs.skipped} == {
+        f"p{k:04d}": f"p{k - k % PER:04d}" for k in range(12) if k % PER}
+    assert len(obs.projector_views) == 3 and len(obs.mirror_views) == 2
     for v in obs.projector_views:
         k = int(v.capture_id[1:])
         assert v.board.mirrored

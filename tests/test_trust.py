@@ -349,8 +349,12 @@ def test_rendered_degenerate_session_fails_in_the_cli(rendered_small, tmp_path, 
     for method in ("paper", "joint"):
         proc = _run_calibrate(folder, "--method", method)
         assert proc.returncode == 2, proc.stderr
-        assert "not trustworthy" in proc.stderr and "Traceback" not in proc.stderr
         assert not (folder / "calibration.json").exists() and not (folder / "calibration.yaml").exists()
+        assert "Traceback" not in proc.stderr
+        if mode == "copied image":  # copies count once (calib.detection.detect): too few images to start
+            assert "only 1 usable projector image" in proc.stderr and "p0001 is a copy of p0000" in proc.stderr
+            continue
+        assert "not trustworthy" in proc.stderr
         rejected = json.loads((folder / "calibration.rejected.json").read_text())
         codes = [r["code"] for r in rejected["diagnostics"]["trust"]["reasons"]]
         assert codes and set(codes) <= set(CODES) and all(f"[{c}]" in proc.stderr for c in codes)

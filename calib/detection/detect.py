@@ -11,11 +11,12 @@ reason a person can read, never an exception.
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from functools import lru_cache, wraps
+from dataclasses import dataclass, replace
+from functools import lru_cache, partial, wraps
 
 import cv2
 import numpy as np
@@ -872,7 +873,6 @@ class _Job:
     pattern: PatternSpec | None
     camera_size: tuple[int, int]
     cached: dict | None = None  # this capture's detections.json entry, if any (calib.detection.cache)
-    hash_image: bool = True  # the image's SHA-1 is needed (the cache is not off)
     refused: str | None = None  # why the image is not read at all (its path leads out of the session folder)
     response: CameraResponse | None = None  # the camera's tone curve the session recorded, if any
 
@@ -882,10 +882,11 @@ def _read_file(path: str) -> np.ndarray:
     return np.fromfile(path, np.uint8)
 
 
-def _run_job(job: _Job):
+def _run_job(job: _Job, seen: dict | None = None):
     """(capture_id, result, image SHA-1 or None) with result a BoardObservation/pattern tuple, MirrorView
-    or DetectionFailure. The file is read once: hashed (when the session's cache is on), then decoded
-    and detected unless `job.cached` holds the result for exactly these bytes."""
+    or DetectionFailure. The file is read once and hashed, then decoded and detected unless `job.cached`
+    holds a valid result for exactly these bytes, or `seen` ({(SHA-1, step, mirrored): result}, shared
+    by the jobs of one run) holds the result of a byte-identical image detected for the same step."""
     digest = None
     if job.refused is not None:
         return job.capture_id, DetectionFailure(job.refused), None
@@ -893,20 +894,36 @@ def _run_job(job: _Job):
         if not os.path.exists(job.image_path):
             return job.capture_id, DetectionFailure(f"image missing: {job.image_path}"), None
         data = _read_file(job.image_path)
-        if not job.hash_image:
-            return job.capture_id, _detect_job(job, data), None
         digest = detect_cache.image_digest(data)
-        if job.cached is not None and job.cached.get("image_sha1") == digest:
-            try:
-                return job.capture_id, detect_cache.decode_result(job.cached["result"]), digest
-            except (KeyError, TypeError, ValueError):
-                pass  # a malformed entry: detect again
-        return job.capture_id, _detect_job(job, data), digest
+        same = (digest, job.step, job.mirrored)
+        if seen is not None and same in seen:
+            res = seen[same]
+            if isinstance(res, MirrorView):  # a mirror result names its capture
+                res = replace(res, capture_id=job.capture_id)
+            return job.capture_id, res, digest
+        res = _cached_result(job, digest)
+        if res is None:
+            res = _detect_job(job, data)
+        if seen is not None:
+            seen.setdefault(same, res)
+        return job.capture_id, res, digest
     except Exception as e:  # noqa: BLE001 - a pathological image must not stop the whole session
         lines = str(e).strip().splitlines()
         msg = lines[-1] if lines else ""
         why = f"detection failed ({e.__class__.__name__}): {msg}".rstrip(": ")
         return job.capture_id, DetectionFailure(why), digest
+
+
+def _cached_result(job: _Job, digest: str):
+    """The result `job.cached` holds for an image with this SHA-1, or None (no entry, another image, or
+    an entry that does not fit the capture: detect again)."""
+    if job.cached is None or job.cached.get("image_sha1") != digest:
+        return None
+    try:
+        return detect_cache.decode_result(job.cached.get("result"), job.capture_id, job.step, job.mirrored,
+                                          job.board, job.pattern, job.camera_size)
+    except ValueError:
+        return None
 
 
 def _detect_job(job: _Job, data: np.ndarray):
@@ -949,7 +966,7 @@ def _job_for(store, c, old: dict, cache_on: bool):
     except SessionError as e:  # never read, hashed or named: the reason does not tell whether it exists
         path, refused = "", str(e)
     return _Job(c.id, path, c.step, flip, board, pattern, tuple(m.rig.camera_size), cached,
-                hash_image=cache_on, refused=refused, response=response), key
+                refused=refused, response=response), key
 
 
 def detect_capture(store, capture_id: str):
@@ -984,7 +1001,7 @@ def _detect_threaded(jobs, workers: int, done) -> None:
     cv2.setNumThreads(1)
     try:
         with ThreadPoolExecutor(max_workers=workers) as ex:
-            for out in ex.map(_run_job, jobs):  # in job order; `done` runs in this thread only
+            for out in ex.map(partial(_run_job, seen={}), jobs):  # in job order; `done` runs in this thread only
                 done(*out)
     finally:
         cv2.setNumThreads(threads)
@@ -995,7 +1012,8 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
 
     Each image is read once; detection runs in `workers` threads (1 = inline). A capture whose image
     is missing or unreadable, or whose board/pattern is not found, is listed in `skipped` with the
-    reason. `progress(done, total, capture_id)` is called after each capture.
+    reason. `progress(done, total, capture_id)` is called after each capture. A capture that repeats
+    an earlier one (_copies) is detected once and skipped as a copy of it (Skipped.copy_of).
 
     `cache`: "use" takes the results of earlier runs from the session's detections.json for captures
     whose image, job and detector are unchanged (calib.detection.cache) and writes the file back;
@@ -1025,8 +1043,9 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
     if workers > 1 and total > 1:
         _detect_threaded(jobs, min(workers, total), done)
     else:
+        seen = {}
         for job in jobs:
-            done(*_run_job(job))
+            done(*_run_job(job, seen))
 
     if cache != "off":
         entries = {cid: {"image_sha1": digests[cid], "job": keys[cid],
@@ -1036,10 +1055,13 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
             with _CACHE_LOCK:
                 detect_cache.save(store.folder, entries)
 
+    copies = _copies(m.captures, results, digests)
     pviews, mviews, skipped = [], [], []
     for c in m.captures:
         res = results[c.id]
-        if isinstance(res, DetectionFailure):
+        if c.id in copies:
+            skipped.append(copies[c.id])
+        elif isinstance(res, DetectionFailure):
             skipped.append(Skipped(c.id, c.image, res.reason))
         elif c.step == STEP_PROJECTOR:
             board, pts = res
@@ -1052,3 +1074,35 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
         mirror_board=m.mirror_board, mirror_views=tuple(mviews), board_thickness=m.board_thickness,
         skipped=tuple(skipped),
     )
+
+
+def _copies(captures, results: dict, digests: dict) -> dict[str, Skipped]:
+    """{capture id: why it is skipped} for the captures that repeat an earlier one: a byte-identical image
+    (same SHA-1) or, for the same step, identical detections. A copy adds no information, so it is counted
+    once: kept, it would shrink the uncertainty and defeat the quality gate (calib.quality.trust)."""
+    first_image: dict[str, str] = {}
+    first_found: dict[tuple, str] = {}
+    out = {}
+    for c in captures:
+        res = results[c.id]
+        if isinstance(res, DetectionFailure):
+            continue
+        found = (c.step, _detections_key(res))
+        orig, what = first_image.get(digests.get(c.id)), "the same image bytes"
+        if orig is None:
+            orig, what = first_found.get(found), "the same detections"
+        if orig is not None:
+            out[c.id] = Skipped(c.id, c.image, f"{c.id} is a copy of {orig} ({what}): counted once", copy_of=orig)
+            continue
+        if digests.get(c.id):
+            first_image[digests[c.id]] = c.id
+        first_found[found] = c.id
+    return out
+
+
+def _detections_key(result) -> str:
+    """A detection result's points as text, whichever capture it belongs to."""
+    enc = detect_cache.encode_result(result)
+    if "mirror" in enc:
+        enc["mirror"] = dict(enc["mirror"], capture_id=None)
+    return json.dumps(enc, sort_keys=True)

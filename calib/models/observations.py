@@ -89,6 +89,7 @@ class Skipped:
     capture_id: str
     image: str
     reason: str
+    copy_of: str | None = None  # the capture this one repeats (the same image or detections), if it is a copy
 
 
 @dataclass(frozen=True, eq=False)

@@ -102,8 +102,8 @@ def paper_stages(obs: SessionObservations, camera: CameraModel | None = None, pr
 
 
 def detection_skips(obs: SessionObservations) -> list[dict]:
-    return [{"capture_id": s.capture_id, "image": s.image, "stage": "detection", "reason": s.reason}
-            for s in obs.skipped]
+    return [{"capture_id": s.capture_id, "image": s.image, "stage": "detection", "reason": s.reason,
+             **({"copy_of": s.copy_of} if s.copy_of else {})} for s in obs.skipped]
 
 
 def assemble_result(obs: SessionObservations, method: str, cc: CameraCalibration, mc: MirrorCalibration | None,
