@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+from app.commands import _types
 from app.commands._rig_options import add_rig_options
 
 NAME = "station"
@@ -27,8 +28,8 @@ DESCRIPTION = (
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--port", type=int, default=8080, help="panel port (default 8080)")
-    p.add_argument("--host", default="127.0.0.1",
+    p.add_argument("--port", type=_types.port, default=8080, help="panel port (default 8080)")
+    p.add_argument("--host", type=_types.host, default="127.0.0.1",
                    help="address to serve the panel on (default 127.0.0.1; 0.0.0.0 serves the network, and "
                         "every browser then needs the printed access code to see the panel)")
     g = p.add_mutually_exclusive_group()
