@@ -20,7 +20,7 @@ import tempfile
 import traceback
 
 import app.commands
-from calib.errors import ProcamError
+from calib.errors import OptionError, ProcamError
 
 PACKAGE = "procam-station"
 
@@ -54,21 +54,12 @@ class _VersionAction(argparse.Action):
         parser.exit(0)
 
 
-class OptionError(ProcamError, ValueError):
-    """An option or argument that does not parse or is out of range (argparse's own message, which names
-    it); `prog` is the command ("procam station")."""
-
-    def __init__(self, prog: str, message: str):
-        super().__init__(message)
-        self.prog = prog
-
-
 class _Parser(argparse.ArgumentParser):
     """argparse raising OptionError instead of printing the usage and exiting: a wrong option is one line,
     like every other error, and `main()` returns 2 instead of raising SystemExit."""
 
     def error(self, message):
-        raise OptionError(self.prog, message)
+        raise OptionError(message, self.prog)
 
 
 def build_parser() -> argparse.ArgumentParser:

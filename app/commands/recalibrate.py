@@ -165,6 +165,9 @@ def prepare(args, log):
         raise SessionError(f"{folder} is not empty: a recalibration needs a new session folder (or --resume to "
                            "continue a stopped one)")
     else:
+        from app.commands._outputs import check_output_folder
+
+        check_output_folder(folder, "--out", inputs=[args.previous])  # never inside a session, PREVIOUS's or another's
         kind = args.rig or default_rig_kind()
     simulated = is_simulated(kind)
     max_caps = args.max_captures or DEFAULT_MAX_CAPTURES

@@ -105,7 +105,9 @@ def open_session(args, log=print):
         log(f"resuming {folder}: {len(store.manifest.captures)} captures on disk "
             f"(mirror {c['mirror']}, projector {c['projector']}), step '{machine.state}'")
     else:
-        folder = Path(args.out)
+        from app.commands._outputs import check_output_folder
+
+        folder = check_output_folder(args.out)  # never inside another session (its images/, ...)
         kind = args.rig or default_rig_kind()
         req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
         from drivers.factory import is_simulated
