@@ -161,11 +161,11 @@ def run(args) -> int:
     if args.dpi is not None and fmt != ".png":
         raise SpecError(f"--dpi applies to PNG output only; {fmt[1:].upper()} is vector (true size at any zoom)")
     spec = CharucoSpec.parse(args.board, args.units)
-    warning = size_warning(spec)
-    if warning:
-        print(f"warning: {warning}", file=sys.stderr)
     blank = _blank_for(spec, args.blank_area)
     data, sheet = board_file(spec, blank, fmt, args.paper.lower(), DEFAULT_DPI if args.dpi is None else args.dpi)
+    warning = size_warning(spec)  # after the layout: a board too large to draw is an error alone
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     try:
         atomic_write_bytes(out, data)
     except OSError as e:
