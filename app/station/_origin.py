@@ -111,6 +111,25 @@ def check_bind(host: str, port: int) -> None:
             raise OptionError(f"cannot serve on --host {host} --port {port}: {e.strerror or e}") from None
 
 
+def guarded_handler(gate: AccessGate, handler):
+    """viser's websocket `handler`, with an error it raises (a malformed message from a client: random
+    bytes, a text frame, an unknown type, msgpack nested too deep) logged as one line through the gate's
+    log and the connection closed, instead of the full traceback websockets prints for each."""
+    from app.cli import terminal_safe
+
+    async def handle(connection):
+        try:
+            await handler(connection)
+        except Exception as e:  # noqa: BLE001  (anything a client sends; the station itself is not affected)
+            client = str((connection.remote_address or ("?",))[0])
+            text = (str(e).strip().splitlines() or [""])[0][:120]
+            gate.log(terminal_safe(f"closed the websocket of {client}: a malformed message ({type(e).__name__}"
+                                   + (f": {text}" if text else "") + ")"))
+            await connection.close(1007, "malformed message")
+
+    return handle
+
+
 def start_viser_server(gate: AccessGate, **viser_kwargs):
     """`viser.ViserServer(**viser_kwargs)` with `gate` answering every request first."""
     import viser
@@ -123,7 +142,8 @@ def start_viser_server(gate: AccessGate, **viser_kwargs):
 
     def serve(handler, *args, process_request=None, **kwargs):
         installed.append(True)
-        return original(handler, *args, process_request=gated_process_request(gate, process_request), **kwargs)
+        return original(guarded_handler(gate, handler), *args,
+                        process_request=gated_process_request(gate, process_request), **kwargs)
 
     with _construct_lock:
         ws_server.serve = serve
