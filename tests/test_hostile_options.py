@@ -50,6 +50,7 @@ def session(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("args, option", [
     (["station", "--port", "99999"], "--port"),
     (["station", "--port", "-1"], "--port"),
+    (["station", "--port", "http"], "--port"),
     (["session", "--rig", "sim", "--auto", "--mirror-captures", "-1"], "--mirror-captures"),
     (["session", "--rig", "sim", "--auto", "--poses-per-position", "0"], "--poses-per-position"),
     (["simulate", "direct", "--blur", "nan"], "--blur"),
@@ -69,19 +70,6 @@ def test_absurd_numbers_are_refused_naming_the_option_before_any_folder(tmp_path
 def test_verify_seed_names_the_option(session):
     line = refused("verify", str(session), "--seed", "-1")
     assert "argument --seed: must be a whole number from 0" in line
-
-
-def test_the_plan_options_are_used_as_given(tmp_path):
-    """The smallest values are taken as given; before, a zero was silently replaced by the default."""
-    from app.commands.session import plan_from_args
-    from app.station.machine import Plan
-    from app.cli import build_parser
-
-    args = build_parser().parse_args(["session", "--out", str(tmp_path / "x"), "--poses-per-position", "1",
-                                      "--mirror-captures", "1"])
-    plan = plan_from_args(args)
-    assert (plan.poses_per_position, plan.real_virtual_captures, plan.real_mirror_captures) == (1, 1, 1)
-    assert plan_from_args(build_parser().parse_args(["session", "--out", "x"])) == Plan()
 
 
 # ---- hosts: not this machine, not a host name ---------------------------------------------------------

@@ -36,7 +36,8 @@ def add_rig_options(p) -> None:
                    help="real rig: screen the projector is connected to, from `procam devices` (default: the non-primary one of two screens; required with more)")
     p.add_argument("--settle-s", type=_types.seconds, default=None,
                    help="real rig: projector latency to wait after each image (seconds)")
-    p.add_argument("--workers", type=_types.workers, default=2, help="detection threads for the calibration (default 2)")
+    p.add_argument("--workers", type=_types.workers, default=2,
+                   help="detection threads for the calibration (default 2)")
     p.add_argument("--method", default=None,
                    help="calibration method (default: the calibration core's default; 'paper' is the method of "
                         "Vanherck et al.)")
@@ -44,7 +45,7 @@ def add_rig_options(p) -> None:
 
 def add_sim_latency_option(p) -> None:
     """--sim-latency-ms (any command that opens the simulated rig)."""
-    p.add_argument("--sim-latency-ms", type=_types.float_range(0.0, 2000.0), default=None, metavar="MS",
+    p.add_argument("--sim-latency-ms", type=float, default=None, metavar="MS",
                    help="simulated rig: the projector's latency in ms, 0 allowed (default: 60-120 ms, drawn from "
                         "the seed, with a few ms of jitter, as real projectors)")
 

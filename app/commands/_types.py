@@ -43,7 +43,7 @@ def int_range(lo: int, hi: int | None = None):
 
 def float_range(lo: float, hi: float, *, lo_open: bool = False):
     """A finite number in [lo, hi] ((lo, hi] with lo_open): never NaN or an infinity."""
-    allowed = f"a number {'>' if lo_open else '>='} {lo:g} and <= {hi:g}"
+    allowed = f"a number above {lo:g}, at most {hi:g}" if lo_open else f"a number between {lo:g} and {hi:g}"
 
     def parse(text: str) -> float:
         try:
@@ -58,8 +58,8 @@ def float_range(lo: float, hi: float, *, lo_open: bool = False):
     return parse
 
 
-#: a TCP port a server can listen on
-port = int_range(1, 65535)
+#: a TCP port a server can listen on (0: any free one)
+port = int_range(0, 65535)
 #: a seed of the simulated rig or of a scenario
 seed = int_range(0, SEED_MAX)
 #: threads or processes of a command

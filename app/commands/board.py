@@ -58,7 +58,8 @@ def add_arguments(p) -> None:
                    help="projector board: a blank area WIDTH wide, GAP (default 20 mm) right of the squares, "
                         "as tall as them (board units)")
     p.add_argument("--out", metavar="FILE", help="FILE.pdf, FILE.svg or FILE.png to write")
-    p.add_argument("--dpi", type=_types.float_range(0.0, 2400.0, lo_open=True), default=None, help=f"PNG resolution (default {DEFAULT_DPI:g})")
+    p.add_argument("--dpi", type=_types.float_range(10.0, 2400.0), default=None,
+                   help=f"PNG resolution (default {DEFAULT_DPI:g})")
     p.add_argument("--paper", default="auto", help="a4, a3, a2, a1, a0, or auto (default: the smallest "
                    "ISO sheet the board fits at true scale)")
     p.add_argument("--assets", metavar="DIR", help="write the default boards and the projector patterns "

@@ -33,7 +33,8 @@ def add_arguments(p) -> None:
                    help="screen index from `procam devices` (default: the non-primary one of two screens; required with more)")
     p.add_argument("--pattern", choices=("circles", "chessboard"), default="circles")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--position", type=_types.int_range(0, 999), default=0, metavar="K", help="pattern position (0-based, default 0)")
+    g.add_argument("--position", type=_types.int_range(0, 999), default=0, metavar="K",
+                   help="pattern position (0-based, default 0)")
     g.add_argument("--cycle", type=_types.float_range(0.0, 3600.0, lo_open=True), default=None, metavar="SECONDS",
                    help="show every position in turn, SECONDS each")
     p.add_argument("--size", type=_size, default=None, metavar="WxH",
@@ -41,8 +42,10 @@ def add_arguments(p) -> None:
                         "the screen's top-left corner instead of going fullscreen")
     p.add_argument("--cols", type=_types.int_range(2, 200), default=None, help="pattern columns (OpenCV pattern size)")
     p.add_argument("--rows", type=_types.int_range(2, 200), default=None, help="pattern rows")
-    p.add_argument("--spacing", type=_types.float_range(0.0, 10000.0, lo_open=True), default=None, metavar="PX", help="point spacing in projector pixels")
-    p.add_argument("--positions", type=_types.int_range(1, 999), default=None, help="number of pattern positions (default 13)")
+    p.add_argument("--spacing", type=_types.float_range(0.0, 10000.0, lo_open=True), default=None, metavar="PX",
+                   help="point spacing in projector pixels")
+    p.add_argument("--positions", type=_types.int_range(1, 999), default=None,
+                   help="number of pattern positions (default 13)")
     p.add_argument("--duration", type=_types.float_range(0.0, 86400.0, lo_open=True), default=None, metavar="SECONDS",
                    help="quit by itself after SECONDS (default: wait for Esc or q)")
 

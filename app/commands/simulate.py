@@ -35,7 +35,8 @@ def add_arguments(p) -> None:
     p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="scenario name (see --list)")
     p.add_argument("--list", action="store_true", help="print the scenarios, one per line, and exit")
     p.add_argument("--out", metavar="DIR", help="session folder to create (new or empty, unless --force)")
-    p.add_argument("--seed", type=_types.seed, default=0, help="seed of the board poses and the noise (default %(default)s)")
+    p.add_argument("--seed", type=_types.seed, default=0,
+                   help="seed of the board poses and the noise (default %(default)s)")
     p.add_argument("--noise", type=_types.noise_dn, default=None, metavar="SIGMA",
                    help="read noise sigma in 8-bit levels (default: the scenario's); 0 turns all noise off "
                         "unless --shot is given")

@@ -28,7 +28,8 @@ DESCRIPTION = (
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--port", type=_types.port, default=8080, help="panel port (default 8080)")
+    p.add_argument("--port", type=_types.port, default=8080,
+                   help="panel port, 1-65535, or 0 for any free one (default 8080)")
     p.add_argument("--host", type=_types.host, default="127.0.0.1",
                    help="address to serve the panel on (default 127.0.0.1; 0.0.0.0 serves the network, and "
                         "every browser then needs the printed access code to see the panel)")

@@ -71,7 +71,8 @@ def add_arguments(p) -> None:
     p.add_argument("--calibration", metavar="FILE", default=None,
                    help="calibration to verify (default SESSION/calibration.json)")
     p.add_argument("--out", metavar="FILE", default=None, help="report file (default SESSION/verification.json)")
-    p.add_argument("--average", type=_types.int_range(1, 100), default=1, metavar="N", help="camera frames averaged per image (default 1)")
+    p.add_argument("--average", type=_types.int_range(1, 100), default=1, metavar="N",
+                   help="camera frames averaged per image (default 1)")
     sim = p.add_argument_group("--rig sim, sim-realsense")
     sim.add_argument("--scenario", default=None, help="scenario (default: the one the session was simulated with)")
     sim.add_argument("--seed", type=_types.seed, default=None, help="scenario seed (default: the session's)")
