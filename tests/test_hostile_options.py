@@ -47,7 +47,7 @@ def session(tmp_path_factory) -> Path:
 
 
 # ---- numbers: ports, counts, noise, seeds --------------------------------------------------------------
-@pytest.mark.parametrize("args, option", [
+NUMBERS = [
     (["station", "--port", "99999"], "--port"),
     (["station", "--port", "-1"], "--port"),
     (["station", "--port", "http"], "--port"),
@@ -58,7 +58,10 @@ def session(tmp_path_factory) -> Path:
     (["simulate", "direct", "--noise", "nan"], "--noise"),
     (["simulate", "direct", "--seed", "-1"], "--seed"),
     (["simulate", "direct", "--blur", "1e9"], "--blur"),
-])
+]
+
+
+@pytest.mark.parametrize("args, option", NUMBERS, ids=[" ".join(a[0:1] + a[-2:]) for a, _ in NUMBERS])
 def test_absurd_numbers_are_refused_naming_the_option_before_any_folder(tmp_path, args, option):
     out = tmp_path / "new"
     folder_opt = {"station": "--session", "session": "--out", "simulate": "--out"}[args[0]]
