@@ -200,6 +200,10 @@ def _annotation_height(spec_line: str, lines: list[str], text_width_mm: float, h
     return h
 
 
+#: the largest page drawn: a bigger board is a length in the wrong unit, and its PNG would not fit in memory
+MAX_SHEET_MM = 2000.0
+
+
 def layout_sheet(spec: CharucoSpec, blank: BlankArea | None = None, paper: str = "auto",
                  option: str = "--board") -> Sheet:
     """The sheet of `spec` (with its blank area, if any) at true scale on `paper` (a4..a0, or auto: the
@@ -240,6 +244,10 @@ def layout_sheet(spec: CharucoSpec, blank: BlankArea | None = None, paper: str =
             name = "custom"
             page_w = float(np.ceil(need(board_w + 2 * PAGE_MARGIN_MM)[0]))
             page_h = float(np.ceil(need(page_w)[1]))
+            if max(page_w, page_h) > MAX_SHEET_MM:
+                raise SpecError(f"{option} {spec_argument(spec)} ({spec.units}) needs a page of {page_w:.0f} x "
+                                f"{page_h:.0f} mm, larger than any printer's ({MAX_SHEET_MM:g} mm at most): check the "
+                                "square length and --units")
     else:
         hit = [c for c in candidates if c[0] == paper]
         if not hit:

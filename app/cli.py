@@ -5,6 +5,8 @@ What the user sees when something goes wrong:
 - an error of the project's own types (calib/errors.py, drivers/errors.py): one line, exit code 2;
 - any other exception: one line saying what failed and where the full traceback was written (a file
   in the temporary folder), exit code 2;
+- an option that does not parse or is out of range (app/commands/_types.py): one line naming it, exit
+  code 2, before the command does anything;
 - Ctrl-C: "interrupted", exit code 130.
 """
 
@@ -18,7 +20,7 @@ import tempfile
 import traceback
 
 import app.commands
-from calib.errors import ProcamError
+from calib.errors import OptionError, ProcamError
 
 PACKAGE = "procam-station"
 
@@ -52,8 +54,16 @@ class _VersionAction(argparse.Action):
         parser.exit(0)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse raising OptionError instead of printing the usage and exiting: a wrong option is one line,
+    like every other error, and `main()` returns 2 instead of raising SystemExit."""
+
+    def error(self, message):
+        raise OptionError(message, self.prog)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="procam",
         description="Projector-camera calibration through a planar mirror (Vanherck et al. 2025).",
     )
@@ -114,6 +124,9 @@ def unexpected_error_line(command: str, exc: BaseException) -> str:
 def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
+    except OptionError as e:
+        print(terminal_safe(f"{e.prog}: error: {e} (see {e.prog} --help)"), file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("procam: interrupted", file=sys.stderr)
         return 130

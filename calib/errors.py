@@ -9,6 +9,16 @@ class SpecError(ProcamError, ValueError):
     """A board or pattern specification does not parse or is inconsistent."""
 
 
+class OptionError(ProcamError, ValueError):
+    """A command-line option that does not parse, is out of range, or names what cannot be used (a host
+    that is not this machine's). The message names the option; `prog`, when known, is the command that
+    was given it ("procam station")."""
+
+    def __init__(self, message: str, prog: str | None = None):
+        super().__init__(message)
+        self.prog = prog
+
+
 class FormatError(ProcamError, ValueError):
     """A file (session manifest, calibration result...) is malformed. `field` names the culprit."""
 

@@ -1,35 +1,43 @@
 """Options shared by `procam session` and `procam station`: the simulated rig, the capture plan and
 the real rig's devices and boards (a private module: not a sub-command)."""
 
+from app.commands import _types
+
+#: the capture plan's ranges: a plan outside them is either empty or a session that never ends
+POSES_PER_POSITION = (1, 100)
+MIRROR_CAPTURES = (1, 500)
+
 
 def add_rig_options(p) -> None:
     p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), default=None,
                    help="rig to use (default: realsense when one is connected, else sim; sim-realsense: the "
                         "simulated rig with its camera through the RealSense driver and librealsense)")
     p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
-    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default 0)")
+    p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
     add_sim_latency_option(p)
     add_sim_bump_option(p)
-    p.add_argument("--poses-per-position", type=int, default=None,
-                   help="board poses per pattern position (default 4)")
-    p.add_argument("--mirror-captures", type=int, default=None,
-                   help="mirror captures to take (default 14, as in the published ProcamCalib recordings)")
-    p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
+    p.add_argument("--poses-per-position", type=_types.int_range(*POSES_PER_POSITION), default=None,
+                   help="board poses per pattern position, %d to %d (default 4)" % POSES_PER_POSITION)
+    p.add_argument("--mirror-captures", type=_types.int_range(*MIRROR_CAPTURES), default=None,
+                   help="mirror captures to take, %d to %d (default 14, as in the published ProcamCalib "
+                        "recordings)" % MIRROR_CAPTURES)
+    p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
     p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
     p.add_argument("--mirror-board", default=None, help="real rig: mirror board spec (default: --board)")
-    p.add_argument("--board-thickness", type=float, default=None, metavar="T",
+    p.add_argument("--board-thickness", type=_types.float_range(0.0, 1000.0), default=None, metavar="T",
                    help="real-mirror: height of the board's printed face above the mirror, board units "
                         "(default: the scenario's on the simulated rig, else 0)")
     p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
     p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
-    p.add_argument("--projector-screen", type=int, default=None,
+    p.add_argument("--projector-screen", type=_types.screen, default=None,
                    help="real rig: screen the projector is connected to, from `procam devices` (default: the non-primary one of two screens; required with more)")
-    p.add_argument("--settle-s", type=float, default=None,
+    p.add_argument("--settle-s", type=_types.seconds, default=None,
                    help="real rig: projector latency to wait after each image (seconds)")
-    p.add_argument("--workers", type=int, default=2, help="detection threads for the calibration (default 2)")
+    p.add_argument("--workers", type=_types.workers, default=2,
+                   help="detection threads for the calibration (default 2)")
     p.add_argument("--method", default=None,
                    help="calibration method (default: the calibration core's default; 'paper' is the method of "
                         "Vanherck et al.)")

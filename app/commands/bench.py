@@ -15,6 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from app.commands import _types
+
 NAME = "bench"
 HELP = "benchmarks on the simulated rig: calibration accuracy vs ground truth, render speed"
 DESCRIPTION = (
@@ -44,19 +46,22 @@ def add_arguments(p) -> None:
     a = sub.add_parser("accuracy", help="calibration accuracy on simulated sessions vs ground truth")
     a.add_argument("--scenarios", nargs="+", default=None, metavar="NAME",
                    help="scenarios (default: all; `procam simulate --list`)")
-    a.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds 0..N-1 per scenario (default %(default)s)")
+    a.add_argument("--seeds", type=_types.int_range(1, 1000), default=1, metavar="N",
+                   help="seeds 0..N-1 per scenario (default %(default)s)")
     a.add_argument("--methods", default=None,
                    help="comma-separated calibration methods (default: every registered method; also "
                         "joint-bic, the joint method without the coverage criterion)")
     a.add_argument("--quality", choices=("live", "session"), default="session", help="render quality (default %(default)s)")
-    a.add_argument("--noise", type=float, default=None, metavar="SIGMA", help="read noise override (levels)")
-    a.add_argument("--blur", type=float, default=None, metavar="SIGMA", help="optical blur override (px)")
+    a.add_argument("--noise", type=_types.noise_dn, default=None, metavar="SIGMA", help="read noise override (levels)")
+    a.add_argument("--blur", type=_types.blur_px, default=None, metavar="SIGMA", help="optical blur override (px)")
     a.add_argument("--keep", metavar="DIR", default=None, help="keep the simulated sessions under DIR")
     a.add_argument("--json", metavar="FILE", default=None, help="also write every run's numbers to FILE")
-    a.add_argument("--workers", type=int, default=2, help="render processes and detection threads (default %(default)s)")
+    a.add_argument("--workers", type=_types.workers, default=2,
+                   help="render processes and detection threads (default %(default)s)")
     r = sub.add_parser("render", help="frames per second of the simulated camera per render mode")
     r.add_argument("--scenario", default="nonoverlap-136", help="scenario (default %(default)s)")
-    r.add_argument("--frames", type=int, default=20, help="frames per mode (default %(default)s)")
+    r.add_argument("--frames", type=_types.int_range(1, 100000), default=20,
+                   help="frames per mode (default %(default)s)")
 
 
 # ---- accuracy ---------------------------------------------------------------------------------------------

@@ -14,6 +14,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from app.commands import _types
+
 #: squares outside this range (mm) are most likely a length given in the wrong unit
 PLAUSIBLE_SQUARE_MM = (10.0, 500.0)
 
@@ -56,7 +58,8 @@ def add_arguments(p) -> None:
                    help="projector board: a blank area WIDTH wide, GAP (default 20 mm) right of the squares, "
                         "as tall as them (board units)")
     p.add_argument("--out", metavar="FILE", help="FILE.pdf, FILE.svg or FILE.png to write")
-    p.add_argument("--dpi", type=float, default=None, help=f"PNG resolution (default {DEFAULT_DPI:g})")
+    p.add_argument("--dpi", type=_types.float_range(10.0, 2400.0), default=None,
+                   help=f"PNG resolution (default {DEFAULT_DPI:g})")
     p.add_argument("--paper", default="auto", help="a4, a3, a2, a1, a0, or auto (default: the smallest "
                    "ISO sheet the board fits at true scale)")
     p.add_argument("--assets", metavar="DIR", help="write the default boards and the projector patterns "
@@ -159,11 +162,11 @@ def run(args) -> int:
     if args.dpi is not None and fmt != ".png":
         raise SpecError(f"--dpi applies to PNG output only; {fmt[1:].upper()} is vector (true size at any zoom)")
     spec = CharucoSpec.parse(args.board, args.units)
-    warning = size_warning(spec)
-    if warning:
-        print(f"warning: {warning}", file=sys.stderr)
     blank = _blank_for(spec, args.blank_area)
     data, sheet = board_file(spec, blank, fmt, args.paper.lower(), DEFAULT_DPI if args.dpi is None else args.dpi)
+    warning = size_warning(spec)  # after the layout: a board too large to draw is an error alone
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     try:
         atomic_write_bytes(out, data)
     except OSError as e:

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.commands import _types
+
 NAME = "calibrate"
 HELP = "calibrate a saved capture session (camera, mirror, projector) and write calibration.json"
 DESCRIPTION = (
@@ -34,14 +36,14 @@ def add_arguments(p) -> None:
                    help="joint method: camera distortion model (default auto: selected by significance tests)")
     p.add_argument("--projector-model", choices=MODELS, default=None,
                    help="joint method: projector distortion model (default auto)")
-    p.add_argument("--camera-intrinsics", metavar="FILE", default=None,
+    p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera: a calibration.json or an OpenCV YAML with camera_matrix and "
                         "distortion_coefficients; skips the camera stage")
     p.add_argument("--out", metavar="FILE.json", default=None,
                    help=f"result file, *.json (default SESSION/{RESULT_NAME}); the YAML export goes beside it with "
                         f"the same name and .yaml. Session files (session.json, detections.json, images...) are "
                         f"refused")
-    p.add_argument("--workers", type=int, default=2, help="detection threads (default %(default)s)")
+    p.add_argument("--workers", type=_types.workers, default=2, help="detection threads (default %(default)s)")
     p.add_argument("--redetect", action="store_true",
                    help="detect every image again instead of reusing the session's detections.json (results "
                         "of earlier runs, kept per image and detector version)")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import sys
 
+from app.commands import _types
+
 NAME = "import-procamcalib"
 HELP = "convert a recording made with EDM-Research/ProcamCalib into a session folder"
 DESCRIPTION = (
@@ -24,7 +26,7 @@ def add_arguments(p) -> None:
                         "(marker defaults to half the square)")
     p.add_argument("--mirror", metavar="DIR", help="mirror-calibration folder (M... real-virtual, F... real-mirror)")
     p.add_argument("--mirror-board", metavar="SPEC", help="board of the mirror step (default: --board)")
-    p.add_argument("--board-thickness", type=float, default=0.0, metavar="T",
+    p.add_argument("--board-thickness", type=_types.float_range(0.0, 1000.0), default=0.0, metavar="T",
                    help="real-mirror: printed face above the mirror surface, in --units (default %(default)s)")
     p.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
                    help="length unit of the square/marker lengths (default mm)")

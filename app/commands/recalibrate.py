@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from app.commands import _types
 from app.commands._rig_options import add_sim_bump_option, add_sim_latency_option
 
 NAME = "recalibrate"
@@ -36,7 +37,7 @@ def add_arguments(p) -> None:
                    help="simulated rig: the simulated operator moves the board with no prompts (without it the "
                         "command tells the technician each step and waits for Enter)")
     p.add_argument("--scenario", default=None, help="simulated rig scenario (default: PREVIOUS's, else nonoverlap-136)")
-    p.add_argument("--seed", type=int, default=None, help="simulated rig seed (default: PREVIOUS's, else 0)")
+    p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default: PREVIOUS's, else 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
     add_sim_latency_option(p)
     add_sim_bump_option(p)
@@ -46,13 +47,13 @@ def add_arguments(p) -> None:
     p.add_argument("--mirror-board", default=None, help="mirror board spec, with --board (default: --board)")
     p.add_argument("--units", default=None, help="unit of the --board lengths (default: PREVIOUS's)")
     p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
-    p.add_argument("--projector-screen", type=int, default=None,
+    p.add_argument("--projector-screen", type=_types.screen, default=None,
                    help="real rig: screen the projector is connected to, from `procam devices`")
-    p.add_argument("--settle-s", type=float, default=None,
+    p.add_argument("--settle-s", type=_types.seconds, default=None,
                    help="real rig: projector latency to wait after each image (seconds)")
-    p.add_argument("--max-captures", type=int, default=None, metavar="N",
+    p.add_argument("--max-captures", type=_types.int_range(4, 1000), default=None, metavar="N",
                    help="give up (exit 1) when the re-estimate needs more than N captures in all (default 24)")
-    p.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
+    p.add_argument("--workers", type=_types.workers, default=2, help="detection threads (default 2)")
 
 
 #: exit status of a recalibration stopped part-way by a closed input (Ctrl-C: 130); the folder is resumable
@@ -164,6 +165,9 @@ def prepare(args, log):
         raise SessionError(f"{folder} is not empty: a recalibration needs a new session folder (or --resume to "
                            "continue a stopped one)")
     else:
+        from app.commands._outputs import check_output_folder
+
+        check_output_folder(folder, "--out", inputs=[args.previous])  # never inside a session, PREVIOUS's or another's
         kind = args.rig or default_rig_kind()
     simulated = is_simulated(kind)
     max_caps = args.max_captures or DEFAULT_MAX_CAPTURES

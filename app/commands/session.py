@@ -40,9 +40,9 @@ def plan_from_args(args, base=None):
 
     plan = base or Plan()
     kw = plan.to_dict()
-    if getattr(args, "poses_per_position", None):
+    if getattr(args, "poses_per_position", None) is not None:
         kw["poses_per_position"] = args.poses_per_position
-    if getattr(args, "mirror_captures", None):
+    if getattr(args, "mirror_captures", None) is not None:
         kw["real_virtual_captures"] = kw["real_mirror_captures"] = args.mirror_captures
         kw["min_real_virtual"] = min(kw["min_real_virtual"], args.mirror_captures)
         kw["min_real_mirror"] = min(kw["min_real_mirror"], args.mirror_captures)
@@ -95,7 +95,7 @@ def open_session(args, log=print):
         rig = open_rig(req, **rig_options(args, req.kind))
         check_same_rig(store, rig)
         plan = None
-        if args.poses_per_position or args.mirror_captures:
+        if args.poses_per_position is not None or args.mirror_captures is not None:
             from app.station.machine import Plan
 
             plan = plan_from_args(args, Plan.from_dict((store.manifest.state or {}).get("plan")))
@@ -105,7 +105,9 @@ def open_session(args, log=print):
         log(f"resuming {folder}: {len(store.manifest.captures)} captures on disk "
             f"(mirror {c['mirror']}, projector {c['projector']}), step '{machine.state}'")
     else:
-        folder = Path(args.out)
+        from app.commands._outputs import check_output_folder
+
+        folder = check_output_folder(args.out)  # never inside another session (its images/, ...)
         kind = args.rig or default_rig_kind()
         req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
         from drivers.factory import is_simulated

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import time
 
+from app.commands import _types
+
 NAME = "show-pattern"
 HELP = "show the projector pattern fullscreen on a screen (Esc or q quits)"
 DESCRIPTION = (
@@ -27,21 +29,24 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--screen", type=int, default=None, metavar="N",
+    p.add_argument("--screen", type=_types.screen, default=None, metavar="N",
                    help="screen index from `procam devices` (default: the non-primary one of two screens; required with more)")
     p.add_argument("--pattern", choices=("circles", "chessboard"), default="circles")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--position", type=int, default=0, metavar="K", help="pattern position (0-based, default 0)")
-    g.add_argument("--cycle", type=float, default=None, metavar="SECONDS",
+    g.add_argument("--position", type=_types.int_range(0, 999), default=0, metavar="K",
+                   help="pattern position (0-based, default 0)")
+    g.add_argument("--cycle", type=_types.float_range(0.0, 3600.0, lo_open=True), default=None, metavar="SECONDS",
                    help="show every position in turn, SECONDS each")
     p.add_argument("--size", type=_size, default=None, metavar="WxH",
                    help="image size (default: the screen's); a smaller size opens a borderless window at "
                         "the screen's top-left corner instead of going fullscreen")
-    p.add_argument("--cols", type=int, default=None, help="pattern columns (OpenCV pattern size)")
-    p.add_argument("--rows", type=int, default=None, help="pattern rows")
-    p.add_argument("--spacing", type=float, default=None, metavar="PX", help="point spacing in projector pixels")
-    p.add_argument("--positions", type=int, default=None, help="number of pattern positions (default 13)")
-    p.add_argument("--duration", type=float, default=None, metavar="SECONDS",
+    p.add_argument("--cols", type=_types.int_range(2, 200), default=None, help="pattern columns (OpenCV pattern size)")
+    p.add_argument("--rows", type=_types.int_range(2, 200), default=None, help="pattern rows")
+    p.add_argument("--spacing", type=_types.float_range(0.0, 10000.0, lo_open=True), default=None, metavar="PX",
+                   help="point spacing in projector pixels")
+    p.add_argument("--positions", type=_types.int_range(1, 999), default=None,
+                   help="number of pattern positions (default 13)")
+    p.add_argument("--duration", type=_types.float_range(0.0, 86400.0, lo_open=True), default=None, metavar="SECONDS",
                    help="quit by itself after SECONDS (default: wait for Esc or q)")
 
 

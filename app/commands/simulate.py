@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.commands import _types
+
 NAME = "simulate"
 HELP = "render a capture session of a simulated rig (with ground truth), or --list the scenarios"
 DESCRIPTION = (
@@ -33,21 +35,22 @@ def add_arguments(p) -> None:
     p.add_argument("scenario", nargs="?", metavar="SCENARIO", help="scenario name (see --list)")
     p.add_argument("--list", action="store_true", help="print the scenarios, one per line, and exit")
     p.add_argument("--out", metavar="DIR", help="session folder to create (new or empty, unless --force)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the board poses and the noise (default %(default)s)")
-    p.add_argument("--noise", type=float, default=None, metavar="SIGMA",
+    p.add_argument("--seed", type=_types.seed, default=0,
+                   help="seed of the board poses and the noise (default %(default)s)")
+    p.add_argument("--noise", type=_types.noise_dn, default=None, metavar="SIGMA",
                    help="read noise sigma in 8-bit levels (default: the scenario's); 0 turns all noise off "
                         "unless --shot is given")
-    p.add_argument("--shot", type=float, default=None, metavar="E_PER_DN",
+    p.add_argument("--shot", type=_types.shot_e_per_dn, default=None, metavar="E_PER_DN",
                    help="shot noise: photo-electrons per 8-bit level (default: the scenario's; 0 = off)")
-    p.add_argument("--blur", type=float, default=None, metavar="SIGMA", help="optical blur sigma in pixels")
+    p.add_argument("--blur", type=_types.blur_px, default=None, metavar="SIGMA", help="optical blur sigma in pixels")
     p.add_argument("--quality", choices=("live", "session"), default="session",
                    help="anti-aliasing: session = 3x3 samples per pixel (default), live = 1")
-    p.add_argument("--per-position", type=int, default=None, metavar="N",
+    p.add_argument("--per-position", type=_types.int_range(1, 100), default=None, metavar="N",
                    help=f"board poses per pattern position (default: the scenario's, "
                         f"{_scenario_default('per_position')} as in the paper)")
-    p.add_argument("--mirror-count", type=int, default=None, metavar="N",
+    p.add_argument("--mirror-count", type=_types.int_range(1, 500), default=None, metavar="N",
                    help=f"mirror-calibration captures (default: the scenario's, {_scenario_default('mirror_count')})")
-    p.add_argument("--workers", type=int, default=2, help="render processes (default %(default)s)")
+    p.add_argument("--workers", type=_types.workers, default=2, help="render processes (default %(default)s)")
     p.add_argument("--force", action="store_true", help="write into DIR even if it holds a session")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress output (default: a bar on a terminal, a line at start and end otherwise)")
@@ -65,35 +68,24 @@ def run(args) -> int:
         raise SpecError("name a scenario (procam simulate --list shows them), e.g. procam simulate nonoverlap-136 --out DIR")
     if not args.out:
         raise SpecError("give the session folder to write with --out DIR")
-    if args.workers < 1:
-        raise SpecError("--workers must be at least 1")
     scenario = get_scenario(args.scenario, args.seed)
     from app.commands._outputs import check_output_folder
 
     check_output_folder(args.out)
     changes = {}
+    # the options' ranges are checked while parsing them (app/commands/_types.py)
     if args.per_position is not None:
-        if args.per_position < 1:
-            raise SpecError("--per-position must be >= 1")
         changes["per_position"] = args.per_position
     if args.mirror_count is not None:
-        if args.mirror_count < 1:
-            raise SpecError("--mirror-count must be >= 1")
         changes["mirror_count"] = args.mirror_count
     settings = {}
     if args.noise is not None:
-        if args.noise < 0:
-            raise SpecError("--noise must be >= 0")
         settings["read_noise_dn"] = args.noise
         if args.noise == 0 and args.shot is None:
             settings["electrons_per_dn"] = 0.0
     if args.shot is not None:
-        if args.shot < 0:
-            raise SpecError("--shot must be >= 0")
         settings["electrons_per_dn"] = args.shot
     if args.blur is not None:
-        if args.blur < 0:
-            raise SpecError("--blur must be >= 0")
         settings["blur_sigma_px"] = args.blur
     if settings:
         changes["render"] = replace(scenario.render, **settings)

@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+from app.commands import _types
 from app.commands._rig_options import add_rig_options
 
 NAME = "station"
@@ -27,8 +28,9 @@ DESCRIPTION = (
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--port", type=int, default=8080, help="panel port (default 8080)")
-    p.add_argument("--host", default="127.0.0.1",
+    p.add_argument("--port", type=_types.port, default=8080,
+                   help="panel port, 1-65535, or 0 for any free one (default 8080)")
+    p.add_argument("--host", type=_types.host, default="127.0.0.1",
                    help="address to serve the panel on (default 127.0.0.1; 0.0.0.0 serves the network, and "
                         "every browser then needs the printed access code to see the panel)")
     g = p.add_mutually_exclusive_group()
@@ -58,6 +60,17 @@ def rig_note(req, defaulted: bool) -> str:
     return f"**{req.kind} rig**: a person moves the board, following the instructions below."
 
 
+def check_serving(args) -> None:
+    """Before any folder or device: the panel's address can be served on (a host that is not this
+    machine's would hang viser) and a new session folder is not inside another session."""
+    from app.commands._outputs import check_output_folder
+    from app.station._origin import check_bind
+
+    check_bind(args.host, args.port)
+    if not args.resume:
+        check_output_folder(args.session, "--session")
+
+
 def run(args) -> int:
     from app.commands.session import open_session
     from app.station.panel import StationPanel, needs_access_code, new_access_code
@@ -67,6 +80,7 @@ def run(args) -> int:
     defaulted = False
     if not args.resume and not args.session:
         args.session = time.strftime("session-%Y%m%d-%H%M%S")
+    check_serving(args)
     if args.resume:
         kind = resume_request(args.resume, kind=args.rig).kind
     else:
@@ -158,6 +172,9 @@ def serve(args, rig, store, station, panel, code, start) -> int:
         print(f"procam station: panel at {panel.url}  (session {Path(store.folder)})", flush=True)
         if code is not None:
             print(f"procam station: served on {args.host}; access code: {code}", flush=True)
+            print("procam station: the panel's traffic is plain HTTP, not encrypted: anyone on the network can "
+                  "read it (live images, results, the access code); serve it only on a network you trust",
+                  flush=True)
             for url in panel.network_urls():
                 print(f"procam station: on the network open {url}", flush=True)
         else:

@@ -19,6 +19,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from app.commands import _types
+
 NAME = "verify"
 HELP = "measure a session's calibration on the rig: epipolar curves drawn by the projector vs picked camera pixels"
 DESCRIPTION = (
@@ -69,10 +71,11 @@ def add_arguments(p) -> None:
     p.add_argument("--calibration", metavar="FILE", default=None,
                    help="calibration to verify (default SESSION/calibration.json)")
     p.add_argument("--out", metavar="FILE", default=None, help="report file (default SESSION/verification.json)")
-    p.add_argument("--average", type=int, default=1, metavar="N", help="camera frames averaged per image (default 1)")
+    p.add_argument("--average", type=_types.int_range(1, 100), default=1, metavar="N",
+                   help="camera frames averaged per image (default 1)")
     sim = p.add_argument_group("--rig sim, sim-realsense")
     sim.add_argument("--scenario", default=None, help="scenario (default: the one the session was simulated with)")
-    sim.add_argument("--seed", type=int, default=None, help="scenario seed (default: the session's)")
+    sim.add_argument("--seed", type=_types.seed, default=None, help="scenario seed (default: the session's)")
     sim.add_argument("--quality", choices=("live", "session"), default="live",
                      help="render quality of the simulated camera (default live: 1 sample per pixel)")
     from app.commands._rig_options import add_sim_latency_option
@@ -80,13 +83,13 @@ def add_arguments(p) -> None:
     add_sim_latency_option(sim)
     hw = p.add_argument_group("--rig realsense")
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
-    hw.add_argument("--screen", type=int, default=None, metavar="N",
+    hw.add_argument("--screen", type=_types.screen, default=None, metavar="N",
                     help="projector screen from `procam devices` (default: the non-primary one of two screens)")
-    hw.add_argument("--settle", type=float, default=None, metavar="S",
+    hw.add_argument("--settle", type=_types.seconds, default=None, metavar="S",
                     help="projector latency in seconds (every rig): how long after presentation an image counts as visible "
                          "(default: the latency the session's rig check measured, session.json "
                          f"rig.camera_settings.projector.latency_ms; {DEFAULT_SETTLE_S:g} when none was recorded)")
-    hw.add_argument("--delay", type=float, default=3.0, metavar="S",
+    hw.add_argument("--delay", type=_types.seconds, default=3.0, metavar="S",
                     help="seconds between the instruction to hold the board and the measurement (default 3)")
 
 

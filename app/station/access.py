@@ -247,14 +247,19 @@ class AccessGate:
 
     # ---- requests ---------------------------------------------------------------------------------
     def check(self, path: str, headers, client: str, port: int) -> Verdict:
-        """One HTTP request or websocket handshake (`headers`: a mapping with .get)."""
-        upgrade = (headers.get("Upgrade") or "").lower()
+        """One HTTP request or websocket handshake (`headers`: a mapping with .get, and .get_all when a
+        header may be repeated)."""
+        upgrade = ",".join(_header_values(headers, "Upgrade")).lower()
         if "websocket" in upgrade:
             return self._check_websocket(path, headers, client, port)
         return self._check_page(path, client)
 
     def _check_websocket(self, path: str, headers, client: str, port: int) -> Verdict:
-        origin = headers.get("Origin")
+        origins = _header_values(headers, "Origin")
+        if len(origins) > 1:  # no browser sends two; one of them could be anybody's
+            self._log_refusal((client, "several"), f"refused a websocket from {client}: {len(origins)} Origin headers")
+            return Verdict(403, "Forbidden: more than one Origin header.")
+        origin = origins[0] if origins else None
         if origin is not None and not self.origin_allowed(origin, port):
             with self._lock:
                 self.refused_origins += 1
@@ -310,6 +315,15 @@ class AccessGate:
             "<input id='code' name='code' autocomplete='off' autocapitalize='none' spellcheck='false' autofocus>"
             "<button type='submit'>Open the panel</button></form></body></html>"
         )
+
+
+def _header_values(headers, name: str) -> list[str]:
+    """Every value of header `name` (websockets' Headers raise on .get of a repeated one)."""
+    get_all = getattr(headers, "get_all", None)
+    if get_all is not None:
+        return list(get_all(name))
+    value = headers.get(name)
+    return [] if value is None else [value]
 
 
 def _code_in_path(path: str) -> str | None:
