@@ -11,7 +11,6 @@ reason a person can read, never an exception.
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -23,6 +22,7 @@ import numpy as np
 from calib.detection import cache as detect_cache
 from calib.detection.response import CameraResponse, recorded_response
 from calib.errors import SessionError
+from calib.formats.session import read_image_file
 from calib.models.boards import CharucoSpec
 from calib.models.observations import (
     STEP_PROJECTOR,
@@ -877,9 +877,10 @@ class _Job:
     response: CameraResponse | None = None  # the camera's tone curve the session recorded, if any
 
 
-def _read_file(path: str) -> np.ndarray:
-    """An image file's bytes (the one place detect_session reads images)."""
-    return np.fromfile(path, np.uint8)
+def _read_file(path: str, camera_size: tuple[int, int]) -> np.ndarray:
+    """An image file's bytes (the one place detect_session reads images), checked before decoding
+    (calib.formats.session.read_image_file)."""
+    return np.frombuffer(read_image_file(path, camera_size), np.uint8)
 
 
 def _run_job(job: _Job):
@@ -890,9 +891,12 @@ def _run_job(job: _Job):
     if job.refused is not None:
         return job.capture_id, DetectionFailure(job.refused), None
     try:
-        if not os.path.exists(job.image_path):
+        try:
+            data = _read_file(job.image_path, job.camera_size)
+        except FileNotFoundError:
             return job.capture_id, DetectionFailure(f"image missing: {job.image_path}"), None
-        data = _read_file(job.image_path)
+        except SessionError as e:  # a link, FIFO, device, huge file or another camera's image: never decoded
+            return job.capture_id, DetectionFailure(str(e)), None
         if not job.hash_image:
             return job.capture_id, _detect_job(job, data), None
         digest = detect_cache.image_digest(data)
