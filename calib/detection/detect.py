@@ -22,7 +22,8 @@ import numpy as np
 from calib.detection import cache as detect_cache
 from calib.detection.response import CameraResponse, recorded_response
 from calib.errors import SessionError
-from calib.formats.session import read_image_file
+from calib.formats.fileio import read_regular
+from calib.formats.session import image_header_problem, image_max_bytes
 from calib.models.boards import CharucoSpec
 from calib.models.observations import (
     STEP_PROJECTOR,
@@ -878,9 +879,9 @@ class _Job:
 
 
 def _read_file(path: str, camera_size: tuple[int, int]) -> np.ndarray:
-    """An image file's bytes (the one place detect_session reads images), checked before decoding
-    (calib.formats.session.read_image_file)."""
-    return np.frombuffer(read_image_file(path, camera_size), np.uint8)
+    """An image file's bytes (the one place detect_session reads images): a regular file no larger than
+    a PNG of the camera can be (calib.formats.fileio.read_regular); its header is checked before decoding."""
+    return np.frombuffer(read_regular(path, image_max_bytes(camera_size), "image"), np.uint8)
 
 
 def _run_job(job: _Job):
@@ -895,7 +896,7 @@ def _run_job(job: _Job):
             data = _read_file(job.image_path, job.camera_size)
         except FileNotFoundError:
             return job.capture_id, DetectionFailure(f"image missing: {job.image_path}"), None
-        except SessionError as e:  # a link, FIFO, device, huge file or another camera's image: never decoded
+        except SessionError as e:  # a link, FIFO, device or huge file: never read
             return job.capture_id, DetectionFailure(str(e)), None
         if not job.hash_image:
             return job.capture_id, _detect_job(job, data), None
@@ -914,7 +915,10 @@ def _run_job(job: _Job):
 
 
 def _detect_job(job: _Job, data: np.ndarray):
-    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    problem = image_header_problem(data, job.camera_size, job.image_path)
+    if problem is not None:  # another size (a lying header too) is never decoded
+        return DetectionFailure(problem)
+    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
     if gray is None:
         return DetectionFailure(f"image unreadable: {job.image_path} cannot be decoded")
     h, w = gray.shape

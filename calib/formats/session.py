@@ -18,7 +18,9 @@ session.json (format "procam-session", version 1):
 Everything in a session folder is untrusted (it may come from someone else): a capture's `image` must
 be `images/NAME.png`, and the store never reads, hashes, writes or deletes a file whose path leads out
 of the folder (a link in images/ pointing elsewhere is refused for reading; deleting a capture removes
-the link, never what it points to). Non-finite numbers (NaN, Infinity, 1e400) are refused anywhere in
+the link, never what it points to). Every file is read through calib.formats.fileio.read_regular (no
+link, FIFO or device; a size cap), an image only once its PNG header gives the camera's size
+(read_image_file). Non-finite numbers (NaN, Infinity, 1e400) are refused anywhere in
 the manifest. A store opened for writing holds the folder's lock (calib.formats.session_lock).
 """
 
@@ -558,13 +560,21 @@ def read_image_file(path, camera_size: tuple[int, int]) -> bytes:
     decoded into more memory than the camera's image. UnsafeFileError otherwise (FileNotFoundError when
     it is absent)."""
     data = read_regular(path, image_max_bytes(camera_size), "image")
-    size = png_size(data)
-    if size is None:
-        raise UnsafeFileError(f"image {path} is not a PNG file; it cannot be a capture of this session")
-    if size != tuple(camera_size):
-        raise UnsafeFileError(f"image is {size[0]}x{size[1]}, the session's camera is "
-                              f"{camera_size[0]}x{camera_size[1]}: {path} is not a capture of this camera")
+    problem = image_header_problem(data, camera_size, path)
+    if problem is not None:
+        raise UnsafeFileError(problem if problem.startswith("image unreadable") else f"{problem} ({path})")
     return data
+
+
+def image_header_problem(data, camera_size: tuple[int, int], path) -> str | None:
+    """Why the bytes `data` of image file `path` cannot be a capture of a camera of `camera_size` (not a
+    PNG, another size), from the header alone; None when they can."""
+    size = png_size(bytes(data[:24]))
+    if size is None:
+        return f"image unreadable: {path} is not a PNG file"
+    if size != tuple(camera_size):
+        return f"image is {size[0]}x{size[1]}, the session's camera is {camera_size[0]}x{camera_size[1]}"
+    return None
 
 
 def _lock(folder: Path) -> SessionLock:
