@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import json
 import os
 import re
 import secrets
 import stat
 from pathlib import Path
-
-import json
 
 from calib.errors import DiskFullError, FormatError, UnsafeFileError
 

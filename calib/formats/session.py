@@ -302,8 +302,8 @@ def _check_unknown_bulk(d: dict, path) -> None:
 
 def _non_finite(data) -> tuple[str, str] | None:
     """(field, value) of the first NaN or infinite number in parsed JSON (1e400 parses as infinity). A
-    field's name is spelt out only for the one found: building every name as it goes costs the nesting
-    depth at every value (minutes for a few megabytes of deeply nested junk)."""
+    field's name is spelt out only for the one found: building every name as it goes would cost the
+    nesting depth at every value, quadratic in deeply nested junk."""
     todo = [(None, data)]  # (the (parent, key) it is under, value)
     while todo:
         where, v = todo.pop()
@@ -405,7 +405,7 @@ class SessionStore:
         held = _lock(folder) if lock else None
         try:
             raw = _read_manifest_bytes(path)
-            return cls(folder, SessionManifest.from_dict(_parse_manifest(raw, path), path), held,
+            return cls(folder, SessionManifest.from_dict(parse_json(raw, path), path), held,
                        hashlib.sha1(raw).hexdigest())
         except BaseException:
             if held is not None:
@@ -598,8 +598,5 @@ def read_manifest_json(folder):
     """The parsed session.json of `folder` (read as read_regular reads, not checked as a manifest):
     UnsafeFileError, SessionError or FormatError when it cannot be read as JSON."""
     path = Path(folder) / MANIFEST
-    return _parse_manifest(_read_manifest_bytes(path), path)
+    return parse_json(_read_manifest_bytes(path), path)
 
-
-def _parse_manifest(raw: bytes, path: Path):
-    return parse_json(raw, path)
