@@ -43,7 +43,7 @@ from calib.detection.curves import CurveDetection, detect_projected_curve, dista
 from calib.detection.response import CameraResponse
 from calib.epipolar import epipolar_curve, predicted_camera_curve
 from calib.errors import FormatError, ProcamError
-from calib.formats.fileio import atomic_write_text
+from calib.formats.fileio import RESULT_MAX_BYTES, atomic_write_text, read_json
 from calib.models.result import CalibrationResult
 from drivers.clock import clock_of
 
@@ -474,12 +474,10 @@ class VerificationReport:
     @classmethod
     def from_json(cls, path) -> "VerificationReport":
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except OSError as e:
-            raise FormatError(path, "<file>", f"cannot be read: {e.strerror}") from None
-        except json.JSONDecodeError as e:
-            raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
+        try:  # a regular file only, never read through a link (calib.formats.fileio.read_regular)
+            data = read_json(path, RESULT_MAX_BYTES, "verification report")
+        except FileNotFoundError:
+            raise FormatError(path, "<file>", "cannot be read: it does not exist") from None
         return cls.from_dict(data, path)
 
 
@@ -706,12 +704,12 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
 
 
 def file_sha256(path) -> str | None:
-    """SHA-256 of a file's bytes (hex), or None when it cannot be read."""
-    import hashlib
+    """SHA-256 of a file's bytes (hex), or None when it cannot be read or is not a regular file."""
+    from calib.recalib import sha256_file
 
     try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    except OSError:
+        return sha256_file(path)
+    except (OSError, ProcamError):
         return None
 
 
@@ -720,9 +718,9 @@ def verification_is_stale(report_file, calibration_file) -> bool | None:
     `calibration_file` (the report records the SHA-256 of the file it verified). None when it cannot
     tell: no report, or a report written before the hash was recorded."""
     try:
-        data = json.loads(Path(report_file).read_text(encoding="utf-8"))
+        data = read_json(report_file, RESULT_MAX_BYTES, "verification report")
         recorded = (data.get("calibration") or {}).get("sha256")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ProcamError, AttributeError):
         return None
     if not isinstance(recorded, str):
         return None

@@ -33,6 +33,11 @@ class SessionError(ProcamError):
     """A capture session cannot be opened or written (missing folder, unreadable image...)."""
 
 
+class UnsafeFileError(SessionError):
+    """A file a session folder holds is a link, a hard link, not a regular file (a FIFO, a device) or
+    larger than such a file can be: it is refused before it is read."""
+
+
 class CalibrationError(ProcamError):
     """The data cannot be calibrated (too few views, no mirror images for a mirrored rig...). `code`,
     when set, names the failure for programs (stable across wordings), e.g. "non_finite"."""

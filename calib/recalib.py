@@ -40,6 +40,7 @@ the projector's mirror image), which is why the mirror is tested first on its ow
 from __future__ import annotations
 
 import hashlib
+import os
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -48,6 +49,7 @@ import cv2
 import numpy as np
 
 from calib.errors import CalibrationError
+from calib.formats.fileio import RESULT_MAX_BYTES, open_regular
 from calib.models.camera import CameraModel
 from calib.models.observations import BoardObservation, SessionObservations
 from calib.models.result import CalibrationResult, MirrorPlane
@@ -950,8 +952,9 @@ def compare_calibrations(previous: CalibrationResult, new: CalibrationResult, si
 
 # ---- the record -------------------------------------------------------------------------------------
 def sha256_file(path) -> str:
+    """SHA-256 of a regular file, never hashed through a link (calib.formats.fileio.open_regular)."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with os.fdopen(open_regular(path, RESULT_MAX_BYTES, "calibration file"), "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()

@@ -29,7 +29,7 @@ def _manifest(**kw) -> SessionManifest:
         Capture("p0000", STEP_PROJECTOR, "images/p0000.png", 3, PATTERN.points_px(1280, 720, 3),
                 {"settle_s": 0.12}),
     )
-    base = dict(rig=RigInfo((1280, 800), (1280, 720), VIEW_MIRROR, {"exposure_us": 8000, "gain": 16}, "sim"),
+    base = dict(rig=RigInfo((120, 80), (1280, 720), VIEW_MIRROR, {"exposure_us": 8000, "gain": 16}, "sim"),
                 projector_board=BOARD, pattern=PATTERN, mirror_board=MBOARD, mirror_method="real-virtual",
                 board_thickness=0.0, captures=caps, state={"step": "projector", "position": 4})
     base.update(kw)

@@ -13,12 +13,12 @@ Each refusal is a SessionError with a message naming the path and what to do.
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 from pathlib import Path
 
-from calib.errors import SessionError
+from calib.errors import ProcamError, SessionError
+from calib.formats.session import read_manifest_json
 
 MANIFEST = "session.json"
 #: files of a session folder that an output must never replace, and what they are
@@ -33,7 +33,18 @@ IMAGES_DIR = "images"
 
 
 def _resolved(path) -> Path:
-    return Path(path).expanduser().resolve(strict=False)
+    p = Path(path).expanduser()
+    try:
+        return p.resolve(strict=False)
+    except RuntimeError:  # a link loop (Python 3.11 raises): the path itself, absolute
+        return Path(os.path.abspath(p))
+
+
+def _unfollowed(path) -> Path:
+    """`path` absolute with its folders' links resolved, its last part as it is: an atomic write replaces
+    a link there, it never writes where the link points."""
+    path = Path(path).expanduser()
+    return _resolved(path.parent) / path.name
 
 
 def session_folder_of(path) -> Path | None:
@@ -48,10 +59,9 @@ def session_folder_of(path) -> Path | None:
 def _capture_images(folder: Path) -> set[Path]:
     """The image files a manifest names (best effort: an unreadable manifest names none)."""
     try:
-        data = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
-        caps = data.get("captures") or []
+        caps = read_manifest_json(folder).get("captures") or []
         return {_resolved(folder / c["image"]) for c in caps if isinstance(c, dict) and isinstance(c.get("image"), str)}
-    except (OSError, ValueError, TypeError, AttributeError):
+    except (OSError, ProcamError, TypeError, AttributeError):
         return set()
 
 
@@ -125,7 +135,7 @@ def check_output_file(path, what: str = "--out", inputs=()) -> Path:
         raise SessionError(f"{what} {path} is a folder; give a file name (e.g. {path / 'calibration.json'})")
     refuse_session_file(path, what)
     refuse_inputs(path, inputs, what)
-    probe_writable(_existing_ancestor(p, path, what))
+    probe_writable(_existing_ancestor(_unfollowed(path), path, what))
     return path
 
 

@@ -71,12 +71,14 @@ def check_session_arg(path) -> Path:
 
 
 def _method_of(path: Path) -> str | None:
-    """The method recorded in a calibration.json, or None when there is none or it cannot be read."""
-    import json
+    """The method recorded in a calibration.json, or None when there is none or it is not JSON; an
+    UnsafeFileError when it is a link, a pipe or a device (calib.formats.fileio.read_regular)."""
+    from calib.errors import FormatError
+    from calib.formats.fileio import RESULT_MAX_BYTES, read_json
 
     try:
-        m = json.loads(path.read_text(encoding="utf-8")).get("method")
-    except (OSError, ValueError, AttributeError):
+        m = read_json(path, RESULT_MAX_BYTES, "calibration file").get("method")
+    except (FileNotFoundError, FormatError, AttributeError):
         return None
     return m if isinstance(m, str) else None
 
@@ -139,9 +141,13 @@ def run(args) -> int:
     from calib.errors import CalibrationError, UntrustedCalibration
     from calib.pipeline import calibrate_session
 
+    from calib.formats.fileio import remove_stale_temporaries
+
     from app.commands._progress import Progress, progress_mode
 
     session, camera, out, exports, note = validate(args)
+    for path in (out, *exports):  # what a calibrate killed while writing its result left behind
+        remove_stale_temporaries(path.parent, (path.name,))
     bars = Progress(progress_mode(args.no_progress))
     try:
         opts = {k: v for k, v in (("camera_model", args.camera_model), ("projector_model", args.projector_model))

@@ -13,7 +13,6 @@ out are kept apart: they are drawn, but not counted in the statistics.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import cv2
 import numpy as np
 
 from calib.errors import ProcamError, SessionError
+from calib.formats.fileio import RESULT_MAX_BYTES, read_json
 from calib.formats.session import SessionStore
 from calib.models.result import CalibrationResult
 from calib.transforms import invert_T
@@ -165,7 +165,7 @@ def gather(session_dir, calibration_path=None) -> ReportData:
             raise ReportError(f"{cal_path} does not exist or is not a file")
         raise ReportError(f"{session_dir} has no {CALIBRATION_FILE}: calibrate it first (procam calibrate {session_dir})")
     result = CalibrationResult.load_json(cal_path)
-    calibration = json.loads(cal_path.read_text())
+    calibration = read_json(cal_path, RESULT_MAX_BYTES, "calibration file")
     cam_size, proj_size = store.manifest.rig.camera_size, store.manifest.rig.projector_size
     if tuple(result.camera.size) != tuple(cam_size) or tuple(result.projector.size) != tuple(proj_size):
         raise ReportError(f"{cal_path} is for a {result.camera.width}x{result.camera.height} camera and a "

@@ -387,7 +387,7 @@ class StationPanel(ControlsMixin):
             for pv in m.result.per_view:
                 if isinstance(pv, dict) and "capture_id" in pv:
                     per_view[pv["capture_id"]] = pv.get("rms_px")
-        return captures_html(m.manifest.captures, m.store.folder, per_view, self._thumbs)
+        return captures_html(m.manifest.captures, m.store, per_view, self._thumbs)
 
     def log_text(self, n: int = 10) -> str:
         evs = self.machine.events[-n:]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.errors import ProcamError
+from calib.errors import ProcamError, SessionError
+from calib.formats.fileio import RESULT_MAX_BYTES, read_regular
 
 #: The files the results zip carries, in this order, when they exist in the session folder.
 RESULT_FILES = ("calibration.json", "calibration.yaml", "verification.json", "report.html")
@@ -162,21 +164,23 @@ def write_report_if_available(folder) -> tuple[Path | None, str | None]:
 
 
 def results_zip(folder) -> tuple[bytes, list[str]]:
-    """A zip of the result files that exist in `folder` (RESULT_FILES): (bytes, names in it)."""
+    """A zip of the result files that exist in `folder` (RESULT_FILES): (bytes, names in it). Each is read
+    as a regular file of the folder (calib.formats.fileio.read_regular): a link, a pipe or a device there
+    is refused with its name, never followed into the zip."""
     folder = Path(folder)
-    names = [n for n in RESULT_FILES if (folder / n).is_file()]
+    names = [n for n in RESULT_FILES if os.path.lexists(folder / n)]
     if "calibration.json" not in names:
         raise ProcamError("there is no calibration.json in the session yet; calibrate first")
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
         for n in names:
-            z.write(folder / n, arcname=n)
+            z.writestr(n, read_regular(folder / n, RESULT_MAX_BYTES, "result file"))
     return buf.getvalue(), names
 
 
-def thumbnail_data_url(path, width: int = THUMB_WIDTH) -> str | None:
-    """A small JPEG of a capture image as a data: URL (None when the file does not read)."""
-    img = cv2.imread(str(path), cv2.IMREAD_REDUCED_COLOR_4)
+def thumbnail_data_url(data: bytes, width: int = THUMB_WIDTH) -> str | None:
+    """A small JPEG of a capture image's PNG bytes as a data: URL (None when they do not decode)."""
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_COLOR_4)
     if img is None:
         return None
     h, w = img.shape[:2]
@@ -185,22 +189,31 @@ def thumbnail_data_url(path, width: int = THUMB_WIDTH) -> str | None:
     return "data:image/jpeg;base64," + base64.b64encode(buf.tobytes()).decode() if ok else None
 
 
+def _thumbnail(store, capture) -> str | None:
+    """The capture's thumbnail; None when its file is missing or refused (a link, a pipe, too large, not
+    the camera's size: SessionStore.read_image_bytes), so nothing outside the folder is ever shown."""
+    try:
+        return thumbnail_data_url(store.read_image_bytes(capture))
+    except SessionError:
+        return None
+
+
 def _pose_number(meta) -> str:
     """The pose number a capture's metadata gives (1-based), or "?" for a malformed one (untrusted file)."""
     k = meta.get("pose_index", 0) if isinstance(meta, dict) else None
     return str(k + 1) if isinstance(k, int) and not isinstance(k, bool) else "?"
 
 
-def captures_html(captures, folder, per_view_rms: dict, thumbs: dict) -> str:
-    """Every capture, newest first, in a scrollable table with thumbnails (`thumbs`: capture id ->
-    data URL, filled here for the ones missing; the caller keeps the dict between calls)."""
+def captures_html(captures, store, per_view_rms: dict, thumbs: dict) -> str:
+    """Every capture of SessionStore `store`, newest first, in a scrollable table with thumbnails
+    (`thumbs`: capture id -> data URL, filled here for the ones missing; the caller keeps the dict)."""
     caps = list(captures)
     if not caps:
         return "<p>No captures yet.</p>"
     rows = []
     for c in reversed(caps):
         if c.id not in thumbs:
-            thumbs[c.id] = thumbnail_data_url(Path(folder) / c.image) if getattr(c, "image", None) else None
+            thumbs[c.id] = _thumbnail(store, c)
         t = thumbs[c.id]
         img = f"<img src='{t}' alt='{html.escape(c.id)}' style='width:{THUMB_WIDTH}px;display:block'>" if t else ""
         pos = "" if c.pattern_position is None else str(c.pattern_position + 1)

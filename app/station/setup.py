@@ -3,13 +3,12 @@ calibration / verification callables the state machine runs."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from app.station.machine import Plan, SessionMachine
 from calib.errors import SessionError
-from calib.formats.session import MANIFEST, RigInfo, SessionManifest, SessionStore
+from calib.formats.session import MANIFEST, RigInfo, SessionManifest, SessionStore, read_manifest_json
 from calib.models.boards import CharucoSpec
 from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
@@ -227,4 +226,4 @@ def load_ground_truth(folder):
 
 
 def read_state(folder) -> dict:
-    return json.loads((Path(folder) / MANIFEST).read_text()).get("state", {})
+    return read_manifest_json(folder).get("state", {})

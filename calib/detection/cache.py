@@ -39,7 +39,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.formats.fileio import atomic_write_text
+from calib.errors import SessionError
+from calib.formats.fileio import RESULT_MAX_BYTES, atomic_write_text, read_regular
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL, BoardObservation, DetectionFailure, MirrorView
 
 CACHE_FILE = "detections.json"
@@ -232,9 +233,11 @@ def load(folder) -> dict:
     if not os.path.lexists(path):
         return {}
     try:
-        if path.is_symlink() or not path.is_file():  # never read a file elsewhere through a link
-            raise ValueError("it is not a plain file of the session folder")
-        data = json.loads(path.read_text(encoding="utf-8"))
+        try:  # never a file elsewhere through a link, nor a FIFO that would block
+            raw = read_regular(path, RESULT_MAX_BYTES, "detection cache")
+        except SessionError as e:
+            raise ValueError(f"it is not a plain file of the session folder ({e})") from None
+        data = json.loads(raw.decode("utf-8"))
         if not isinstance(data, dict):
             raise ValueError("it is not a JSON object")
         if data.get("format") != FORMAT:

@@ -12,7 +12,6 @@ reason a person can read, never an exception.
 from __future__ import annotations
 
 import json
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -24,6 +23,8 @@ import numpy as np
 from calib.detection import cache as detect_cache
 from calib.detection.response import CameraResponse, recorded_response
 from calib.errors import SessionError
+from calib.formats.fileio import read_regular
+from calib.formats.session import image_header_problem, image_max_bytes
 from calib.models.boards import CharucoSpec
 from calib.models.observations import (
     STEP_PROJECTOR,
@@ -877,9 +878,10 @@ class _Job:
     response: CameraResponse | None = None  # the camera's tone curve the session recorded, if any
 
 
-def _read_file(path: str) -> np.ndarray:
-    """An image file's bytes (the one place detect_session reads images)."""
-    return np.fromfile(path, np.uint8)
+def _read_file(path: str, camera_size: tuple[int, int]) -> np.ndarray:
+    """An image file's bytes (the one place detect_session reads images): a regular file no larger than
+    a PNG of the camera can be (calib.formats.fileio.read_regular); its header is checked before decoding."""
+    return np.frombuffer(read_regular(path, image_max_bytes(camera_size), "image"), np.uint8)
 
 
 def _run_job(job: _Job, seen: dict | None = None):
@@ -891,9 +893,12 @@ def _run_job(job: _Job, seen: dict | None = None):
     if job.refused is not None:
         return job.capture_id, DetectionFailure(job.refused), None
     try:
-        if not os.path.exists(job.image_path):
+        try:
+            data = _read_file(job.image_path, job.camera_size)
+        except FileNotFoundError:
             return job.capture_id, DetectionFailure(f"image missing: {job.image_path}"), None
-        data = _read_file(job.image_path)
+        except SessionError as e:  # a link, FIFO, device or huge file: never read
+            return job.capture_id, DetectionFailure(str(e)), None
         digest = detect_cache.image_digest(data)
         same = (digest, job.step, job.mirrored)
         if seen is not None and same in seen:
@@ -927,7 +932,10 @@ def _cached_result(job: _Job, digest: str):
 
 
 def _detect_job(job: _Job, data: np.ndarray):
-    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    problem = image_header_problem(data, job.camera_size, job.image_path)
+    if problem is not None:  # another size (a lying header too) is never decoded
+        return DetectionFailure(problem)
+    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
     if gray is None:
         return DetectionFailure(f"image unreadable: {job.image_path} cannot be decoded")
     h, w = gray.shape

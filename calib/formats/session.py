@@ -18,7 +18,9 @@ session.json (format "procam-session", version 1):
 Everything in a session folder is untrusted (it may come from someone else): a capture's `image` must
 be `images/NAME.png`, and the store never reads, hashes, writes or deletes a file whose path leads out
 of the folder (a link in images/ pointing elsewhere is refused for reading; deleting a capture removes
-the link, never what it points to). Non-finite numbers (NaN, Infinity, 1e400) are refused anywhere in
+the link, never what it points to). Every file is read through calib.formats.fileio.read_regular (no
+link, FIFO or device; a size cap), an image only once its PNG header gives the camera's size
+(read_image_file). Non-finite numbers (NaN, Infinity, 1e400) are refused anywhere in
 the manifest. A store opened for writing holds the folder's lock (calib.formats.session_lock).
 """
 
@@ -35,8 +37,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.errors import FormatError, SessionError
-from calib.formats.fileio import atomic_write_bytes
+from calib.errors import FormatError, SessionError, UnsafeFileError
+from calib.formats.fileio import (MANIFEST_MAX_BYTES, atomic_write_bytes, parse_json, read_regular,
+                                  remove_stale_temporaries)
 from calib.formats.session_lock import SessionLock
 from calib.formats.session_lock import acquire as _acquire_lock
 from calib.models.boards import CharucoSpec
@@ -49,6 +52,10 @@ MANIFEST = "session.json"
 IMAGES_DIR = "images"
 MIRROR_METHODS = ("real-virtual", "real-mirror")
 MAX_IMAGE_SIDE = 100_000  # pixels: a width or height above this is a corrupt field, not a camera
+#: the top-level keys of session.json; another key (from a newer program) may hold at most UNKNOWN_MAX_BYTES
+MANIFEST_KEYS = ("format", "version", "rig", "projector_board", "mirror_board", "pattern", "mirror_method",
+                 "board_thickness", "captures", "state")
+UNKNOWN_MAX_BYTES = 64 * 1024
 
 #: the only form a capture's `image` may take: a PNG file directly in the images folder
 IMAGE_RE = re.compile(r"images/[A-Za-z0-9_][A-Za-z0-9_.-]{0,200}\.png")
@@ -157,6 +164,7 @@ class SessionManifest:
             raise FormatError(path, "<root>", "must be a JSON object")
         if d.get("format") != FORMAT:
             raise FormatError(path, "format", f"must be '{FORMAT}'")
+        _check_unknown_bulk(d, path)
         bad = _non_finite(d)
         if bad is not None:
             raise FormatError(path, bad[0], f"is not a finite number ({bad[1]})")
@@ -279,18 +287,41 @@ def _check_state(state, path) -> None:
             raise FormatError(path, f"state.plan.{key}", "must be a whole number >= 0 (poses_per_position >= 1)")
 
 
+def _check_unknown_bulk(d: dict, path) -> None:
+    """FormatError naming a top-level key this program does not know that holds more than a note: it is
+    not read, and it is not written back, but checking and parsing it would cost time and memory."""
+    for key in d.keys() - set(MANIFEST_KEYS):
+        try:
+            size = len(json.dumps(d[key]))
+        except (RecursionError, ValueError):
+            size = UNKNOWN_MAX_BYTES + 1
+        if size > UNKNOWN_MAX_BYTES:
+            raise FormatError(path, str(key)[:80], f"is not a field of a session and holds {size} bytes (more than "
+                                                   f"{UNKNOWN_MAX_BYTES}); remove it")
+
+
 def _non_finite(data) -> tuple[str, str] | None:
-    """(field, value) of the first NaN or infinite number in parsed JSON (1e400 parses as infinity)."""
-    todo = [("", data)]
+    """(field, value) of the first NaN or infinite number in parsed JSON (1e400 parses as infinity). A
+    field's name is spelt out only for the one found: building every name as it goes would cost the
+    nesting depth at every value, quadratic in deeply nested junk."""
+    todo = [(None, data)]  # (the (parent, key) it is under, value)
     while todo:
         where, v = todo.pop()
         if isinstance(v, float) and not math.isfinite(v):
-            return where, str(v)
+            return _field_name(where), str(v)
         if isinstance(v, dict):
-            todo.extend((f"{where}.{k}" if where else str(k), x) for k, x in reversed(v.items()))
+            todo.extend(((where, k), x) for k, x in reversed(v.items()))
         elif isinstance(v, list):
-            todo.extend((f"{where}[{i}]", x) for i, x in reversed(list(enumerate(v))))
+            todo.extend(((where, i), x) for i, x in reversed(list(enumerate(v))))
     return None
+
+
+def _field_name(where) -> str:
+    parts = []
+    while where is not None:
+        where, key = where
+        parts.append(f"[{key}]" if isinstance(key, int) else f".{key}")
+    return "".join(reversed(parts)).lstrip(".")
 
 
 def _storage_form(image: np.ndarray) -> np.ndarray:
@@ -343,15 +374,15 @@ class SessionStore:
     def create(cls, folder, manifest: SessionManifest, exist_ok: bool = False) -> "SessionStore":
         """A new session in `folder` (created if needed), locked for this process."""
         folder = Path(folder)
-        if (folder / MANIFEST).exists() and not exist_ok:
+        if os.path.lexists(folder / MANIFEST) and not exist_ok:
             raise SessionError(f"{folder} already holds a session; resume it or choose another folder")
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise SessionError(f"cannot create the session folder {folder} ({e.strerror})") from None
-        held = _acquire_lock(folder)
+        held = _lock(folder)
         try:
-            if (folder / MANIFEST).exists() and not exist_ok:  # again, now that this process holds the folder
+            if os.path.lexists(folder / MANIFEST) and not exist_ok:  # again, now that this process holds the folder
                 raise SessionError(f"{folder} already holds a session; resume it or choose another folder")
             store = cls(folder, manifest, held)
             store._images_dir()
@@ -369,12 +400,12 @@ class SessionStore:
         path = folder / MANIFEST
         if not folder.is_dir():
             raise SessionError(f"session folder {folder} does not exist")
-        if not path.exists():
+        if not os.path.lexists(path):
             raise SessionError(f"{folder} is not a session: it has no {MANIFEST}")
-        held = _acquire_lock(folder) if lock else None
+        held = _lock(folder) if lock else None
         try:
             raw = _read_manifest_bytes(path)
-            return cls(folder, SessionManifest.from_dict(_parse_manifest(raw, path), path), held,
+            return cls(folder, SessionManifest.from_dict(parse_json(raw, path), path), held,
                        hashlib.sha1(raw).hexdigest())
         except BaseException:
             if held is not None:
@@ -387,9 +418,9 @@ class SessionStore:
         session.json is still the one it read (another program may have written it since)."""
         if self.locked:
             return
-        held = _acquire_lock(self.folder)
+        held = _lock(self.folder)
         try:
-            raw = _read_manifest_bytes(self.folder / MANIFEST) if (self.folder / MANIFEST).exists() else b""
+            raw = _read_manifest_bytes(self.folder / MANIFEST) if os.path.lexists(self.folder / MANIFEST) else b""
         except BaseException:
             held.release()
             raise
@@ -487,34 +518,85 @@ class SessionStore:
                                f"folder; refused")
         return path
 
+    def read_image_bytes(self, capture: Capture) -> bytes:
+        """A capture's PNG file, checked before it is decoded (read_image_file); SessionError naming the
+        file when it is missing, not a plain file, too large or not the session camera's size."""
+        path = self.image_path(capture)
+        try:
+            return read_image_file(path, self._manifest.rig.camera_size)
+        except FileNotFoundError:
+            raise SessionError(f"image {path} of capture '{capture.id}' is missing") from None
+
     def load_image(self, capture: Capture, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
         """Read a capture's image; SessionError naming the file when it is missing or unreadable."""
-        path = self.image_path(capture)
-        if not path.exists():
-            raise SessionError(f"image {path} of capture '{capture.id}' is missing")
-        img = cv2.imread(str(path), flags)
+        data = self.read_image_bytes(capture)
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
         if img is None:
-            raise SessionError(f"image {path} of capture '{capture.id}' cannot be decoded")
+            raise SessionError(f"image {self.folder / capture.image} of capture '{capture.id}' cannot be decoded")
         return img
+
+
+#: a PNG file starts with this signature, then its IHDR chunk: length, "IHDR", width, height (big-endian)
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def image_max_bytes(camera_size: tuple[int, int]) -> int:
+    """The largest PNG file a capture of this camera can be: 16-bit RGBA stored uncompressed (8 bytes a
+    pixel), one filter byte a row and the zlib and chunk overheads, with a megabyte to spare."""
+    w, h = camera_size
+    return 8 * w * h + h + 2**20
+
+
+def png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG file's header, or None when `data` does not start like a PNG file."""
+    if len(data) < 24 or not data.startswith(_PNG_SIGNATURE) or data[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def read_image_file(path, camera_size: tuple[int, int]) -> bytes:
+    """The bytes of a capture image `path` of a camera of `camera_size`: a regular file (no link, FIFO or
+    device), no larger than such a PNG can be, whose PNG header gives the camera's size; so nothing is
+    decoded into more memory than the camera's image. UnsafeFileError otherwise (FileNotFoundError when
+    it is absent)."""
+    data = read_regular(path, image_max_bytes(camera_size), "image")
+    problem = image_header_problem(data, camera_size, path)
+    if problem is not None:
+        raise UnsafeFileError(problem if problem.startswith("image unreadable") else f"{problem} ({path})")
+    return data
+
+
+def image_header_problem(data, camera_size: tuple[int, int], path) -> str | None:
+    """Why the bytes `data` of image file `path` cannot be a capture of a camera of `camera_size` (not a
+    PNG, another size), from the header alone; None when they can."""
+    size = png_size(bytes(data[:24]))
+    if size is None:
+        return f"image unreadable: {path} is not a PNG file"
+    if size != tuple(camera_size):
+        return f"image is {size[0]}x{size[1]}, the session's camera is {camera_size[0]}x{camera_size[1]}"
+    return None
+
+
+def _lock(folder: Path) -> SessionLock:
+    """Take the folder's lock and remove what writers of the folder killed while writing left behind
+    (temporary files of session.json and of images)."""
+    held = _acquire_lock(folder)
+    remove_stale_temporaries(folder, (MANIFEST,))
+    if not os.path.islink(folder / IMAGES_DIR):
+        remove_stale_temporaries(folder / IMAGES_DIR)
+    return held
 
 
 def _read_manifest_bytes(path: Path) -> bytes:
     try:
-        return path.read_bytes()
-    except OSError as e:
-        raise SessionError(f"{path} cannot be read ({e.strerror})") from None
+        return read_regular(path, MANIFEST_MAX_BYTES, "session manifest")
+    except FileNotFoundError:
+        raise SessionError(f"{path.parent} is not a session: it has no {MANIFEST}") from None
 
 
-def _parse_manifest(raw: bytes, path: Path):
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as e:
-        bad = f"byte 0x{raw[e.start]:02x} at offset {e.start}"
-        raise FormatError(path, "<file>", f"is not UTF-8 text ({bad}); save it as UTF-8") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
-    except (ValueError, RecursionError) as e:  # an integer of thousands of digits, nesting beyond the stack
-        msg = "nests too deeply" if isinstance(e, RecursionError) else f"is not valid JSON ({e})"
-        raise FormatError(path, "<file>", msg) from None
+def read_manifest_json(folder):
+    """The parsed session.json of `folder` (read as read_regular reads, not checked as a manifest):
+    UnsafeFileError, SessionError or FormatError when it cannot be read as JSON."""
+    path = Path(folder) / MANIFEST
+    return parse_json(_read_manifest_bytes(path), path)
+

@@ -20,6 +20,7 @@ import fcntl
 import json
 import os
 import socket
+import stat
 import sys
 import threading
 import time
@@ -119,11 +120,11 @@ def _same_file(path: Path, fd: int) -> bool:
 def read_holder(folder) -> dict | None:
     """The record in a folder's lock file ({pid, host, since, command}), or None."""
     try:
-        fd = os.open(Path(folder) / LOCK_FILE, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        fd = os.open(Path(folder) / LOCK_FILE, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0))
     except OSError:
         return None
     try:
-        return _read_fd(fd)
+        return _read_fd(fd) if stat.S_ISREG(os.fstat(fd).st_mode) else None
     finally:
         os.close(fd)
 
@@ -178,7 +179,20 @@ def _record() -> bytes:
 
 
 def _open_lock_file(path: Path, folder) -> int:
-    flags = os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
+    """The lock file, opened (created if absent); SessionError when it is not a plain file of its own: the
+    lock record is written into it, so a link or a hard link would overwrite a file elsewhere."""
+    fd = _open_lock_path(path, folder)
+    st = os.fstat(fd)
+    if stat.S_ISREG(st.st_mode) and st.st_nlink == 1:
+        return fd
+    os.close(fd)
+    what = "has other hard links (it is also a file elsewhere)" if stat.S_ISREG(st.st_mode) else \
+        "is not a regular file"
+    raise SessionError(f"{path} {what}: remove it (a session's lock file is a plain file of its own)")
+
+
+def _open_lock_path(path: Path, folder) -> int:
+    flags = os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
     try:
         return os.open(path, os.O_RDWR | flags, 0o666)
     except PermissionError:  # someone else's lock file in a folder we may write: flock needs no write access

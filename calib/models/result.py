@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.errors import FormatError
-from calib.formats.fileio import atomic_write_text
+from calib.formats.fileio import RESULT_MAX_BYTES, atomic_write_text, read_json
 from calib.models.camera import CameraModel
 
 SCHEMA = "procam-calibration"
@@ -148,14 +148,10 @@ class CalibrationResult:
     @classmethod
     def load_json(cls, path) -> "CalibrationResult":
         path = Path(path)
-        try:
-            text = path.read_text()
-        except OSError as e:
-            raise FormatError(path, "<file>", f"cannot be read: {e.strerror}") from None
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
+        try:  # a regular file only, never read through a link (calib.formats.fileio.read_regular)
+            data = read_json(path, RESULT_MAX_BYTES, "calibration file")
+        except FileNotFoundError:
+            raise FormatError(path, "<file>", "cannot be read: it does not exist") from None
         return cls.from_dict(data, path)
 
 

@@ -3,12 +3,12 @@ capture, for measuring detection against ground truth."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from calib.formats.fileio import RESULT_MAX_BYTES, read_json
 from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
@@ -31,7 +31,7 @@ class ExpectedPoints(NamedTuple):
 
 def expected_points(folder) -> dict[str, ExpectedPoints]:
     """{capture id: ExpectedPoints} of a `procam simulate` session folder, from its scene.json."""
-    s = json.loads((Path(folder) / "scene.json").read_text())
+    s = read_json(Path(folder) / "scene.json", RESULT_MAX_BYTES, "scene file")
     cam, proj = CameraModel.from_dict(s["camera"]), CameraModel.from_dict(s["projector"])
     mirror = MirrorPlane(s["mirror"]["normal"], s["mirror"]["d"]) if s["mirror"] else None
     rig = SyntheticRig(cam, proj, np.array(s["T_cam_proj"]), mirror, None, np.zeros(3), 0.0, 0.0)
