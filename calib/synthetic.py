@@ -114,13 +114,17 @@ class SyntheticRig:
 
 def make_rig(angle_deg: float = 136.0, camera: CameraModel | None = None, projector: CameraModel | None = None,
              mirror_distance_mm: float = 350.0, board_distance_mm: float = 750.0,
-             projector_distance_mm: float = 950.0, mirror_size_mm=(620.0, 420.0)) -> SyntheticRig:
-    """A non-overlapping rig seen through a mirror (see the module docstring)."""
+             projector_distance_mm: float = 950.0, mirror_size_mm=(620.0, 420.0),
+             elevation_deg: float = 0.0) -> SyntheticRig:
+    """A non-overlapping rig seen through a mirror (see the module docstring). `elevation_deg` turns the
+    reflected central ray upwards (-y), so the boards are held higher than the camera: a projector with
+    a strong lens shift, projecting upwards, then sits beside the camera instead of below it."""
     camera = camera or d455_camera()
     projector = projector or portable_projector()
     M = np.array([0.0, 0.0, mirror_distance_mm])
     phi = np.radians(60.0 + angle_deg / 2.0)
-    r = np.array([np.sin(phi), 0.0, np.cos(phi)])  # reflected central ray
+    e = np.radians(elevation_deg)
+    r = np.array([np.sin(phi) * np.cos(e), -np.sin(e), np.cos(phi) * np.cos(e)])  # reflected central ray
     n = np.array([0.0, 0.0, 1.0]) - r
     n /= np.linalg.norm(n)
     n = -n if n @ (-M) < 0 else n  # towards the camera

@@ -10,7 +10,7 @@ from calib.transforms import rotation_angle_deg, transform_points
 from drivers.sim.scenarios import DEFAULT_SCENARIO, get_scenario, list_scenarios
 
 REQUIRED = ["direct", "nonoverlap-90", "nonoverlap-136", "nonoverlap-180", "nonoverlap-136-realmirror",
-            "nonoverlap-136-720p", "nonoverlap-136-chessboard"]
+            "nonoverlap-136-720p", "nonoverlap-136-chessboard", "shortthrow"]
 
 
 def test_library_names_and_default():

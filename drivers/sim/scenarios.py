@@ -52,14 +52,15 @@ def default_mirror_board() -> CharucoSpec:
     return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 13.2, "mm")
 
 
-def default_render(focus_mm: float = 0.0) -> RenderSettings:
+def default_render(focus_mm: float = 0.0, aperture_mm: float | None = None) -> RenderSettings:
     """A plausible camera and projector: slight optical blur, read noise and shot noise (about 2 levels
     at mid-grey), and the photometric realism of docs/SIMULATOR.md: the projector's gamma 2.2 and black
-    level 1/500, its lens (7 mm aperture) focused at `focus_mm` (0: the renderer's reference distance),
-    the camera's BT.709-like tone curve (gamma 2.2) and vignetting to 0.6 in the image corners."""
+    level 1/500, its lens (`aperture_mm`, default 7 mm) focused at `focus_mm` (0: the renderer's reference
+    distance), the camera's BT.709-like tone curve (gamma 2.2) and vignetting to 0.6 in the image corners."""
+    aperture = PROJECTOR_APERTURE_MM if aperture_mm is None else float(aperture_mm)
     return RenderSettings(blur_sigma_px=0.5, read_noise_dn=0.8, electrons_per_dn=40.0,
                           projector_gamma=PROJECTOR_GAMMA, projector_black_level=PROJECTOR_BLACK_LEVEL,
-                          projector_aperture_mm=PROJECTOR_APERTURE_MM, projector_focus_mm=float(focus_mm),
+                          projector_aperture_mm=aperture, projector_focus_mm=float(focus_mm),
                           vignetting_corner=VIGNETTING_CORNER, camera_gamma=CAMERA_GAMMA)
 
 
@@ -67,6 +68,7 @@ def default_render(focus_mm: float = 0.0) -> RenderSettings:
 PROJECTOR_GAMMA = 2.2  # a projector's standard picture mode follows the sRGB / BT.709 display curve
 PROJECTOR_BLACK_LEVEL = 0.002  # 500:1 on/off contrast: a small DLP projector with its lens flare
 PROJECTOR_APERTURE_MM = 7.0  # f 12.4 mm (2304 px at a 5.4 um DMD pitch) at f/1.8
+SHORT_THROW_APERTURE_MM = 2.3  # f 4.1 mm (768 px at the same pitch) at f/1.8
 VIGNETTING_CORNER = 0.6  # a wide (90 deg) lens' fall-off after the image processor's partial correction
 CAMERA_GAMMA = 2.2  # the D455 colour stream is gamma-encoded video, not linear raw
 
@@ -85,6 +87,7 @@ class Scenario:
     seed: int = 0
     per_position: int = 4
     mirror_count: int = 14  # as the published ProcamCalib recordings (52 projector + 14 mirror images)
+    max_tilt_deg: float = 28.0  # the projector board's largest tilt away from facing projector and camera
 
     @property
     def projector_board(self) -> CharucoSpec:
@@ -108,7 +111,7 @@ class Scenario:
     @cached_property
     def projector_poses(self) -> list[tuple[int, np.ndarray]]:
         """[(pattern_position, T_cam_board)], `per_position` per position, position-major."""
-        return projector_poses(self.rig, self.layout, self.pattern, self.per_position, self.seed)
+        return projector_poses(self.rig, self.layout, self.pattern, self.per_position, self.seed, self.max_tilt_deg)
 
     @cached_property
     def mirror_poses(self) -> list[np.ndarray]:
@@ -141,7 +144,7 @@ class Scenario:
     def extra_projector_pose(self, position: int, index: int) -> np.ndarray:
         """A further valid pose for `position`, beyond the scripted ones (deterministic)."""
         rng = np.random.default_rng([self.seed, 7001, position, index])
-        return projector_pose(self.rig, self.layout, self.pattern, position, rng)
+        return projector_pose(self.rig, self.layout, self.pattern, position, rng, self.max_tilt_deg)
 
     @cached_property
     def centre_position(self) -> int:
@@ -210,6 +213,7 @@ class Scenario:
             "board_thickness_mm": self.board_thickness_mm,
             "per_position": self.per_position,
             "mirror_count": self.mirror_count,
+            "max_tilt_deg": self.max_tilt_deg,
             "render": self.render.to_dict(),
         }
         return d
@@ -250,13 +254,26 @@ def wide_angle_camera() -> CameraModel:
                        [-0.2, 0.035, 0.0004, -0.0003, 0.0])
 
 
+def short_throw_projector(width: int = 1920, height: int = 1080) -> CameraModel:
+    """A short-throw projector: throw ratio 0.4 (a 1 m wide image from 40 cm, 100 deg across), its image
+    almost wholly above its axis (principal point at 95% of the height), barrel and pincushion terms
+    that nearly cancel in the corners."""
+    f = 0.4 * width
+    return CameraModel(width, height, [[f, 0, (width - 1) / 2 + 0.01 * width], [0, f * 1.002, 0.95 * height],
+                                       [0, 0, 1]], [-0.04, 0.012, 0.0, 0.0, 0.0])
+
+
 def _mirrored(name, description, angle_deg=136.0, projector=None, kind="circles", method="real-virtual",
-              thickness_mm=0.0, seed=0, camera=None, **rig_kw) -> Scenario:
+              thickness_mm=0.0, seed=0, camera=None, mirror_board=None, max_tilt_deg=28.0, aperture_mm=None,
+              **rig_kw) -> Scenario:
     rig = make_rig(angle_deg, camera=camera, projector=projector, **rig_kw)
     layout = BoardLayout(default_projector_board())
     pattern = PatternSpec.default_for(rig.projector.width, rig.projector.height, kind=kind)
-    return Scenario(name, description, rig, layout, default_mirror_board(), pattern, method, thickness_mm,
-                    default_render(rig.projector_distance_mm), seed)
+    # the projector's light as bright on the boards as at the other rigs' distance
+    render = replace(default_render(rig.projector_distance_mm, aperture_mm),
+                     reference_distance_mm=rig.projector_distance_mm)
+    return Scenario(name, description, rig, layout, mirror_board or default_mirror_board(), pattern, method,
+                    thickness_mm, render, seed, max_tilt_deg=max_tilt_deg)
 
 
 def _direct(seed=0) -> Scenario:
@@ -291,6 +308,13 @@ _BUILDERS = {
         "wideangle-realmirror", "136 deg, wide-angle 1920x1080 camera (fx 700 px, k1 -0.2), real-mirror: few views "
         "reach the image corners", 136.0, method="real-mirror", thickness_mm=3.0, seed=seed,
         camera=wide_angle_camera(), mirror_size_mm=(1000.0, 650.0), mirror_distance_mm=300.0),
+    "shortthrow": lambda seed=0: _mirrored(
+        "shortthrow", "short-throw projector (throw ratio 0.4) 14 cm from the camera, 136 deg, boards 34-46 cm in "
+        "front of it tilted up to 45 deg, mirror at 13 cm, real-mirror with a 16 mm board", 136.0,
+        projector=short_throw_projector(), method="real-mirror", thickness_mm=3.0, seed=seed,
+        mirror_board=CharucoSpec(8, 6, "DICT_4X4_50", 16.0, 9.6, "mm"), max_tilt_deg=45.0,
+        aperture_mm=SHORT_THROW_APERTURE_MM, mirror_distance_mm=130.0, board_distance_mm=500.0,
+        projector_distance_mm=400.0, elevation_deg=30.0),
 }
 
 
