@@ -44,6 +44,7 @@ from calib.detection.response import CameraResponse
 from calib.epipolar import epipolar_curve, predicted_camera_curve
 from calib.errors import FormatError, ProcamError
 from calib.formats.fileio import atomic_write_text
+from calib.formats.jsonfile import read_json_file
 from calib.models.result import CalibrationResult
 from drivers.clock import clock_of
 
@@ -474,13 +475,7 @@ class VerificationReport:
     @classmethod
     def from_json(cls, path) -> "VerificationReport":
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except OSError as e:
-            raise FormatError(path, "<file>", f"cannot be read: {e.strerror}") from None
-        except json.JSONDecodeError as e:
-            raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
-        return cls.from_dict(data, path)
+        return cls.from_dict(read_json_file(path), path)
 
 
 def judge(checks, threshold_px: float = DEFAULT_THRESHOLD_PX, min_measured: int = 3, calibration: dict | None = None,
@@ -720,9 +715,9 @@ def verification_is_stale(report_file, calibration_file) -> bool | None:
     `calibration_file` (the report records the SHA-256 of the file it verified). None when it cannot
     tell: no report, or a report written before the hash was recorded."""
     try:
-        data = json.loads(Path(report_file).read_text(encoding="utf-8"))
+        data = read_json_file(report_file)
         recorded = (data.get("calibration") or {}).get("sha256")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError):  # FormatError is a ValueError
         return None
     if not isinstance(recorded, str):
         return None

@@ -135,15 +135,13 @@ def prepare(args, log):
     recalibration to resume, with the same PREVIOUS), the boards of PREVIOUS and the rig to open."""
     from app.commands.session import rig_options
     from app.recalibration import (
-        DEFAULT_MAX_CAPTURES, check_resumed_previous, find_previous, previous_board_specs, rig_verify_fn,
+        DEFAULT_MAX_CAPTURES, check_resumed_previous, load_previous, previous_board_specs, rig_verify_fn,
     )
     from app.station.setup import DEFAULT_SCENARIO, RigRequest, default_rig_kind, open_rig, resume_request
     from calib.errors import SessionError
-    from calib.models.result import CalibrationResult
     from drivers.factory import is_simulated
 
-    src = find_previous(args.previous)  # a clear error before any device is opened
-    previous = CalibrationResult.load_json(src)
+    src, previous = load_previous(args.previous)  # a clear error before any device is opened
     folder = Path(args.out)
     if args.resume:
         from app.recalibration import RECALIBRATION_FILE

@@ -13,7 +13,6 @@ out are kept apart: they are drawn, but not counted in the statistics.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -165,7 +164,7 @@ def gather(session_dir, calibration_path=None) -> ReportData:
             raise ReportError(f"{cal_path} does not exist or is not a file")
         raise ReportError(f"{session_dir} has no {CALIBRATION_FILE}: calibrate it first (procam calibrate {session_dir})")
     result = CalibrationResult.load_json(cal_path)
-    calibration = json.loads(cal_path.read_text())
+    calibration = result.to_dict()  # the file as its one reader checked it (not read a second time)
     cam_size, proj_size = store.manifest.rig.camera_size, store.manifest.rig.projector_size
     if tuple(result.camera.size) != tuple(cam_size) or tuple(result.projector.size) != tuple(proj_size):
         raise ReportError(f"{cal_path} is for a {result.camera.width}x{result.camera.height} camera and a "

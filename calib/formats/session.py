@@ -37,6 +37,7 @@ import numpy as np
 
 from calib.errors import FormatError, SessionError
 from calib.formats.fileio import atomic_write_bytes
+from calib.formats.jsonfile import parse_json
 from calib.formats.session_lock import SessionLock
 from calib.formats.session_lock import acquire as _acquire_lock
 from calib.models.boards import CharucoSpec
@@ -374,7 +375,7 @@ class SessionStore:
         held = _acquire_lock(folder) if lock else None
         try:
             raw = _read_manifest_bytes(path)
-            return cls(folder, SessionManifest.from_dict(_parse_manifest(raw, path), path), held,
+            return cls(folder, SessionManifest.from_dict(parse_json(raw, path), path), held,
                        hashlib.sha1(raw).hexdigest())
         except BaseException:
             if held is not None:
@@ -503,18 +504,3 @@ def _read_manifest_bytes(path: Path) -> bytes:
         return path.read_bytes()
     except OSError as e:
         raise SessionError(f"{path} cannot be read ({e.strerror})") from None
-
-
-def _parse_manifest(raw: bytes, path: Path):
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as e:
-        bad = f"byte 0x{raw[e.start]:02x} at offset {e.start}"
-        raise FormatError(path, "<file>", f"is not UTF-8 text ({bad}); save it as UTF-8") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
-    except (ValueError, RecursionError) as e:  # an integer of thousands of digits, nesting beyond the stack
-        msg = "nests too deeply" if isinstance(e, RecursionError) else f"is not valid JSON ({e})"
-        raise FormatError(path, "<file>", msg) from None
