@@ -128,7 +128,7 @@ class CalibrationResult:
         _check_types(d, path)
         return cls(
             camera=cam, projector=proj, T_cam_proj=T, mirror=_read_mirror(d["mirror"], path), units=d["units"],
-            method=d.get("method", "unknown"), rms=d.get("rms") or {}, per_view=tuple(d.get("per_view") or ()),
+            method=d.get("method") or "unknown", rms=d.get("rms") or {}, per_view=tuple(d.get("per_view") or ()),
             skipped=tuple(d.get("skipped") or ()), uncertainty=d.get("uncertainty"),
             diagnostics=d.get("diagnostics") or {},
             projection_uncertainty=_read_projection_uncertainty(d.get("projection_uncertainty"), path),
