@@ -204,3 +204,18 @@ def test_absurd_intrinsics_or_previous_are_refused_by_the_trust_check_before_any
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"[{code}]" in err[0] and "REACHED" not in err[0], err
         assert not (tmp_path / "recal").exists() and not (tmp_path / "out.json").exists()
+
+
+def test_a_sessions_own_calibration_json_nested_100000_deep_is_no_unexpected_error(session_dir, tmp_path, capsys):
+    """`procam calibrate` looks at the calibration.json already in the session (whose method is it?): a
+    broken one counts as none, never a RecursionError."""
+    import shutil
+
+    from app.cli import main
+
+    s = tmp_path / "s"
+    shutil.copytree(session_dir, s)
+    (s / "calibration.json").write_bytes(b"[" * 100_000 + b"]" * 100_000)
+    main(["calibrate", str(s), "--no-progress", "--workers", "1"])
+    err = capsys.readouterr().err
+    assert "unexpected" not in err and "Recursion" not in err, err

@@ -69,11 +69,11 @@ def check_session_arg(path) -> Path:
 
 def _method_of(path: Path) -> str | None:
     """The method recorded in a calibration.json, or None when there is none or it cannot be read."""
-    import json
+    from calib.formats.jsonfile import read_json_file
 
     try:
-        m = json.loads(path.read_text(encoding="utf-8")).get("method")
-    except (OSError, ValueError, AttributeError):
+        m = read_json_file(path).get("method") if path.is_file() else None
+    except (ValueError, AttributeError):  # FormatError is a ValueError
         return None
     return m if isinstance(m, str) else None
 

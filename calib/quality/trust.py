@@ -226,12 +226,14 @@ def check_calibration(result, thresholds: TrustThresholds | None = None,
 
 def check_device(name: str, dev: CameraModel, thresholds: TrustThresholds | None = None) -> TrustReport:
     """The device checks of check_calibration for one camera or projector model alone (intrinsics given
-    from a file, before they are used): focal lengths, field of view, aspect, principal point, folds."""
+    from a file, before they are used): focal lengths, field of view, aspect, principal point, distortion
+    scale. Not the folds: a polynomial may fold beyond the points it was fitted to without harm, and which
+    those are is known only with the observations (check_calibration judges it then)."""
     th = thresholds or TrustThresholds()
     reasons: list[TrustReason] = []
     metrics: dict = {}
     _check_device(name, dev, th, lambda code, message, value=None, limit=None: reasons.append(
-        TrustReason(code, message, None if value is None else float(value), limit)), metrics)
+        TrustReason(code, message, None if value is None else float(value), limit)), metrics, reach=0.0)
     return TrustReport(tuple(reasons), metrics, th)
 
 
