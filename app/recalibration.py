@@ -17,7 +17,7 @@ from pathlib import Path
 
 from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target
 from app.station.station import Station
-from calib.errors import SessionError
+from calib.errors import CalibrationError, SessionError
 from calib.formats.fileio import atomic_write_text
 from calib.formats.session import MANIFEST, SessionStore
 from calib.models.boards import CharucoSpec
@@ -57,6 +57,23 @@ def find_previous(path) -> Path:
         raise SessionError(f"no previous calibration at {path}: give a session folder holding calibration.json, "
                            "or a calibration.json")
     return p
+
+
+def load_previous(path) -> tuple[Path, CalibrationResult]:
+    """(the file, the calibration) of PREVIOUS (find_previous), read by the one calibration reader and
+    trust-checked: a calibration no calibration would be allowed to give (a negative focal length, an
+    absurd distortion) is refused with the check's reasons before any capture, and so is never written
+    back as the recalibrated result. A low-quality one is accepted (the recalibration may improve it)."""
+    from calib.quality.trust import check_calibration
+
+    src = find_previous(path)
+    previous = CalibrationResult.load_json(src)
+    report = check_calibration(previous)
+    if not report.passed:
+        raise CalibrationError(f"PREVIOUS {src} is not a trustworthy calibration ({report.reasons_text()}): give the calibration "
+                               "the rig was installed with, or calibrate the rig anew (procam session)",
+                               code="untrusted_previous")
+    return src, previous
 
 
 def archive_previous(previous: Path, folder: Path) -> tuple[Path, str]:
@@ -312,8 +329,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     )
 
     folder = Path(machine.store.folder)
-    src = find_previous(previous_path)
-    previous = CalibrationResult.load_json(src)
+    src, previous = load_previous(previous_path)
     archived = folder / PREVIOUS_DIR / "calibration.json"
     if resume:
         digest = check_resumed_previous(src, folder)

@@ -123,19 +123,31 @@ def load_camera_intrinsics(path, image_size: tuple[int, int] | None = None) -> C
     """Camera intrinsics from a calibration.json (its "camera") or an OpenCV FileStorage YAML/XML with
     camera_matrix and distortion_coefficients (also accepted: camera_distortion, dist_coeffs) and
     optionally image_width / image_height (or camera_width / camera_height). Without a size in the file,
-    `image_size` is used."""
-    path = Path(path)
+    `image_size` is used. Intrinsics the trust check refuses (a negative focal length, a distortion that
+    folds the image) are a FormatError with its reasons: a calibration from them would blame the images."""
+    from calib.quality.trust import check_device
+
+    camera = _read_camera_intrinsics(Path(path), image_size)
+    report = check_device("camera", camera)
+    if not report.passed:
+        raise FormatError(path, "camera", f"holds intrinsics no camera has ({report.reasons_text()}): give the camera's own "
+                          "calibration, or let the calibration estimate the camera's intrinsics")
+    return camera
+
+
+def _read_camera_intrinsics(path: Path, image_size) -> CameraModel:
+    """load_camera_intrinsics without the trust check."""
     if not path.exists():
         raise FormatError(path, "<file>", "does not exist")
     if path.suffix.lower() == ".json":
-        import json
+        from calib.formats.jsonfile import read_json_file
+        from calib.models.result import CalibrationResult
 
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
+        data = read_json_file(path)
         if not isinstance(data, dict):
             raise FormatError(path, "<root>", "must be a JSON object")
+        if "T_cam_proj" in data:  # a whole calibration: checked as every calibration file is
+            return CalibrationResult.from_dict(data, path).camera
         cam = data.get("camera", data)
         if isinstance(cam, dict) and "width" not in cam and image_size is not None and "K" in cam:
             cam = dict(cam, width=image_size[0], height=image_size[1])
@@ -169,7 +181,8 @@ def load_camera_intrinsics(path, image_size: tuple[int, int] | None = None) -> C
         if image_size is None:
             raise FormatError(path, "image_width", "missing, and no image size to assume")
         w, h = image_size
-    return CameraModel(int(w), int(h), K, D)
+    size = {k: int(v) if float(v).is_integer() else v for k, v in (("width", w), ("height", h))}
+    return CameraModel.from_dict(dict(size, K=K.tolist(), dist=D.tolist()), "camera", path)
 
 
 def _first_mat(fs, keys):

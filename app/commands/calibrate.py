@@ -289,7 +289,9 @@ def format_rms(result) -> str:
 
 
 def format_summary(result) -> str:
-    """A readable multi-line summary of a CalibrationResult."""
+    """A readable multi-line summary of a CalibrationResult, safe to print: the skipped images' reasons come
+    from files (a detection cache, calibration.json) and their control characters are shown escaped."""
+    from app.cli import terminal_safe
     from calib.transforms import invert_T, rotation_angle_deg
 
     u = result.units
@@ -331,4 +333,4 @@ def format_summary(result) -> str:
                 lines.append(f"  {s}")
     else:
         lines.append("skipped: none")
-    return "\n".join(lines)
+    return terminal_safe("\n".join(lines))

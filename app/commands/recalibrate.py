@@ -63,8 +63,10 @@ EXIT_STOPPED = 4
 def run(args) -> int:
     t0 = time.monotonic()
 
-    def log(text):
-        print(f"[{time.monotonic() - t0:6.1f} s] {text}", flush=True)
+    def log(text):  # the station's lines quote capture ids and detection reasons read from files
+        from app.cli import terminal_safe
+
+        print(terminal_safe(f"[{time.monotonic() - t0:6.1f} s] {text}"), flush=True)
 
     folder = Path(args.out)
     outcome = run_on_rig(args, log)
@@ -136,15 +138,13 @@ def prepare(args, log):
     recalibration to resume, with the same PREVIOUS), the boards of PREVIOUS and the rig to open."""
     from app.commands.session import rig_options
     from app.recalibration import (
-        DEFAULT_MAX_CAPTURES, check_resumed_previous, find_previous, previous_board_specs, rig_verify_fn,
+        DEFAULT_MAX_CAPTURES, check_resumed_previous, load_previous, previous_board_specs, rig_verify_fn,
     )
     from app.station.setup import DEFAULT_SCENARIO, RigRequest, default_rig_kind, open_rig, resume_request
     from calib.errors import SessionError
-    from calib.models.result import CalibrationResult
     from drivers.factory import is_simulated
 
-    src = find_previous(args.previous)  # a clear error before any device is opened
-    previous = CalibrationResult.load_json(src)
+    src, previous = load_previous(args.previous)  # a clear error before any device is opened
     folder = Path(args.out)
     if args.resume:
         from app.recalibration import RECALIBRATION_FILE

@@ -190,8 +190,10 @@ def run(args) -> int:
 
     t0 = time.monotonic()
 
-    def log(text):
-        print(f"[{time.monotonic() - t0:6.1f} s] {text}", flush=True)
+    def log(text):  # the station's lines quote capture ids and detection reasons read from files
+        from app.cli import terminal_safe
+
+        print(terminal_safe(f"[{time.monotonic() - t0:6.1f} s] {text}"), flush=True)
 
     from app.station.setup import default_rig_kind, resume_request
 

@@ -20,7 +20,6 @@ import cv2
 import numpy as np
 
 from calib.errors import ProcamError, SessionError
-from calib.formats.fileio import RESULT_MAX_BYTES, read_json
 from calib.formats.session import SessionStore
 from calib.models.result import CalibrationResult
 from calib.transforms import invert_T
@@ -165,7 +164,7 @@ def gather(session_dir, calibration_path=None) -> ReportData:
             raise ReportError(f"{cal_path} does not exist or is not a file")
         raise ReportError(f"{session_dir} has no {CALIBRATION_FILE}: calibrate it first (procam calibrate {session_dir})")
     result = CalibrationResult.load_json(cal_path)
-    calibration = read_json(cal_path, RESULT_MAX_BYTES, "calibration file")
+    calibration = result.to_dict()  # the file as its one reader checked it (not read a second time)
     cam_size, proj_size = store.manifest.rig.camera_size, store.manifest.rig.projector_size
     if tuple(result.camera.size) != tuple(cam_size) or tuple(result.projector.size) != tuple(proj_size):
         raise ReportError(f"{cal_path} is for a {result.camera.width}x{result.camera.height} camera and a "

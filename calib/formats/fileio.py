@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import json
 import os
 import re
 import secrets
 import stat
 from pathlib import Path
 
-from calib.errors import DiskFullError, FormatError, UnsafeFileError
+from calib.errors import DiskFullError, UnsafeFileError
+from calib.formats.jsonfile import parse_json  # one parser of untrusted JSON bytes (size, UTF-8, nesting)
 
 _DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
@@ -111,22 +111,6 @@ def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
 def read_json(path, max_bytes: int = RESULT_MAX_BYTES, what: str = "file"):
     """Parsed JSON of a file read as read_regular reads it; FormatError when it is not UTF-8 JSON."""
     return parse_json(read_regular(path, max_bytes, what), path)
-
-
-def parse_json(raw: bytes, path):
-    """Parsed JSON of a file's bytes; FormatError naming the file and what is wrong."""
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as e:
-        bad = f"byte 0x{raw[e.start]:02x} at offset {e.start}"
-        raise FormatError(path, "<file>", f"is not UTF-8 text ({bad}); save it as UTF-8") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
-    except (ValueError, RecursionError) as e:  # an integer of thousands of digits, nesting beyond the stack
-        msg = "nests too deeply" if isinstance(e, RecursionError) else f"is not valid JSON ({e})"
-        raise FormatError(path, "<file>", msg) from None
 
 
 def open_regular(path, max_bytes: int, what: str = "file") -> int:

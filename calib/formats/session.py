@@ -57,6 +57,9 @@ MANIFEST_KEYS = ("format", "version", "rig", "projector_board", "mirror_board", 
                  "board_thickness", "captures", "state")
 UNKNOWN_MAX_BYTES = 64 * 1024
 
+#: the only form a capture's `id` may take: it is printed, named in reports and matched against the cache,
+#: so no separators, spaces or control characters
+CAPTURE_ID_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 #: the only form a capture's `image` may take: a PNG file directly in the images folder
 IMAGE_RE = re.compile(r"images/[A-Za-z0-9_][A-Za-z0-9_.-]{0,200}\.png")
 
@@ -194,6 +197,11 @@ class SessionManifest:
         mb = d.get("mirror_board")
         mboard = None if mb is None else CharucoSpec.from_dict(mb, "mirror_board", path)
         pattern = PatternSpec.from_dict(need(d, "pattern", ""), "pattern", path)
+        ew, eh = pattern.extent_px()
+        if ew > sizes[1][0] or eh > sizes[1][1]:
+            raise FormatError(path, "pattern.spacing_px", f"a {pattern.cols}x{pattern.rows} pattern with spacing "
+                              f"{pattern.spacing_px:g} px spans {ew:.0f}x{eh:.0f} px, more than the "
+                              f"{sizes[1][0]}x{sizes[1][1]} projector image")
         method = d.get("mirror_method")
         if method is not None and method not in MIRROR_METHODS:
             raise FormatError(path, "mirror_method", f"must be one of {MIRROR_METHODS} or null, got '{method}'")
@@ -205,6 +213,9 @@ class SessionManifest:
         for i, c in enumerate(caps):
             where = f"captures[{i}]."
             cid = need(c, "id", where, str)
+            if not CAPTURE_ID_RE.fullmatch(cid):
+                raise FormatError(path, f"{where}id", f"must be 1 to 64 letters, digits, '-', '_' or '.' (not "
+                                  f"starting with '-' or '.'), got {cid[:40]!r}")
             if cid in seen:
                 raise FormatError(path, f"{where}id", f"duplicate capture id '{cid}'")
             seen.add(cid)

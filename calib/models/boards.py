@@ -19,6 +19,11 @@ from calib.errors import FormatError, SpecError
 UNITS = ("mm", "cm", "m", "in")
 #: millimetres per unit of UNITS
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+#: the range of a board's square side in millimetres: a printed board from a fingertip to a wall; beyond it
+#: a length is a corrupt value (and OpenCV's board geometry fails on it)
+SQUARE_MM_RANGE = (0.1, 10000.0)
+#: a marker at least this share of its square: smaller ones cannot be read in any image
+MIN_MARKER_FRACTION = 0.1
 
 
 def _aruco_dictionary_id(name: str) -> int:
@@ -42,13 +47,20 @@ class CharucoSpec:
     def __post_init__(self):
         if self.cols < 2 or self.rows < 2:
             raise SpecError(f"a ChArUco board needs at least 2x2 squares, got {self.cols}x{self.rows}")
-        if not (self.square_length > 0 and 0 < self.marker_length < self.square_length):
+        if self.units not in UNITS:
+            raise SpecError(f"unknown length unit '{self.units}' (one of {', '.join(UNITS)})")
+        lo, hi = (v / MM_PER_UNIT[self.units] for v in SQUARE_MM_RANGE)
+        if not lo <= self.square_length <= hi:
+            raise SpecError(f"square_length {self.square_length:g} {self.units} is outside {lo:g}-{hi:g} {self.units} "
+                            f"(no printed board has it): give the square side in {self.units}")
+        if not 0 < self.marker_length < self.square_length:
             raise SpecError(
                 f"need 0 < marker_length < square_length, got square {self.square_length}, "
                 f"marker {self.marker_length}"
             )
-        if self.units not in UNITS:
-            raise SpecError(f"unknown length unit '{self.units}' (one of {', '.join(UNITS)})")
+        if self.marker_length < MIN_MARKER_FRACTION * self.square_length:
+            raise SpecError(f"marker_length {self.marker_length:g} is under {MIN_MARKER_FRACTION:g} x square_length "
+                            f"{self.square_length:g} {self.units}: no camera reads so small a marker")
         dict_id = _aruco_dictionary_id(self.dictionary)
         n_markers = (self.cols * self.rows) // 2
         size = cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0]

@@ -47,6 +47,33 @@ def _non_number(value) -> str | None:
     return None
 
 
+#: the largest magnitude of a number in a calibration file's geometry (pixels, distortion coefficients,
+#: lengths): beyond it, arithmetic on the value overflows or loses every digit of the others
+MAX_MAGNITUDE = 1e12
+
+
+def read_numbers(value, path, where: str, shape: tuple | None = None) -> np.ndarray:
+    """`value` from a file (untrusted) as a float array: JSON numbers only, of `shape` when given, each
+    finite and at most MAX_MAGNITUDE in size; else a FormatError naming the element, e.g. camera.K[0][0]."""
+    bad = _non_number(value)
+    if bad is not None:
+        raise FormatError(path, where, f"must hold numbers only, got {bad}")
+    want = "a number" if shape == () else "a list of numbers" if shape is None else \
+        f"a {'x'.join(map(str, shape))} list of numbers"
+    try:
+        a = np.array(value, float)
+    except (TypeError, ValueError):
+        raise FormatError(path, where, f"must be {want}") from None
+    if shape is not None and a.shape != shape:
+        raise FormatError(path, where, f"must be {want}, got shape {a.shape}")
+    out = np.argwhere(~(np.abs(a) <= MAX_MAGNITUDE))
+    if len(out):
+        at = tuple(int(i) for i in out[0])
+        raise FormatError(path, where + "".join(f"[{i}]" for i in at),
+                          f"must be a finite number no larger than {MAX_MAGNITUDE:g} in size, got {float(a[at]):g}")
+    return a
+
+
 @dataclass(frozen=True, eq=False)
 class CameraModel:
     width: int
@@ -215,32 +242,24 @@ class CameraModel:
     @classmethod
     def from_dict(cls, d: dict, where: str = "camera", path="<dict>") -> "CameraModel":
         """A camera from a file's dict (untrusted): every number a JSON number (a string, a boolean or null
-        is not one, though numpy would convert them), the image size a positive integer no larger than
-        MAX_IMAGE_SIDE, K's last row (0, 0, 1). Values that are numbers but absurd (a negative focal
+        is not one, though numpy would convert them), finite and no larger than MAX_MAGNITUDE, the image
+        size a positive integer no larger than MAX_IMAGE_SIDE, K's last row (0, 0, 1), fx and fy not 0. Values that are numbers but absurd (a negative focal
         length) load: the trust check says what is wrong with them."""
         if not isinstance(d, dict):
             raise FormatError(path, where, f"must be an object with width, height, K and dist, got {type(d).__name__}")
         for key in ("width", "height", "K", "dist"):
             if key not in d:
                 raise FormatError(path, f"{where}.{key}", "missing")
-        for key in ("K", "dist"):
-            bad = _non_number(d[key])
-            if bad is not None:
-                raise FormatError(path, f"{where}.{key}", f"must hold numbers only, got {bad}")
-        try:
-            K = np.array(d["K"], float)
-        except (TypeError, ValueError):
-            raise FormatError(path, f"{where}.K", "must be a 3x3 list of numbers") from None
-        if K.shape != (3, 3):
-            raise FormatError(path, f"{where}.K", f"must be 3x3, got shape {K.shape}")
-        try:
-            dist = np.array(d["dist"], float).reshape(-1)
-        except (TypeError, ValueError):
-            raise FormatError(path, f"{where}.dist", "must be a list of numbers") from None
+        K = read_numbers(d["K"], path, f"{where}.K", (3, 3))
+        dist = read_numbers(d["dist"], path, f"{where}.dist").reshape(-1)
         if dist.size not in _ALLOWED_DIST:
             raise FormatError(path, f"{where}.dist", f"must have 0, 4, 5 or 8 coefficients, got {dist.size}")
         if not np.allclose(K[2], [0.0, 0.0, 1.0]):
             raise FormatError(path, f"{where}.K", f"its last row must be [0, 0, 1], got {K[2].tolist()}")
+        for i, name in ((0, "fx"), (1, "fy")):
+            if K[i, i] == 0:
+                raise FormatError(path, f"{where}.K[{i}][{i}]", f"is the focal length {name}: it must not be 0 "
+                                  "(0 px sends every ray to one pixel)")
         for key in ("width", "height"):
             v = d[key]
             if isinstance(v, bool) or not isinstance(v, int) or not 0 < v <= MAX_IMAGE_SIDE:

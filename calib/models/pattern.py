@@ -15,6 +15,11 @@ import numpy as np
 from calib.errors import FormatError, SpecError
 
 KINDS = ("circles", "chessboard")
+#: bounds of a pattern's values: its spacing from a pixel to the largest image side a file may state
+#: (calib.models.camera.MAX_IMAGE_SIDE), far more points and positions than any projector shows
+SPACING_PX_RANGE = (1.0, 65536.0)
+MAX_POINTS_PER_SIDE = 100
+MAX_POSITIONS = 1000
 
 
 @dataclass(frozen=True)
@@ -34,10 +39,15 @@ class PatternSpec:
     def __post_init__(self):
         if self.kind not in KINDS:
             raise SpecError(f"unknown pattern kind '{self.kind}' (one of {', '.join(KINDS)})")
-        if self.cols < 2 or self.rows < 2:
-            raise SpecError(f"pattern needs at least 2x2 points, got {self.cols}x{self.rows}")
-        if self.spacing_px <= 0 or self.positions < 1:
-            raise SpecError("pattern spacing_px must be > 0 and positions >= 1")
+        if not (2 <= self.cols <= MAX_POINTS_PER_SIDE and 2 <= self.rows <= MAX_POINTS_PER_SIDE):
+            raise SpecError(f"pattern needs 2 to {MAX_POINTS_PER_SIDE} points a side, got {self.cols}x{self.rows}")
+        lo, hi = SPACING_PX_RANGE
+        if not lo <= self.spacing_px <= hi:
+            raise SpecError(f"pattern spacing_px must be {lo:g} to {hi:g} px, got {self.spacing_px:g}")
+        if not 1 <= self.positions <= MAX_POSITIONS:
+            raise SpecError(f"pattern positions must be 1 to {MAX_POSITIONS}, got {self.positions}")
+        if not 0 <= self.margin_px <= hi:
+            raise SpecError(f"pattern margin_px must be 0 to {hi:g} px, got {self.margin_px:g}")
         if self.kind == "circles" and not (0 < self.radius_px < 0.7 * self.spacing_px):
             raise SpecError(
                 f"circle radius {self.radius_px} px must be > 0 and < 0.7 x spacing ({self.spacing_px} px), "

@@ -23,7 +23,8 @@ import numpy as np
 
 from calib.errors import FormatError
 from calib.formats.fileio import RESULT_MAX_BYTES, atomic_write_text, read_json
-from calib.models.camera import CameraModel
+from calib.models.boards import UNITS
+from calib.models.camera import CameraModel, read_numbers
 
 SCHEMA = "procam-calibration"
 VERSION = 1
@@ -104,6 +105,9 @@ class CalibrationResult:
 
     @classmethod
     def from_dict(cls, d: dict, path="<dict>") -> "CalibrationResult":
+        """The result a calibration file's dict (untrusted) holds; FormatError naming the field of any value
+        of the wrong type, shape or size (read_numbers). Well-formed values that are absurd (a negative
+        focal length) load: the trust check (calib.quality.trust) says what is wrong with them."""
         if not isinstance(d, dict):
             raise FormatError(path, "<root>", "must be a JSON object")
         for key in ("camera", "projector", "T_cam_proj", "mirror", "units"):
@@ -111,34 +115,19 @@ class CalibrationResult:
                 raise FormatError(path, key, "missing")
         cam = CameraModel.from_dict(d["camera"], "camera", path)
         proj = CameraModel.from_dict(d["projector"], "projector", path)
-        try:
-            T = np.array(d["T_cam_proj"], float)
-        except (TypeError, ValueError):
-            raise FormatError(path, "T_cam_proj", "must be a 4x4 list of numbers") from None
-        if T.shape != (4, 4) or not np.allclose(T[3], [0, 0, 0, 1]):
+        T = read_numbers(d["T_cam_proj"], path, "T_cam_proj", (4, 4))
+        if not np.allclose(T[3], [0, 0, 0, 1]):
             raise FormatError(path, "T_cam_proj", "must be a 4x4 rigid transform with last row [0, 0, 0, 1]")
         if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(T[:3, :3]) < 0:
             raise FormatError(path, "T_cam_proj", "rotation part is not a proper rotation matrix")
-        mirror = None
-        if d["mirror"] is not None:
-            m = d["mirror"]
-            if not isinstance(m, dict) or "normal" not in m or "d" not in m:
-                raise FormatError(path, "mirror", 'must be null or {"normal": [a, b, c], "d": d}')
-            try:
-                n = np.array(m["normal"], float).reshape(3)
-                dd = float(m["d"])
-            except (TypeError, ValueError):
-                raise FormatError(path, "mirror.normal", "must be 3 numbers, with d a number") from None
-            if not math.isclose(np.linalg.norm(n), 1.0, abs_tol=1e-6):
-                raise FormatError(path, "mirror.normal", "must be a unit vector")
-            mirror = MirrorPlane(n, dd)
-        if not isinstance(d["units"], str):
-            raise FormatError(path, "units", "must be a string such as 'mm'")
+        if not isinstance(d["units"], str) or d["units"] not in UNITS:
+            raise FormatError(path, "units", f"must be one of {', '.join(UNITS)}, got {str(d['units'])[:20]!r}")
+        _check_types(d, path)
         return cls(
-            camera=cam, projector=proj, T_cam_proj=T, mirror=mirror, units=d["units"],
-            method=d.get("method", "unknown"), rms=d.get("rms", {}) or {}, per_view=tuple(d.get("per_view", ())),
-            skipped=tuple(d.get("skipped", ())), uncertainty=d.get("uncertainty"),
-            diagnostics=d.get("diagnostics", {}) or {},
+            camera=cam, projector=proj, T_cam_proj=T, mirror=_read_mirror(d["mirror"], path), units=d["units"],
+            method=d.get("method") or "unknown", rms=d.get("rms") or {}, per_view=tuple(d.get("per_view") or ()),
+            skipped=tuple(d.get("skipped") or ()), uncertainty=d.get("uncertainty"),
+            diagnostics=d.get("diagnostics") or {},
             projection_uncertainty=_read_projection_uncertainty(d.get("projection_uncertainty"), path),
         )
 
@@ -147,12 +136,48 @@ class CalibrationResult:
 
     @classmethod
     def load_json(cls, path) -> "CalibrationResult":
+        """The one reader of calibration files (every command's and the station's): a regular file of the
+        folder read as read_regular reads it, its bytes checked as untrusted JSON (calib.formats.jsonfile),
+        then from_dict's checks of the values."""
         path = Path(path)
-        try:  # a regular file only, never read through a link (calib.formats.fileio.read_regular)
+        try:
             data = read_json(path, RESULT_MAX_BYTES, "calibration file")
         except FileNotFoundError:
             raise FormatError(path, "<file>", "cannot be read: it does not exist") from None
         return cls.from_dict(data, path)
+
+
+#: calibration.json's optional fields -> the JSON types they may have (null: absent)
+_OPTIONAL_TYPES = {"method": (str,), "rms": (dict,), "per_view": (list,), "skipped": (list,),
+                   "uncertainty": (dict,), "diagnostics": (dict,)}
+_TYPE_NAMES = {str: "a string", dict: "an object", list: "a list"}
+
+
+def _check_types(d: dict, path) -> None:
+    """The optional fields' types; rms values numbers (or null), per_view and skipped entries objects."""
+    for key, types in _OPTIONAL_TYPES.items():
+        v = d.get(key)
+        if v is not None and not isinstance(v, types):
+            raise FormatError(path, key, f"must be {_TYPE_NAMES[types[0]]} or null, got {type(v).__name__}")
+    for k, v in (d.get("rms") or {}).items():
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise FormatError(path, f"rms.{k}", f"must be a number (pixels) or null, got {type(v).__name__}")
+    for key in ("per_view", "skipped"):
+        for i, v in enumerate(d.get(key) or ()):
+            if not isinstance(v, dict):
+                raise FormatError(path, f"{key}[{i}]", f"must be an object, got {type(v).__name__}")
+
+
+def _read_mirror(m, path) -> MirrorPlane | None:
+    if m is None:
+        return None
+    if not isinstance(m, dict) or "normal" not in m or "d" not in m:
+        raise FormatError(path, "mirror", 'must be null or {"normal": [a, b, c], "d": d}')
+    n = read_numbers(m["normal"], path, "mirror.normal", (3,))
+    dd = read_numbers(m["d"], path, "mirror.d", ())
+    if not math.isclose(np.linalg.norm(n), 1.0, abs_tol=1e-6):
+        raise FormatError(path, "mirror.normal", "must be a unit vector")
+    return MirrorPlane(n, float(dd))
 
 
 def _read_projection_uncertainty(pu, path):

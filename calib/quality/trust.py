@@ -34,6 +34,7 @@ CODES = {
     "aspect_ratio": "fy / fx far from 1 (pixels are square)",
     "principal_point": "the principal point lies far outside the image",
     "distortion_folds": "the radial distortion folds the image (not monotonic inside it)",
+    "distortion_scale": "the radial distortion shrinks or stretches the image far beyond any lens",
     "rms_high": "residuals far above the detection noise",
     "mirror_behind_camera": "the mirror plane is not in front of the camera",
     "projector_too_far": "the projector is absurdly far from the camera",
@@ -55,6 +56,10 @@ class TrustThresholds:
     fov_min_deg: float = 1.0  # the angle the image spans between its edges (either axis), lens shift included
     fov_max_deg: float = 175.0  # a pinhole model never reaches 180 deg; this far only from an absurd focal
     aspect_min: float = 0.8
+    # the farthest image corner's ray over where the pinhole model puts it (radial distortion only): a strong
+    # fisheye-like barrel stays near 2-3, a pincushion near 0.7; beyond these no lens bends rays
+    distortion_scale_min: float = 0.2
+    distortion_scale_max: float = 10.0
     aspect_max: float = 1.25
     principal_point_margin: float = 1.0  # image sizes beyond the edges (lens shift of offset projectors)
     rms_camera_px: float = 3.0  # residuals measured in camera pixels (every joint class; paper camera)
@@ -175,6 +180,10 @@ class TrustReport:
     def codes(self) -> list[str]:
         return [r.code for r in self.reasons]
 
+    def reasons_text(self) -> str:
+        """The reasons on one line, each with its code."""
+        return "; ".join(f"{r.message} [{r.code}]" for r in self.reasons)
+
     def to_dict(self) -> dict:
         return {"passed": self.passed, "accepted_by_user": self.accepted_by_user,
                 "reasons": [r.to_dict() for r in self.reasons],
@@ -213,6 +222,19 @@ def check_calibration(result, thresholds: TrustThresholds | None = None,
     _check_uncertainty(result, th, fail, metrics)
     quality = check_quality(result, metrics, qth)
     return TrustReport(tuple(reasons), metrics, th, quality=quality, quality_thresholds=qth)
+
+
+def check_device(name: str, dev: CameraModel, thresholds: TrustThresholds | None = None) -> TrustReport:
+    """The device checks of check_calibration for one camera or projector model alone (intrinsics given
+    from a file, before they are used): focal lengths, field of view, aspect, principal point, distortion
+    scale. Not the folds: a polynomial may fold beyond the points it was fitted to without harm, and which
+    those are is known only with the observations (check_calibration judges it then)."""
+    th = thresholds or TrustThresholds()
+    reasons: list[TrustReason] = []
+    metrics: dict = {}
+    _check_device(name, dev, th, lambda code, message, value=None, limit=None: reasons.append(
+        TrustReason(code, message, None if value is None else float(value), limit)), metrics, reach=0.0)
+    return TrustReport(tuple(reasons), metrics, th)
 
 
 # ---- quality gate ------------------------------------------------------------------------------------
@@ -391,6 +413,13 @@ def _check_device(name: str, dev: CameraModel, th: TrustThresholds, fail, metric
     if not (-m * w <= cx <= (1 + m) * w and -m * h <= cy <= (1 + m) * h):
         fail("principal_point", f"the {name}'s principal point ({cx:.4g}, {cy:.4g}) px is far outside its "
              f"{w}x{h} image", None, m)
+    scale = radial_corner_scale(dev)
+    metrics[f"{name}.distortion_corner_scale"] = scale
+    if scale is not None and not th.distortion_scale_min <= scale <= th.distortion_scale_max:
+        fail("distortion_scale", f"the {name}'s radial distortion moves the image corners' rays {scale:.3g} times "
+             f"as far from the axis as no distortion would (outside {th.distortion_scale_min:g}-"
+             f"{th.distortion_scale_max:g}: no lens does that)", scale,
+             th.distortion_scale_max if scale > th.distortion_scale_max else th.distortion_scale_min)
     fold = radial_fold_fraction(dev)
     metrics[f"{name}.fold_at_fraction_of_corner_radius"] = fold
     metrics[f"{name}.observed_fraction_of_corner_radius"] = reach
@@ -406,22 +435,28 @@ def field_of_view_deg(f: float, c: float, n: int) -> float:
     return float(np.degrees(np.arctan((c + 0.5) / f) + np.arctan((n - 0.5 - c) / f)))
 
 
-def radial_fold_fraction(dev: CameraModel, samples: int = 4000) -> float | None:
-    """None when the radial distortion r -> r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4
-    + k6 r^6) increases until r_d reaches the farthest image corner (every pixel is one ray); else the
-    fraction of that corner radius (in r_d) at which it stops increasing (the image folds there)."""
+def _radial_curve(dev: CameraModel, samples: int = 4000):
+    """(r, r_d, denominator, farthest corner's r_d) of the radial distortion r -> r_d = r (1 + k1 r^2 + k2 r^4
+    + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6), r up to a ray 89.4 deg off-axis (or 10x the corner's r_d)."""
     d = np.zeros(8)
     dist = np.asarray(dev.dist, float).reshape(-1)[:8]
     d[: dist.size] = dist
     k1, k2, _p1, _p2, k3, k4, k5, k6 = d
     rd_max = _normalised_radius(dev, _image_corners(dev))
-    # undistorted radius up to a ray 89.4 deg off-axis; r_d must reach rd_max increasing all the way
     r = np.linspace(0.0, max(100.0, 10 * rd_max), samples * 25)
     r2 = r * r
     num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         rd = r * num / den
+    return r, rd, den, rd_max
+
+
+def radial_fold_fraction(dev: CameraModel, samples: int = 4000) -> float | None:
+    """None when the radial distortion (_radial_curve) increases until r_d reaches the farthest image corner
+    (every pixel is one ray); else the fraction of that corner radius (in r_d) at which it stops increasing
+    (the image folds there)."""
+    r, rd, den, rd_max = _radial_curve(dev, samples)
     reached = np.nonzero(rd >= rd_max)[0]
     stop = int(reached[0]) if len(reached) else len(r) - 1
     seg_rd, seg_den = rd[: stop + 1], den[: stop + 1]
@@ -430,6 +465,22 @@ def radial_fold_fraction(dev: CameraModel, samples: int = 4000) -> float | None:
         return None
     at = seg_rd[bad[0]] if len(bad) else np.nanmax(seg_rd)
     return float(max(at, 0.0) / rd_max) if np.isfinite(at) else 0.0
+
+
+def radial_corner_scale(dev: CameraModel) -> float | None:
+    """The undistorted radius of the farthest image corner over its distorted one (1 without distortion):
+    how much the radial distortion widens (> 1) or narrows (< 1) the field of view; None when the distortion
+    never reaches that corner (radial_fold_fraction says so)."""
+    r, rd, _den, rd_max = _radial_curve(dev)
+    reached = np.nonzero(rd >= rd_max)[0]
+    if not len(reached) or not rd_max > 0:
+        return None
+    i = int(reached[0])
+    if i == 0:
+        return 1.0
+    # linear between the samples either side of the corner
+    r_corner = r[i - 1] + (r[i] - r[i - 1]) * (rd_max - rd[i - 1]) / (rd[i] - rd[i - 1])
+    return float(r_corner / rd_max)
 
 
 def _check_rms(result, th: TrustThresholds, fail, metrics: dict) -> None:
