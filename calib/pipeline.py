@@ -124,6 +124,8 @@ def load_camera_intrinsics(path, image_size: tuple[int, int] | None = None) -> C
     path = Path(path)
     if not path.exists():
         raise FormatError(path, "<file>", "does not exist")
+    if not path.is_file():
+        raise FormatError(path, "<file>", "is not a regular file (a folder?); give a calibration.json or OpenCV YAML")
     if path.suffix.lower() == ".json":
         import json
 
@@ -131,6 +133,8 @@ def load_camera_intrinsics(path, image_size: tuple[int, int] | None = None) -> C
             data = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             raise FormatError(path, "<file>", f"is not valid JSON (line {e.lineno}: {e.msg})") from None
+        except UnicodeDecodeError:
+            raise FormatError(path, "<file>", "is not a text file (a zip?); give a calibration.json or OpenCV YAML") from None
         if not isinstance(data, dict):
             raise FormatError(path, "<root>", "must be a JSON object")
         cam = data.get("camera", data)
@@ -139,7 +143,7 @@ def load_camera_intrinsics(path, image_size: tuple[int, int] | None = None) -> C
         return CameraModel.from_dict(cam, "camera" if "camera" in data else "<root>", path)
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error:
+    except (cv2.error, SystemError):  # OpenCV's parser fails either way on a file that is not YAML/XML
         raise FormatError(path, "<file>", "is neither JSON nor an OpenCV FileStorage YAML/XML file") from None
     if not fs.isOpened():
         raise FormatError(path, "<file>", "is neither JSON nor an OpenCV FileStorage YAML/XML file")

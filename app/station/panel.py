@@ -34,6 +34,7 @@ import numpy as np
 
 from app.station._origin import start_viser_server
 from app.station.access import LOOPBACK_HOSTS, WILDCARD_HOSTS, AccessGate, new_access_code  # noqa: F401
+from app.station.activity import activities_text
 from app.station.autocapture import PoseFeatures, diversity_bars
 from app.station.machine import (
     CALIBRATION,
@@ -189,6 +190,7 @@ class StationPanel(ControlsMixin):
         self.h_alert = g.add_markdown("", order=-0.5, visible=False)
         self.h_title = g.add_markdown(self._title(), order=0)
         self.h_next = g.add_markdown("", order=1)
+        self.h_activity = g.add_markdown("", order=1.1, visible=False)  # what runs, what the last actions came to
         # results at the top once calibrated (the Download button, per browser, sits just above)
         self.h_results_folder = g.add_folder("Results", order=2, visible=False)
         with self.h_results_folder:
@@ -605,6 +607,9 @@ class StationPanel(ControlsMixin):
         with self._lock:
             m, st = self.machine, self.station
             self._set(self.h_next, "content", self.step_line())
+            acts = activities_text(st.activities.all())
+            self._set(self.h_activity, "content", acts or " ")
+            self._set(self.h_activity, "visible", bool(acts))
             self._set(self.h_check, "content", self.checklist())
             r = m.result
             self._set(self.h_results_folder, "visible", r is not None or bool(m.calibration_error)
