@@ -101,7 +101,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
                 click(page, "Move board")
                 see(page, rf"Mirror capture \(real-virtual\): {k} / 3 captures")
                 if k == 2:  # guidance: camera coverage, bars with their targets, where to hold the board next
-                    see(page, r"board corners cover \d+% of the camera image; \d of 4 image corners reached")
+                    see(page, r"Camera: coverage \d+% \(board corners\); \d of 4 image corners reached")
                     see(page, r"position x: \d+% \(.*; (target: a range of 45% of the width|✔ target met)\)")
                     see(page, r"Hold the board next towards")
                     page.screenshot(path=str(tmp_path / "mirror-step.png"))
@@ -119,7 +119,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
             # from here the simulated operator follows the station by itself
             page.get_by_text("Simulated operator moves the board by itself").click()
             see(page, r"Projector capture: 13 / 13 captures, 13 / 13 pattern positions complete", timeout=WAIT_MS)
-            see(page, r"covered by the pattern positions captured|pattern positions captured cover \d+%")
+            see(page, r"Projector: coverage \d+% \(pattern points captured")
             # the capture to change defaults to the newest one (Delete selected removes what was just taken)
             page.get_by_text("Change captures", exact=True).click()
             newest = json.loads((folder / "session.json").read_text())["captures"][-1]["id"]

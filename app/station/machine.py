@@ -24,6 +24,7 @@ from typing import Callable
 from transitions import Machine, MachineError
 
 from app.station.operator_files import checked_intrinsics, copy_into_session
+from app.words import plural
 from calib.errors import FormatError, ProcamError
 from calib.formats.session import MIRROR_METHODS, Capture, SessionStore
 from calib.models.camera import CameraModel
@@ -350,7 +351,7 @@ class SessionMachine:
             if arg is not None and arg != self.mirror_method:
                 others = self.mirror_captures()
                 if others:
-                    return (f"{len(others)} {self.mirror_method} capture(s) are taken; delete them first to "
+                    return (f"{plural(len(others), self.mirror_method + ' capture')} taken; delete them first to "
                             f"switch to {arg}")
             return None
         if action == "set_board_thickness":
