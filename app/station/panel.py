@@ -614,7 +614,7 @@ class StationPanel(ControlsMixin):
         with self._lock:
             m, st = self.machine, self.station
             self._set(self.h_next, "content", self.step_line())
-            acts = activities_text(st.activities.all())
+            acts = activities_text(st.activities.all(), ended=0)  # outcomes: the line of whoever started it
             self._set(self.h_activity, "content", acts or " ")
             self._set(self.h_activity, "visible", bool(acts))
             self._set(self.h_check, "content", self.checklist())
