@@ -84,3 +84,35 @@ def test_one_coverage_for_the_panel_and_the_report():
 def test_counts_and_signs_read_right():
     assert plural(1, "capture") == "1 capture" and plural(2, "capture") == "2 captures"
     assert signed(-0.001) == "+0.00" and signed(-0.4) == "-0.40" and signed(1.25) == "+1.25"
+
+
+def test_verified_pixels_are_labelled_beside_their_strokes_with_a_unit():
+    import cv2
+
+    from app.station.panel_live import FONT, NOT_MEASURED, ORANGE, RED, check_label, draw_checks
+
+    stroke = np.c_[np.full(50, 200.0), np.linspace(50, 350, 50)]  # vertical, through the pixel
+    measured = SimpleNamespace(ok=True, pixel=(200.0, 200.0), distance_px=0.8, distance_proj_px=1.1,
+                               predicted_curve=stroke + [1.0, 0.0], detected_curve=stroke)
+    missed = SimpleNamespace(ok=False, pixel=(450.0, 120.0), distance_px=None, distance_proj_px=None,
+                             predicted_curve=None, detected_curve=None)
+    assert check_label(measured, True) == "1.10 proj px" and check_label(missed, False) == "not measured"
+    img = np.zeros((400, 640, 3), np.uint8)
+    draw_checks(img, [measured, missed], 1.0, 1.5, 2.0)
+    # the label does not sit on the stroke: the stroke's column stays orange along the label's rows
+    (tw, th), _ = cv2.getTextSize("1.10 proj px", FONT, 0.35, 1)
+    column = img[150:250, 199:202].reshape(-1, 3)
+    assert (np.abs(column.astype(int) - ORANGE).max(axis=1) < 60).mean() > 0.6
+    # not measured: grey, not red (it is no failure)
+    near = img[110:131, 440:461].reshape(-1, 3).astype(int)
+    assert (np.abs(near - NOT_MEASURED).max(axis=1) < 30).sum() > 20
+    assert not (np.abs(near - RED).max(axis=1) < 30).any()
+
+
+def test_a_manual_capture_of_a_pose_auto_capture_refused_says_so():
+    from app.station.panel_controls import ControlsMixin
+
+    said = ControlsMixin._describe_outcome(None, "capture", SimpleNamespace(id="p0004", meta={"similar_to": "p0003"}))
+    assert said.startswith("p0004 written to the session") and "close to p0003; taken as you asked" in said
+    plain = ControlsMixin._describe_outcome(None, "capture", SimpleNamespace(id="p0005", meta={}))
+    assert plain == "p0005 written to the session"

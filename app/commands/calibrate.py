@@ -20,7 +20,6 @@ MODELS = ("auto", "none", "k1", "k1k2", "4coef", "5coef", "rational")
 DEFAULT_METHOD = "joint"
 RESULT_NAME = "calibration.json"
 VERIFICATION_NAME = "verification.json"
-VERIFY_RIGS = ("sim", "sim-realsense", "realsense")  # procam verify's --rig choices
 SAME_TOL = 1e-9  # a re-run giving the same result to this keeps the file and its verification
 
 
@@ -191,24 +190,12 @@ def stale_verification_note(session: Path, written: Path) -> str | None:
     report = session / VERIFICATION_NAME
     if not report.exists() or written.resolve() != main.resolve():
         return None
-    from app.verification import verification_is_stale
+    from app.verification import verification_is_stale, verify_command
 
     if verification_is_stale(report, main) is False:
         return None
     return (f"note: {report} verified the calibration this one replaced, so it is stale: run "
             f"`{verify_command(session)}` again")
-
-
-def verify_command(session: Path) -> str:
-    """`procam verify SESSION --rig KIND` with the rig the session recorded (when verify knows it)."""
-    from calib.errors import ProcamError
-    from calib.formats.session import SessionStore
-
-    try:
-        kind = SessionStore.open(session).manifest.rig.driver
-    except ProcamError:
-        kind = None
-    return f"procam verify {session} --rig {kind if kind in VERIFY_RIGS else '|'.join(VERIFY_RIGS)}"
 
 
 def verified_and_unchanged(session: Path, out: Path, result) -> bool:

@@ -371,8 +371,10 @@ def _verification(d: ReportData) -> str:
     head = '<h2 id="verification">Verification</h2>'
     v = d.verification
     if v is None:
-        why = d.verification_problem or ("this session has no verification.json; run <code>procam verify "
-                                          f"{_e(d.session_dir)} --rig ...</code> to measure one")
+        from app.verification import verify_command
+
+        why = d.verification_problem or ("this session has no verification.json; run "
+                                          f"<code>{_e(verify_command(d.session_dir))}</code> to measure one")
         return head + f'<p id="verification-status"><b>not verified</b>: {why}</p>'
     from app.verification import WORST_FACTOR
 

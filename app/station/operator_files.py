@@ -11,7 +11,7 @@ import os
 import stat
 from pathlib import Path
 
-from calib.errors import ProcamError, SessionError
+from calib.errors import FormatError, ProcamError, SessionError
 from calib.formats.fileio import atomic_write_bytes
 
 MAX_BYTES = 1 << 20  # an intrinsics file is a few kB
@@ -78,6 +78,9 @@ def checked_intrinsics(path, camera_size) -> bytes:
         probe.write_bytes(data)
         try:
             load_intrinsics(probe, camera_size)
-        except ProcamError as e:  # its message names the temporary copy: name the operator's file
+        except FormatError as e:  # its message names the temporary copy: name the operator's file
+            where = "" if e.field.startswith("<") else f"field '{e.field}': "  # "<file>", "<root>": the whole file
+            raise _refuse(str(path).strip(), where + e.problem) from None
+        except ProcamError as e:
             raise _refuse(str(path).strip(), str(e).replace(str(probe), "").lstrip(": ") or type(e).__name__) from None
     return data

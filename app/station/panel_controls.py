@@ -25,7 +25,7 @@ from app.station.machine import (
 )
 from app.station.panel_guidance import unmet_targets
 from app.station.panel_results import results_zip, write_report_if_available
-from app.station.panel_scene import click_to_pixel, view_from_camera
+from app.station.panel_scene import click_to_pixel, view_from_camera, view_whole_rig
 from calib.errors import ProcamError
 
 # which folder of controls each step shows (the rest stay hidden unless all are asked for)
@@ -64,6 +64,7 @@ class ControlsMixin:
         ctl = ClientControls(client, unlocked=True)
         with self._lock:
             self._clients[client.client_id] = ctl
+        view_whole_rig(self.server, client)  # framed from the start, not only once calibrated
         self._build_controls(ctl)
 
     def _on_disconnect(self, client) -> None:
