@@ -65,7 +65,8 @@ def test_the_panel_says_what_is_true_after_each_action(tmp_path):
                 see(page, rf"Refused: Skip camera step\. Intrinsics file {re.escape(str(path))}: {words}")
             expect(message_line(page, r"^Check rig: done")).to_have_count(0)
             # a good one outside the session: copied in, recorded by the copy
-            size = json.loads((folder / "session.json").read_text())["rig"]["camera_size"]
+            rig_camera = json.loads((folder / "session.json").read_text())["rig"]["camera"]
+            size = (rig_camera["width"], rig_camera["height"])
             cam = {"width": size[0], "height": size[1], "K": [[900.0, 0, size[0] / 2], [0, 900.0, size[1] / 2],
                                                               [0, 0, 1]], "dist": [0.0, 0.0, 0.0, 0.0, 0.0]}
             good = outside / "camera.json"
