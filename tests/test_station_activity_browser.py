@@ -28,7 +28,7 @@ def gone(page, pattern):
 
 
 def click(page, name):
-    page.get_by_role("button", name=name, exact=True).click()
+    page.get_by_role("button", name=name, exact=True).click(timeout=WAIT_MS)  # a loaded machine is slow, not wrong
 
 
 def message_line(page, pattern):
@@ -84,10 +84,10 @@ def test_the_panel_says_what_is_true_after_each_action(tmp_path):
             see(page, r"Mirror capture \(real-virtual\): 1 / 3 captures")
             tab = page.get_by_role("tab", name="Captures")
             expect(tab).to_be_visible()  # (the docked window redraws while captures arrive)
-            tab.click()
+            tab.click(timeout=WAIT_MS)
             see(page, r"^1 capture \(newest first\)$")
-            page.get_by_role("tab", name="Live camera").click()
-            page.get_by_text("Simulated operator moves the board by itself").click()
+            page.get_by_role("tab", name="Live camera").click(timeout=WAIT_MS)
+            page.get_by_text("Simulated operator moves the board by itself").click(timeout=WAIT_MS)
             see(page, r"Mirror capture \(real-virtual\): 3 / 3 captures")
             click(page, "Next step")
             see(page, r"Projector capture: 13 / 13 captures")
@@ -103,11 +103,11 @@ def test_the_panel_says_what_is_true_after_each_action(tmp_path):
             rms = page.get_by_text(re.compile(r"RMS reprojection error: ")).first
             assert verdict.bounding_box()["y"] < rms.bounding_box()["y"]
             # the download says what it sent, after it sent it
-            with page.expect_download():
+            with page.expect_download(timeout=WAIT_MS):
                 click(page, "Download results (zip)")
             see(page, r"Download results \(zip\): done\. session-results\.zip sent \(\d+ kB\)")
             # the log keeps every event (more than the 10 it used to), newest first
-            page.get_by_role("tab", name="Log").click()
+            page.get_by_role("tab", name="Log").click(timeout=WAIT_MS)
             see(page, r"^\d+ events, newest first")
             see(page, r"rig check: projector latency ok: latency \d+ ms")
             see(page, r"Check rig: projector latency: measuring")

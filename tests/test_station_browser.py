@@ -27,7 +27,7 @@ SMALL = ("--rig", "sim", "--poses-per-position", "1", "--mirror-captures", "3", 
 
 def click(page, name):
     print(f"{time.monotonic() - T0[0]:6.1f} s  click {name}")
-    page.get_by_role("button", name=name, exact=True).click()
+    page.get_by_role("button", name=name, exact=True).click(timeout=WAIT_MS)  # a loaded machine is slow, not wrong
 
 
 T0 = [time.monotonic()]
@@ -91,7 +91,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Refused: Skip camera step\..*does not exist")
             click(page, "Check rig")
             see(page, r"Check the rig: camera ok; projector ok")
-            see(page, r"Done.*Check rig: done\. all \d+ checks passed")  # successes are notified too, not only refusals
+            see(page, r"Check rig: done\. all \d+ checks passed")  # successes are said too, not only refusals
             click(page, "Start")
             see(page, r"Choose how to calibrate the mirror")
             click(page, "Next step")
@@ -173,7 +173,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
             time.sleep(1.5)
             page.screenshot(path=str(tmp_path / "clicked.png"))
             # the results leave the browser: a zip of exactly the result files the session has
-            with page.expect_download() as dl:
+            with page.expect_download(timeout=WAIT_MS) as dl:
                 click(page, "Download results (zip)")
             zpath = tmp_path / "results.zip"
             dl.value.save_as(zpath)
