@@ -80,11 +80,11 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Step 1 of 6: Check the rig")
             # the other steps' controls are out of the way until asked for
             expect(page.get_by_role("button", name="Calibrate", exact=True)).to_have_count(0)
-            page.get_by_text("Show every step's controls").click()
+            page.get_by_text("Show every step's controls").click(timeout=WAIT_MS)
             # an impossible action is refused, with its reason shown
             click(page, "Calibrate")
             see(page, r"Refused: Calibrate\. Calibration comes after the captures")
-            page.get_by_text("Show every step's controls").click()
+            page.get_by_text("Show every step's controls").click(timeout=WAIT_MS)
             expect(page.get_by_role("button", name="Calibrate", exact=True)).to_have_count(0)
             text_input(page, "Intrinsics file").fill(str(tmp_path / "nowhere.json"))
             click(page, "Skip camera step")
@@ -117,11 +117,11 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Retake last: p\d+ deleted; the simulated operator holds the board in another pose")
             see(page, r"Projector capture: 1 / 13 captures")
             # from here the simulated operator follows the station by itself
-            page.get_by_text("Simulated operator moves the board by itself").click()
+            page.get_by_text("Simulated operator moves the board by itself").click(timeout=WAIT_MS)
             see(page, r"Projector capture: 13 / 13 captures, 13 / 13 pattern positions complete", timeout=WAIT_MS)
             see(page, r"Projector: coverage \d+% \(pattern points captured")
             # the capture to change defaults to the newest one (Delete selected removes what was just taken)
-            page.get_by_text("Change captures", exact=True).click()
+            page.get_by_text("Change captures", exact=True).click(timeout=WAIT_MS)
             newest = json.loads((folder / "session.json").read_text())["captures"][-1]["id"]
             expect(text_input(page, "Capture to change")).to_have_value(newest)
             # Calibrate is possible; the note under it names the diversity targets not met yet
@@ -139,9 +139,9 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"camera: k1 [+-]\d")  # distortion coefficients shown
             see(page, r"fx px")
             # the worst views by reprojection RMS, and every file written, listed
-            page.get_by_text("Worst views (reprojection RMS)", exact=True).click()
+            page.get_by_text("Worst views (reprojection RMS)", exact=True).click(timeout=WAIT_MS)
             expect(page.get_by_role("cell", name=re.compile(r"^(p|mrv)\d{4}$")).first).to_be_visible()
-            page.get_by_text("Files written", exact=True).click()
+            page.get_by_text("Files written", exact=True).click(timeout=WAIT_MS)
             see(page, r"calibration\.yaml \(\d+(\.\d)? (bytes|kB)\)")
             see(page, r"images/: 16 files")
             click(page, "Verify")
@@ -180,12 +180,12 @@ def test_a_session_operated_from_the_browser(tmp_path):
             page.screenshot(path=str(tmp_path / "panel-results.png"))
             click(page, "Finish")
             see(page, r"The session is complete")
-            page.get_by_role("tab", name="Captures").click()
+            page.get_by_role("tab", name="Captures").click(timeout=WAIT_MS)
             see(page, r"16 captures")
             expect(page.locator("img[alt^='p']")).to_have_count(13)  # every capture listed, with a thumbnail
             expect(page.locator("img[alt^='mrv']")).to_have_count(3)
             page.screenshot(path=str(tmp_path / "captures.png"))
-            page.get_by_role("tab", name="Live camera").click()
+            page.get_by_role("tab", name="Live camera").click(timeout=WAIT_MS)
             time.sleep(1.0)
             page.screenshot(path=str(tmp_path / "panel.png"))
             browser.close()
