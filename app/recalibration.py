@@ -17,6 +17,7 @@ from pathlib import Path
 
 from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target
 from app.station.station import Station
+from app.words import signed
 from calib.errors import CalibrationError, SessionError
 from calib.formats.fileio import atomic_write_text
 from calib.formats.session import MANIFEST, SessionStore
@@ -575,7 +576,7 @@ def comparison_lines(rec: dict) -> list[str]:
         out.append(f"mirror tilted {m['normal_change_deg']:.3f} deg (1-sigma {m['normal_sigma_deg']:.3f}), "
                    f"offset {m[f'd_change_{u}']:+.2f} {u}")
     c = cmp["camera"]
-    out.append(f"camera fx {c['fx_change_px']:+.2f} px, fy {c['fy_change_px']:+.2f} px; projection difference mean "
+    out.append(f"camera fx {signed(c['fx_change_px'])} px, fy {signed(c['fy_change_px'])} px; projection difference mean "
                f"{c['projection_difference']['mean_px']:.2f} px, max {c['projection_difference']['max_px']:.2f} px")
     for k, v in (rec.get("verification") or {}).items():
         out.append(f"epipolar verification of the {k} calibration: {'passed' if v['passed'] else 'FAILED'}")

@@ -713,6 +713,20 @@ def file_sha256(path) -> str | None:
         return None
 
 
+VERIFY_RIGS = ("sim", "sim-realsense", "realsense")  # procam verify's --rig choices
+
+
+def verify_command(session: Path) -> str:
+    """`procam verify SESSION --rig KIND` with the rig the session recorded (when verify knows it)."""
+    from calib.formats.session import SessionStore
+
+    try:
+        kind = SessionStore.open(session).manifest.rig.driver
+    except ProcamError:
+        kind = None
+    return f"procam verify {session} --rig {kind if kind in VERIFY_RIGS else '|'.join(VERIFY_RIGS)}"
+
+
 def verification_is_stale(report_file, calibration_file) -> bool | None:
     """Whether the verification report in `report_file` describes another calibration than the one now in
     `calibration_file` (the report records the SHA-256 of the file it verified). None when it cannot

@@ -139,6 +139,8 @@ def _read_camera_intrinsics(path: Path, image_size) -> CameraModel:
     """load_camera_intrinsics without the trust check."""
     if not path.exists():
         raise FormatError(path, "<file>", "does not exist")
+    if not path.is_file():
+        raise FormatError(path, "<file>", "is not a regular file (a folder?); give a calibration.json or OpenCV YAML")
     if path.suffix.lower() == ".json":
         from calib.formats.jsonfile import read_json_file
         from calib.models.result import CalibrationResult
@@ -154,7 +156,7 @@ def _read_camera_intrinsics(path: Path, image_size) -> CameraModel:
         return CameraModel.from_dict(cam, "camera" if "camera" in data else "<root>", path)
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error:
+    except (cv2.error, SystemError):  # OpenCV's parser fails either way on a file that is not YAML/XML
         raise FormatError(path, "<file>", "is neither JSON nor an OpenCV FileStorage YAML/XML file") from None
     if not fs.isOpened():
         raise FormatError(path, "<file>", "is neither JSON nor an OpenCV FileStorage YAML/XML file")

@@ -389,11 +389,26 @@ def test_a_second_method_keeps_the_first_and_a_replaced_calibration_makes_the_ve
     assert f"{main_cal} holds the joint calibration and was kept" in out and "stale" not in out
     assert verification_is_stale(S / "verification.json", main_cal) is False
 
-    # the same method again replaces its own file; the verification of the old one is now stale
+    # the same method again on the same captures gives the same result: the file and its verification are
+    # kept (issue 28: re-running changed nothing, so nothing needs verifying again)
     assert main(["calibrate", str(S), "--method", "joint", "--no-progress"]) == 0
     out = capsys.readouterr().out
-    assert file_sha256(main_cal) != joint_hash
+    assert file_sha256(main_cal) == joint_hash and f"kept {main_cal}: the result is the one it holds" in out
+    assert "stale" not in out and verification_is_stale(S / "verification.json", main_cal) is False
+
+    # a calibration.json the captures do not give (edited here) is replaced; its verification is stale, and
+    # the hint names the rig the session recorded
+    cal = json.loads(main_cal.read_text())
+    cal["camera"]["K"][0][0] += 1.0
+    main_cal.write_text(json.dumps(cal))
+    report["calibration"]["sha256"] = file_sha256(main_cal)
+    (S / "verification.json").write_text(json.dumps(report))
+    edited_hash = file_sha256(main_cal)
+    assert main(["calibrate", str(S), "--method", "joint", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert file_sha256(main_cal) != edited_hash
     assert "verification.json verified the calibration this one replaced, so it is stale" in out
+    assert f"`procam verify {S} --rig sim` again" in out
     assert verification_is_stale(S / "verification.json", main_cal) is True
 
     # --out names the main file on purpose: it is replaced, the other method's file stays

@@ -27,7 +27,7 @@ SMALL = ("--rig", "sim", "--poses-per-position", "1", "--mirror-captures", "3", 
 
 def click(page, name):
     print(f"{time.monotonic() - T0[0]:6.1f} s  click {name}")
-    page.get_by_role("button", name=name, exact=True).click()
+    page.get_by_role("button", name=name, exact=True).click(timeout=WAIT_MS)  # a loaded machine is slow, not wrong
 
 
 T0 = [time.monotonic()]
@@ -80,18 +80,18 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Step 1 of 6: Check the rig")
             # the other steps' controls are out of the way until asked for
             expect(page.get_by_role("button", name="Calibrate", exact=True)).to_have_count(0)
-            page.get_by_text("Show every step's controls").click()
+            page.get_by_text("Show every step's controls").click(timeout=WAIT_MS)
             # an impossible action is refused, with its reason shown
             click(page, "Calibrate")
             see(page, r"Refused: Calibrate\. Calibration comes after the captures")
-            page.get_by_text("Show every step's controls").click()
+            page.get_by_text("Show every step's controls").click(timeout=WAIT_MS)
             expect(page.get_by_role("button", name="Calibrate", exact=True)).to_have_count(0)
             text_input(page, "Intrinsics file").fill(str(tmp_path / "nowhere.json"))
             click(page, "Skip camera step")
             see(page, r"Refused: Skip camera step\..*does not exist")
             click(page, "Check rig")
             see(page, r"Check the rig: camera ok; projector ok")
-            see(page, r"Done.*Check rig: the rig is ready")  # successes are notified too, not only refusals
+            see(page, r"Check rig: done\. all \d+ checks passed")  # successes are said too, not only refusals
             click(page, "Start")
             see(page, r"Choose how to calibrate the mirror")
             click(page, "Next step")
@@ -101,7 +101,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
                 click(page, "Move board")
                 see(page, rf"Mirror capture \(real-virtual\): {k} / 3 captures")
                 if k == 2:  # guidance: camera coverage, bars with their targets, where to hold the board next
-                    see(page, r"board corners cover \d+% of the camera image; \d of 4 image corners reached")
+                    see(page, r"Camera: coverage \d+% \(board corners\); \d of 4 image corners reached")
                     see(page, r"position x: \d+% \(.*; (target: a range of 45% of the width|✔ target met)\)")
                     see(page, r"Hold the board next towards")
                     page.screenshot(path=str(tmp_path / "mirror-step.png"))
@@ -117,11 +117,11 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"Retake last: p\d+ deleted; the simulated operator holds the board in another pose")
             see(page, r"Projector capture: 1 / 13 captures")
             # from here the simulated operator follows the station by itself
-            page.get_by_text("Simulated operator moves the board by itself").click()
+            page.get_by_text("Simulated operator moves the board by itself").click(timeout=WAIT_MS)
             see(page, r"Projector capture: 13 / 13 captures, 13 / 13 pattern positions complete", timeout=WAIT_MS)
-            see(page, r"covered by the pattern positions captured|pattern positions captured cover \d+%")
+            see(page, r"Projector: coverage \d+% \(pattern points captured")
             # the capture to change defaults to the newest one (Delete selected removes what was just taken)
-            page.get_by_text("Change captures", exact=True).click()
+            page.get_by_text("Change captures", exact=True).click(timeout=WAIT_MS)
             newest = json.loads((folder / "session.json").read_text())["captures"][-1]["id"]
             expect(text_input(page, "Capture to change")).to_have_value(newest)
             # Calibrate is possible; the note under it names the diversity targets not met yet
@@ -139,9 +139,9 @@ def test_a_session_operated_from_the_browser(tmp_path):
             see(page, r"camera: k1 [+-]\d")  # distortion coefficients shown
             see(page, r"fx px")
             # the worst views by reprojection RMS, and every file written, listed
-            page.get_by_text("Worst views (reprojection RMS)", exact=True).click()
+            page.get_by_text("Worst views (reprojection RMS)", exact=True).click(timeout=WAIT_MS)
             expect(page.get_by_role("cell", name=re.compile(r"^(p|mrv)\d{4}$")).first).to_be_visible()
-            page.get_by_text("Files written", exact=True).click()
+            page.get_by_text("Files written", exact=True).click(timeout=WAIT_MS)
             see(page, r"calibration\.yaml \(\d+(\.\d)? (bytes|kB)\)")
             see(page, r"images/: 16 files")
             click(page, "Verify")
@@ -173,19 +173,19 @@ def test_a_session_operated_from_the_browser(tmp_path):
             time.sleep(1.5)
             page.screenshot(path=str(tmp_path / "clicked.png"))
             # the results leave the browser: a zip of exactly the result files the session has
-            with page.expect_download() as dl:
+            with page.expect_download(timeout=WAIT_MS) as dl:
                 click(page, "Download results (zip)")
             zpath = tmp_path / "results.zip"
             dl.value.save_as(zpath)
             page.screenshot(path=str(tmp_path / "panel-results.png"))
             click(page, "Finish")
             see(page, r"The session is complete")
-            page.get_by_role("tab", name="Captures").click()
+            page.get_by_role("tab", name="Captures").click(timeout=WAIT_MS)
             see(page, r"16 captures")
             expect(page.locator("img[alt^='p']")).to_have_count(13)  # every capture listed, with a thumbnail
             expect(page.locator("img[alt^='mrv']")).to_have_count(3)
             page.screenshot(path=str(tmp_path / "captures.png"))
-            page.get_by_role("tab", name="Live camera").click()
+            page.get_by_role("tab", name="Live camera").click(timeout=WAIT_MS)
             time.sleep(1.0)
             page.screenshot(path=str(tmp_path / "panel.png"))
             browser.close()

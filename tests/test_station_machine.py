@@ -221,19 +221,47 @@ def test_skip_camera_with_an_intrinsics_file(tmp_path):
     good = tmp_path / "cam.json"
     good.write_text(json.dumps({"camera": cam.to_dict()}))
     m.skip_camera(str(good))
-    assert saved_state(m)["camera_intrinsics"] == str(good.resolve())
+    # what was read is copied into the session, which records the copy (it stands alone)
+    copy = m.store.folder / "given_camera.json"
+    assert saved_state(m)["camera_intrinsics"] == "given_camera.json"
+    assert copy.read_bytes() == good.read_bytes()
+    good.unlink()
     m.start_session(OK)
     m.choose_mirror_method("real-virtual")
     fill_mirror(m, 4)
     m.proceed()
     fill_projector(m)
     m.calibrate()
-    assert rec.calibrations[-1][1] == str(good.resolve())
+    assert rec.calibrations[-1][1] == str(copy)
     m.use_camera_calibration()
     assert m.result_stale
     refused(m.use_camera_calibration, match="already calibrated")
     m.calibrate()
     assert rec.calibrations[-1][1] is None
+
+
+def test_the_panel_reads_only_regular_files_not_through_links(tmp_path):
+    """Skip camera step with a path typed in a browser: a folder, a zip, a system file, a link and a
+    binary .json are each refused with the rule they break, nothing is recorded or copied."""
+    import os
+    import zipfile
+
+    m, _ = machine(tmp_path)
+    good = tmp_path / "cam.json"
+    good.write_text(json.dumps({"camera": d455_camera().to_dict()}))
+    (tmp_path / "folder.json").mkdir()
+    with zipfile.ZipFile(tmp_path / "packed.json", "w") as z:
+        z.writestr("cam.json", good.read_text())
+    os.symlink(good, tmp_path / "link.json")
+    (tmp_path / "sub").mkdir()
+    os.symlink(tmp_path / "sub", tmp_path / "linked")
+    (tmp_path / "sub" / "cam.json").write_bytes(good.read_bytes())
+    refused(m.skip_camera, str(tmp_path / "folder.json"), match="folder.json: is a folder")
+    refused(m.skip_camera, str(tmp_path / "packed.json"), match="is not a text file (a zip?)")
+    refused(m.skip_camera, "/etc/passwd", match="/etc/passwd: is not an intrinsics file")
+    refused(m.skip_camera, str(tmp_path / "link.json"), match="link.json: goes through the link")
+    refused(m.skip_camera, str(tmp_path / "linked" / "cam.json"), match=f"goes through the link {tmp_path / 'linked'}")
+    assert m.camera_intrinsics is None and not list(m.store.folder.glob("given_camera*"))
 
 
 def test_calibration_failure_is_reported_and_can_be_rerun(tmp_path):

@@ -23,6 +23,7 @@ MODELS = ("auto", "none", "k1", "k1k2", "4coef", "5coef", "rational")
 DEFAULT_METHOD = "joint"
 RESULT_NAME = "calibration.json"
 VERIFICATION_NAME = "verification.json"
+SAME_TOL = 1e-9  # a re-run giving the same result to this keeps the file and its verification
 
 
 def add_arguments(p) -> None:
@@ -169,9 +170,12 @@ def run(args) -> int:
               file=sys.stderr)
         for r in trust["reasons"]:
             print(f"  [{r['code']}] {r['message']}", file=sys.stderr)
-    write_result(result, out)
+    kept = verified_and_unchanged(session, out, result)
+    write_result(result, out, keep_json=kept)
     print(format_summary(result))
-    print("\n" + "\n".join(f"wrote {p}" for p in (out, *exports)))
+    print(f"\nkept {out}: the result is the one it holds (to {SAME_TOL:g}), so {VERIFICATION_NAME} still verifies it"
+          if kept else f"\nwrote {out}")
+    print("\n".join(f"wrote {p}" for p in exports))
     if note:
         print(note)
     stale = stale_verification_note(session, out)
@@ -182,15 +186,17 @@ def run(args) -> int:
     return EXIT_LOW_QUALITY if report_low_quality(result) else 0
 
 
-def write_result(result, out: Path) -> None:
-    """calibration.json at `out` and the default exports beside it (calib.export.registry.DEFAULTS)."""
+def write_result(result, out: Path, keep_json: bool = False) -> None:
+    """calibration.json at `out` (unless `keep_json`: it already holds this result) and the default exports
+    beside it (calib.export.registry.DEFAULTS)."""
     from calib.export.registry import DEFAULTS, write_exports
 
     from app.commands._outputs import write_error
 
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        result.save_json(out)
+        if not keep_json:
+            result.save_json(out)
         for warning in write_exports(result, DEFAULTS, out.parent, out.stem):
             print(f"warning: {warning}", file=sys.stderr)
     except OSError as e:
@@ -204,12 +210,51 @@ def stale_verification_note(session: Path, written: Path) -> str | None:
     report = session / VERIFICATION_NAME
     if not report.exists() or written.resolve() != main.resolve():
         return None
-    from app.verification import verification_is_stale
+    from app.verification import verification_is_stale, verify_command
 
     if verification_is_stale(report, main) is False:
         return None
     return (f"note: {report} verified the calibration this one replaced, so it is stale: run "
-            f"`procam verify {session} --rig ...` again")
+            f"`{verify_command(session)}` again")
+
+
+def verified_and_unchanged(session: Path, out: Path, result) -> bool:
+    """True when `out` is SESSION/calibration.json, verified by a verification.json that is not stale, and
+    `result` is the calibration it holds to SAME_TOL: then the file is kept, and so is its verification
+    (re-running the same calibration says nothing new about the rig)."""
+    from calib.errors import ProcamError
+    from calib.models.result import CalibrationResult
+
+    from app.verification import verification_is_stale
+
+    main = session / RESULT_NAME
+    if not main.is_file() or out.resolve() != main.resolve():
+        return False
+    if verification_is_stale(session / VERIFICATION_NAME, main) is not False:
+        return False
+    try:
+        old = CalibrationResult.load_json(main)
+    except (ProcamError, OSError, ValueError):
+        return False
+    return same_calibration(old, result)
+
+
+def same_calibration(a, b, tol: float = None) -> bool:
+    """Both results' parameters (intrinsics, distortion, pose, mirror, units) agree to `tol` (relative,
+    and absolute near zero)."""
+    tol = SAME_TOL if tol is None else tol
+
+    def close(x, y):
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        return x.shape == y.shape and bool(np.allclose(x, y, rtol=tol, atol=tol))
+
+    if a.units != b.units or (a.mirror is None) != (b.mirror is None):
+        return False
+    pairs = [(a.camera.K, b.camera.K), (a.camera.dist, b.camera.dist), (a.projector.K, b.projector.K),
+             (a.projector.dist, b.projector.dist), (a.T_cam_proj, b.T_cam_proj)]
+    if a.mirror is not None:
+        pairs += [(a.mirror.normal, b.mirror.normal), ([a.mirror.d], [b.mirror.d])]
+    return all(close(x, y) for x, y in pairs)
 
 
 def _report_rejected(e, out: Path) -> None:

@@ -58,10 +58,10 @@ def _positive(text: str) -> float:
 
 
 def add_arguments(p) -> None:
-    from app.verification import DEFAULT_GRID, DEFAULT_THRESHOLD_PX
+    from app.verification import DEFAULT_GRID, DEFAULT_THRESHOLD_PX, VERIFY_RIGS
 
     p.add_argument("session", metavar="SESSION", help="session folder (with session.json and calibration.json)")
-    p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), required=True,
+    p.add_argument("--rig", choices=VERIFY_RIGS, required=True,
                    help="the rig to measure on (sim-realsense: the simulated rig through the RealSense driver)")
     p.add_argument("--threshold", type=_positive, default=DEFAULT_THRESHOLD_PX, metavar="PX",
                    help=f"verdict threshold on the mean distance, projector pixels (default {DEFAULT_THRESHOLD_PX:g}; "

@@ -16,6 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from calib.models.camera import CameraModel
+from calib.quality.coverage import grid_shape
 
 STEP_COLOURS = {"projector": "#1f77b4", "mirror-real-virtual": "#ff7f0e", "mirror-real-mirror": "#2ca02c"}
 KIND_COLOURS = {"board": "#1f77b4", "pattern": "#d62728", "mirror-real": "#ff7f0e", "mirror-virtual": "#9467bd"}
@@ -41,10 +42,6 @@ def _image_axes(ax, width: int, height: int, title: str) -> None:
     ax.set_xlabel("x (px)", fontsize=8)
     ax.set_ylabel("y (px)", fontsize=8)
     ax.tick_params(labelsize=7)
-
-
-def _grid(width: int, height: int, nx: int = 16) -> tuple[int, int]:
-    return nx, max(2, round(nx * height / width))
 
 
 # ---- distortion --------------------------------------------------------------------------------------
@@ -111,7 +108,7 @@ def projection_uncertainty_figure(devices: list[tuple[str, dict]], large_px: flo
 # ---- residuals ---------------------------------------------------------------------------------------
 def binned(uv: np.ndarray, res: np.ndarray, width: int, height: int, nx: int = 16):
     """Per grid cell: RMS of the residual norm, mean residual vector and point count."""
-    nx, ny = _grid(width, height, nx)
+    nx, ny = grid_shape(width, height, nx)
     ix = np.clip((uv[:, 0] + 0.5) / width * nx, 0, nx - 1e-9).astype(int)
     iy = np.clip((uv[:, 1] + 0.5) / height * ny, 0, ny - 1e-9).astype(int)
     cell = iy * nx + ix
@@ -244,12 +241,6 @@ def view_thumbnail(image: np.ndarray, uv: np.ndarray, res: np.ndarray, rejected:
 
 
 # ---- coverage ----------------------------------------------------------------------------------------
-def coverage_fraction(uv: np.ndarray, width: int, height: int, nx: int = 16) -> float:
-    """Fraction of the image's grid cells (nx columns) that hold at least one point."""
-    _, _, n = binned(uv, np.zeros_like(uv), width, height, nx)
-    return float((n > 0).mean())
-
-
 def coverage_figure(camera_points: list[tuple[str, np.ndarray]], cam_size, proj_points: np.ndarray, proj_size,
                     cam_fraction: float, proj_fraction: float) -> bytes:
     fig = Figure(figsize=(11, 3.8))
@@ -280,7 +271,7 @@ def coverage_figure(camera_points: list[tuple[str, np.ndarray]], cam_size, proj_
 
 
 def _draw_cells(ax, size) -> None:
-    nx, ny = _grid(*size)
+    nx, ny = grid_shape(*size)
     for i in range(1, nx):
         ax.axvline(i * size[0] / nx - 0.5, color="#cccccc", lw=0.4, zorder=0)
     for j in range(1, ny):

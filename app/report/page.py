@@ -10,6 +10,8 @@ import time
 
 import numpy as np
 
+from calib.quality.coverage import GRID_COLUMNS, coverage_fraction
+from calib.quality.verdict import Level, overall_verdict
 from calib.transforms import rotation_angle_deg
 
 from . import figures
@@ -75,6 +77,18 @@ DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
 
 # ---- sections ----------------------------------------------------------------------------------------
+_VERDICT_CLASS = {Level.TRUSTED: "pass", Level.LOW_QUALITY: "warn", Level.UNTRUSTED: "fail"}
+
+
+def _verdict(d: ReportData) -> str:
+    """The overall verdict, first: the trust check and the quality gate run on the calibration reported
+    (calib.quality.verdict), not what the file says of itself."""
+    v = overall_verdict(d.result, d.store.manifest.rig.view == "mirror")
+    items = "".join(f"<li>{_e(r)}</li>" for r in v.reasons)
+    return (f'<p id="overall-verdict" data-level="{_e(v.level.value)}"><span class="{_VERDICT_CLASS[v.level]}">'
+            f"{_e(v.headline)}</span></p>" + (f'<ul id="verdict-reasons">{items}</ul>' if items else ""))
+
+
 def _summary(d: ReportData) -> str:
     r, cal = d.result, d.calibration
     m = d.store.manifest
@@ -319,13 +333,15 @@ def _coverage(d: ReportData) -> str:
         return head + f'<p class="warn">No detections to show: {_e(d.residuals_problem)}</p>'
     r = d.result
     cam_pts = [(k, res.cam_uv[res.cam_kind == i]) for i, k in enumerate(KINDS)]
-    cf = figures.coverage_fraction(res.cam_uv, r.camera.width, r.camera.height)
-    pf = figures.coverage_fraction(res.proj_q, r.projector.width, r.projector.height) if len(res.proj_q) else 0.0
+    corners = res.cam_uv[res.cam_kind == KINDS.index("board")]  # the definition the panel uses too
+    cf = coverage_fraction(corners, r.camera.width, r.camera.height)
+    pf = coverage_fraction(res.proj_q, r.projector.width, r.projector.height)
     fig = figures.coverage_figure(cam_pts, r.camera.size, res.proj_q, r.projector.size, cf, pf)
     return head + f"""<p class="note">Where the detected points landed in the camera image, and where the pattern points
 that were used lie in the projector image. The image corners constrain the higher distortion terms: empty cells there
-mean the model is extrapolated. Camera: <b id="coverage-camera">{cf:.0%}</b> of the 16-column grid's cells hold a
-point; projector: <b id="coverage-projector">{pf:.0%}</b>.</p>{_img(fig, "coverage of the camera and projector images")}"""
+mean the model is extrapolated. Coverage is the share of an image's {GRID_COLUMNS}-column grid cells that hold a point
+(the station's panel says the same): camera <b id="coverage-camera">{cf:.0%}</b> (board corners), projector
+<b id="coverage-projector">{pf:.0%}</b> (pattern points).</p>{_img(fig, "coverage of the camera and projector images")}"""
 
 
 def _rig(d: ReportData) -> str:
@@ -355,8 +371,10 @@ def _verification(d: ReportData) -> str:
     head = '<h2 id="verification">Verification</h2>'
     v = d.verification
     if v is None:
-        why = d.verification_problem or ("this session has no verification.json; run <code>procam verify "
-                                          f"{_e(d.session_dir)} --rig ...</code> to measure one")
+        from app.verification import verify_command
+
+        why = d.verification_problem or ("this session has no verification.json; run "
+                                          f"<code>{_e(verify_command(d.session_dir))}</code> to measure one")
         return head + f'<p id="verification-status"><b>not verified</b>: {why}</p>'
     from app.verification import WORST_FACTOR
 
@@ -401,7 +419,7 @@ def render(d: ReportData) -> str:
     """The whole page."""
     t0 = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     nav = " ".join(f'<a href="#{i}">{t}</a>' for i, t in SECTIONS)
-    body = "".join(f(d) for f in (_summary, _parameters, _distortion, _residuals, _per_view, _coverage, _rig,
+    body = "".join(f(d) for f in (_verdict, _summary, _parameters, _distortion, _residuals, _per_view, _coverage, _rig,
                                   _verification))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">

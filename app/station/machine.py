@@ -23,6 +23,8 @@ from typing import Callable
 
 from transitions import Machine, MachineError
 
+from app.station.operator_files import checked_intrinsics, copy_into_session
+from app.words import plural
 from calib.errors import FormatError, ProcamError
 from calib.formats.session import MIRROR_METHODS, Capture, SessionStore
 from calib.models.camera import CameraModel
@@ -148,6 +150,8 @@ def load_intrinsics(path, camera_size: tuple[int, int] | None = None) -> CameraM
                                           f"{camera_size[0]}x{camera_size[1]}")
     return cam
 
+
+_FILE_CHECKED = object()  # why_not("skip_camera", _FILE_CHECKED): the file was read and checked already
 
 CalibrateFn = Callable[[Path, "str | None", "Callable | None"], CalibrationResult]
 VerifyFn = Callable[[CalibrationResult], object]
@@ -346,7 +350,7 @@ class SessionMachine:
             if arg is not None and arg != self.mirror_method:
                 others = self.mirror_captures()
                 if others:
-                    return (f"{len(others)} {self.mirror_method} capture(s) are taken; delete them first to "
+                    return (f"{plural(len(others), self.mirror_method + ' capture')} taken; delete them first to "
                             f"switch to {arg}")
             return None
         if action == "set_board_thickness":
@@ -414,11 +418,11 @@ class SessionMachine:
                 return "the camera model cannot change now; go back to the calibration step first"
             if action == "use_camera_calibration" and self.camera_intrinsics is None:
                 return "the camera is already calibrated from the captures"
-            if action == "skip_camera":
+            if action == "skip_camera" and arg is not _FILE_CHECKED:
                 if not arg:
                     return "give the path of an intrinsics file (a calibration.json or a camera JSON)"
                 try:
-                    load_intrinsics(arg, self.manifest.rig.camera_size)
+                    checked_intrinsics(arg, self.manifest.rig.camera_size)
                 except ProcamError as e:
                     return str(e)
             return None
@@ -598,11 +602,23 @@ class SessionMachine:
     def skip_camera(self, path) -> None:
         """Use a pre-calibrated camera (intrinsics file) instead of calibrating it from the captures."""
         with self._lock:
-            self._refuse("skip_camera", str(path) if path else path)
-            self.camera_intrinsics = str(Path(path).resolve())
+            if not path:
+                self._refuse("skip_camera", path)
+            try:  # read once: what was checked is what the session keeps
+                data = checked_intrinsics(path, self.manifest.rig.camera_size)
+            except ProcamError as e:
+                raise ActionRefused("skip_camera", str(e)) from None
+            self._refuse("skip_camera", _FILE_CHECKED)
+            self.camera_intrinsics = copy_into_session(self.store.folder, path, data)
             self._mark_stale()
-            self._log(f"camera intrinsics from {self.camera_intrinsics}; camera calibration skipped")
+            self._log(f"camera intrinsics from {str(path).strip()}, copied into the session as "
+                      f"{self.camera_intrinsics}; camera calibration skipped")
             self._persist()
+
+    @property
+    def intrinsics_path(self) -> str | None:
+        """The given camera's file: its copy in the session (older sessions recorded an absolute path)."""
+        return None if self.camera_intrinsics is None else str(Path(self.store.folder) / self.camera_intrinsics)
 
     def use_camera_calibration(self) -> None:
         with self._lock:
@@ -640,7 +656,7 @@ class SessionMachine:
             self._log(f"calibrating {len(self.manifest.captures)} captures"
                       + (" with the given camera intrinsics" if self.camera_intrinsics else ""))
         result = self._run_busy(lambda: _keep_rejected(self.store.folder, lambda: self._calibrate_fn(
-            self.store.folder, self.camera_intrinsics, progress)), "calibration_error", "calibration failed")
+            self.store.folder, self.intrinsics_path, progress)), "calibration_error", "calibration failed")
         with self._lock:
             result.save_json(self.store.folder / CALIBRATION_FILE)
             from calib.export.registry import DEFAULTS, write_exports

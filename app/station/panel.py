@@ -34,6 +34,8 @@ import numpy as np
 
 from app.station._origin import start_viser_server
 from app.station.access import LOOPBACK_HOSTS, WILDCARD_HOSTS, AccessGate, new_access_code  # noqa: F401
+from app.station.activity import RIG_FINDINGS, activities_text
+from app.station.verdict import verdict_text
 from app.station.autocapture import PoseFeatures, diversity_bars
 from app.station.machine import (
     CALIBRATION,
@@ -78,9 +80,12 @@ from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane
 from app.station.panel_uncertainty import DEVICES as UNCERTAINTY_DEVICES
 from app.station.panel_uncertainty import INTRO as UNCERTAINTY_INTRO
 from app.station.panel_uncertainty import uncertainty_image, uncertainty_text
-from calib.models.observations import STEP_PROJECTOR
+from app.words import plural
+from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
+from calib.quality.coverage import GRID_COLUMNS, coverage_fraction
 
 LIVE_WIDTH = 640
+LOG_EVENTS = 200  # events the Log tab shows (scrollable), as many as the session machine keeps
 IMAGE_RATE_HZ = 25.0  # most live-image updates per second (one per new camera frame)
 PLANE_RATE_HZ = 4.0  # updates per second of the clickable camera image in the 3D view
 
@@ -189,6 +194,7 @@ class StationPanel(ControlsMixin):
         self.h_alert = g.add_markdown("", order=-0.5, visible=False)
         self.h_title = g.add_markdown(self._title(), order=0)
         self.h_next = g.add_markdown("", order=1)
+        self.h_activity = g.add_markdown("", order=1.1, visible=False)  # what runs, what the last actions came to
         # results at the top once calibrated (the Download button, per browser, sits just above)
         self.h_results_folder = g.add_folder("Results", order=2, visible=False)
         with self.h_results_folder:
@@ -261,7 +267,9 @@ class StationPanel(ControlsMixin):
                 return "✔"
             return "▶" if i == idx else "○"
 
-        checks = "; ".join(f"{ch.name} {'ok' if ch.ok else 'FAILED: ' + ch.detail}" for ch in m.rig_checks)
+        checks = "; ".join(f"{ch.name} " + ("FAILED: " + ch.detail if not ch.ok else
+                                            f"ok ({ch.detail})" if ch.name in RIG_FINDINGS else "ok")
+                           for ch in m.rig_checks)
         lines = ["**Checklist**", ""]
         lines.append(f"- {mark(CHECK_RIG)} **Check the rig**" + (f": {checks}" if checks else ": not checked yet"))
         if m.direct:
@@ -300,7 +308,7 @@ class StationPanel(ControlsMixin):
                 return f"**Calibration failed:** {m.calibration_error}"
             return "No calibration yet."
         u = r.uncertainty or {}
-        lines = []
+        lines = [verdict_text(r, m.manifest.rig.view == VIEW_MIRROR)]
         if m.result_stale:
             lines.append("**Out of date:** the captures or the camera model changed; re-run the calibration.\n")
         rms = ", ".join(f"{k} {v:.3f} px" for k, v in r.rms.items() if isinstance(v, (int, float)))
@@ -321,7 +329,7 @@ class StationPanel(ControlsMixin):
             lines.append(f"\nMirror: normal [{n[0]:.4f}, {n[1]:.4f}, {n[2]:.4f}] (unit vector), "
                          f"d {r.mirror.d:.2f} {r.units}{extra}")
         if r.skipped:
-            lines.append(f"\nSkipped {len(r.skipped)} capture(s): " + "; ".join(
+            lines.append(f"\nSkipped {plural(len(r.skipped), 'capture')}: " + "; ".join(
                 f"{s.get('capture_id', '?')}: {s.get('reason', '')}" for s in list(r.skipped)[:5]))
         rep = m.report
         if rep is not None:
@@ -389,11 +397,11 @@ class StationPanel(ControlsMixin):
                     per_view[pv["capture_id"]] = pv.get("rms_px")
         return captures_html(m.manifest.captures, m.store, per_view, self._thumbs)
 
-    def log_text(self, n: int = 10) -> str:
+    def log_text(self, n: int = LOG_EVENTS) -> str:
         evs = self.machine.events[-n:]
         if not evs:
             return "Nothing yet."
-        lines = []
+        lines = [f"{plural(len(evs), 'event')}, newest first (the last {n} are kept here; scroll for older ones)", ""]
         for e in reversed(evs):
             head, _, rest = e.text.partition("\n")
             lines.append(f"- {time.strftime('%H:%M:%S', time.localtime(e.time_s))} {head}")
@@ -450,8 +458,9 @@ class StationPanel(ControlsMixin):
         self.h_cov.image = side_by_side(cam_img, proj_img)
         step = "mirror" if m.state == MIRROR_CAPTURE else "projector"
         self._set(self.h_cov_text, "content",
-                  f"**Coverage.** Camera: {coverage_summary(counts)}. Projector: the pattern positions captured cover "
-                  f"**{self.coverage_fraction() * 100:.0f}%** of its image ({m.counts()['positions_done']} of "
+                  f"**Coverage** (share of each image's {GRID_COLUMNS}-column grid cells holding a point). Camera: "
+                  f"{coverage_summary(counts)}. Projector: coverage **{self.coverage_fraction() * 100:.0f}%** "
+                  f"(pattern points captured; {m.counts()['positions_done']} of "
                   f"{m.positions} positions complete)." + (f"\n\n**Next:** {sugg.text}" if sugg else ""))
         self._set(self.h_bars_title, "content", f"**Board pose diversity** of the {step} captures (a full bar "
                                                 "meets its target):")
@@ -461,20 +470,20 @@ class StationPanel(ControlsMixin):
             self._set(bar, "value", float(round(b.fraction * 100.0, 1)))
             self._set(bar, "color", "green" if b.met else "orange")
 
+    def coverages(self) -> dict[str, float]:
+        """Coverage (calib.quality.coverage) of the camera by the board corners captured and of the
+        projector by the pattern points captured."""
+        m = self.machine
+        return {"camera": float((coverage_grid(capture_corners_px(m.manifest.captures),
+                                               tuple(m.manifest.rig.camera_size)) > 0).mean()),
+                "projector": self.coverage_fraction()}
+
     def coverage_fraction(self) -> float:
+        """Projector coverage (calib.quality.coverage) by the pattern points of the positions captured."""
         m = self.machine
         W, H = m.manifest.rig.projector_size
-        s = 0.1
-        mask = np.zeros((int(H * s) + 1, int(W * s) + 1), np.uint8)
-        pat = m.manifest.pattern
-        pad = pat.radius_px if pat.kind == "circles" else pat.spacing_px
-        for p, n in enumerate(m.position_counts()):
-            if n > 0:
-                pts = pat.points_px(W, H, p)
-                x0, y0 = ((pts.min(axis=0) - pad) * s).astype(int)
-                x1, y1 = ((pts.max(axis=0) + pad) * s).astype(int)
-                mask[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1] = 1
-        return float(mask.mean())
+        pts = [m.manifest.pattern.points_px(W, H, p) for p, n in enumerate(m.position_counts()) if n > 0]
+        return coverage_fraction(np.concatenate(pts) if pts else np.zeros((0, 2)), W, H)
 
     # ---- the live image -----------------------------------------------------------------------------
     def live_image(self, unless_key=None) -> tuple[np.ndarray, tuple] | None:
@@ -544,7 +553,7 @@ class StationPanel(ControlsMixin):
         if m.state not in CAPTURE_STATES:
             return STATE_TITLES[m.state]
         if det is None:
-            return "waiting for a frame"
+            return "no frame with the board detected yet"
         if dec is None:
             return det.failure or "waiting for the board to settle"
         if dec.capture:
@@ -605,6 +614,9 @@ class StationPanel(ControlsMixin):
         with self._lock:
             m, st = self.machine, self.station
             self._set(self.h_next, "content", self.step_line())
+            acts = activities_text(st.activities.all(), ended=0)  # outcomes: the line of whoever started it
+            self._set(self.h_activity, "content", acts or " ")
+            self._set(self.h_activity, "visible", bool(acts))
             self._set(self.h_check, "content", self.checklist())
             r = m.result
             self._set(self.h_results_folder, "visible", r is not None or bool(m.calibration_error)
@@ -650,11 +662,12 @@ class StationPanel(ControlsMixin):
             return
         self._global_cache["uncertainty"] = r
         images = {dev: uncertainty_image(r, dev) if r is not None else None for dev in self.h_unc}
+        cov = self.coverages()
         for dev, (text, image) in self.h_unc.items():
             if images[dev] is not None:
                 image.image = images[dev]
             image.visible = images[dev] is not None
-            text.content = uncertainty_text(r, dev) if r is not None else ""
+            text.content = uncertainty_text(r, dev, cov.get(dev)) if r is not None else ""
 
     def _auto_report(self) -> None:
         """After each calibration and each verification: report.html in the session (app.report, when

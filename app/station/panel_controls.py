@@ -9,9 +9,11 @@ checks a pixel. Mixed into StationPanel (app/station/panel.py).
 
 from __future__ import annotations
 
+import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from app.station.activity import CHECK_RIG_NAME, DOWNLOAD_NAME, Status, activity_name
 from app.station.machine import (
     CALIBRATION,
     CHECK_RIG,
@@ -23,7 +25,7 @@ from app.station.machine import (
 )
 from app.station.panel_guidance import unmet_targets
 from app.station.panel_results import results_zip, write_report_if_available
-from app.station.panel_scene import click_to_pixel, view_from_camera
+from app.station.panel_scene import click_to_pixel, view_from_camera, view_whole_rig
 from calib.errors import ProcamError
 
 # which folder of controls each step shows (the rest stay hidden unless all are asked for)
@@ -35,6 +37,9 @@ STEP_FOLDERS = {
     VERIFICATION: ("verification", "calibration"),
     DONE: ("verification",),
 }
+# the buttons whose action is an activity (app/station/activity.py): its line and notifications follow it
+FOLLOWED = {"check": CHECK_RIG_NAME, "calibrate": activity_name("calibrate"), "verify": activity_name("verify"),
+            "check_pixel": activity_name("check pixel"), "download": DOWNLOAD_NAME}
 FOLDER_TITLES = {"rig": "Check the rig", "mirror": "Mirror method", "capture": "Capture",
                  "calibration": "Calibration", "verification": "Verification", "camera_model": "Camera model",
                  "change": "Change captures"}
@@ -59,6 +64,7 @@ class ControlsMixin:
         ctl = ClientControls(client, unlocked=True)
         with self._lock:
             self._clients[client.client_id] = ctl
+        view_whole_rig(self.server, client)  # framed from the start, not only once calibrated
         self._build_controls(ctl)
 
     def _on_disconnect(self, client) -> None:
@@ -217,17 +223,20 @@ class ControlsMixin:
             raise ActionRefused("download the results", "there is no calibration yet; calibrate first")
         if m.busy:
             raise ActionRefused("download the results", f"the station is busy ({m.busy}); wait until it finishes")
-        folder = Path(m.store.folder)
-        note = ""
-        with self.report_lock:
-            _, why = write_report_if_available(folder)
-        if why:
-            note = f" (no report.html: {why})"
-        data, names = results_zip(folder)
-        name = f"{folder.name}-results.zip"
-        ctl.client.send_file_download(name, data, save_immediately=True)
-        m.log(f"results sent to a browser as {name}: {', '.join(names)}")
-        return f"{name} sent ({len(data) / 1024:.0f} kB): {', '.join(names)}{note}"
+        acts = self.station.activities
+        with acts.running(DOWNLOAD_NAME, "writing report.html") as act:
+            folder = Path(m.store.folder)
+            with self.report_lock:
+                _, why = write_report_if_available(folder)
+            note = f" (no report.html: {why})" if why else ""
+            acts.progress(DOWNLOAD_NAME, "packing the result files", log=False)
+            data, names = results_zip(folder)
+            name = f"{folder.name}-results.zip"
+            acts.progress(DOWNLOAD_NAME, f"sending {name} ({len(data) / 1024:.0f} kB) to this browser", log=False)
+            ctl.client.send_file_download(name, data, save_immediately=True)
+            m.log(f"results sent to a browser as {name}: {', '.join(names)}")
+            act.outcome = f"{name} sent ({len(data) / 1024:.0f} kB): {', '.join(names)}{note}"
+        return act.outcome
 
     def _view(self, ctl: ClientControls, camera: bool) -> str:
         view_from_camera(ctl.client, self.click_camera())
@@ -259,41 +268,92 @@ class ControlsMixin:
             if not self._allowed(ctl, event):
                 return
             label = ctl.handles[name].label
+            acts = self.station.activities
+            act_name = FOLLOWED.get(name)
+            before = acts.get(act_name) if act_name else None
+            ctl.cache.pop("busy_refusal", None)
             try:
                 out = fn()
             except ActionRefused as e:
                 self._message(ctl, f"**Refused: {label}.** {e.reason[:1].upper() + e.reason[1:]}.", error=True)
+                ctl.cache["busy_refusal"] = bool(self.machine.busy)  # said while busy: gone once it is not
             except ProcamError as e:
                 self._message(ctl, f"**{label} failed:** {e}", error=True)
+            except Exception as e:  # a bug must not leave the old line standing: said here, traceback in the log
+                self.machine.log(f"{label} failed unexpectedly: {e!r}\n{traceback.format_exc()}")
+                self._message(ctl, f"**{label} failed:** {type(e).__name__}: {e} (details in the Log tab)", error=True)
             else:
-                text = self._describe_outcome(name, out)
-                self._message(ctl, f"**{label}:** {text}")
+                if act_name is None:
+                    self._message(ctl, f"**{label}:** {self._describe_outcome(name, out)}")
+            after = acts.get(act_name) if act_name else None
+            if after is not None and (before is None or after.seq > before.seq):
+                # the line and the notifications follow the action to its end (refresh)
+                ctl.cache["follow"] = (act_name, self._describe_extra(name))
+                ctl.cache.pop("followed", None)
+                self._follow(ctl)
             self.refresh()
 
         return on_click
 
-    def _describe_outcome(self, name, out) -> str:
-        if name == "capture" and out is not None:
-            return f"{out.id} written to the session"
+    def _follow(self, ctl: ClientControls) -> None:
+        """The message line of an action this browser started, as it is now; "Started" once while it runs
+        and "Done" or "Failed" once when it ended. A refusal said because the station was busy goes
+        when it no longer is."""
+        if ctl.cache.get("busy_refusal") and not self.machine.busy:
+            ctl.cache.pop("busy_refusal")
+            ctl.handles["message"].content = ""
+        follow = ctl.cache.get("follow")
+        if follow is None:
+            return
+        act = self.station.activities.get(follow[0])
+        if act is None:
+            return
+        running = act.status is Status.RUNNING
+        text = act.text() + (follow[1] if running else "")
+        if self._cached(ctl, "follow_text", text):
+            ctl.handles["message"].content = text
+        said = ctl.cache.get("followed")
+        if said == (act.seq, act.status) or (running and said is not None):
+            return
+        ctl.cache["followed"] = (act.seq, act.status)
+        title = {Status.RUNNING: "Started", Status.DONE: "Done", Status.FAILED: "Failed"}[act.status]
+        self._notify(ctl, title, text, act.status)
+
+    def _describe_extra(self, name) -> str:
+        """What to know while a long action runs (said with its "running" line only)."""
         if name == "calibrate":
             unmet = [b for b in self.bars_now() if not b.met]
-            extra = (" Diversity targets not met yet: " + ", ".join(f"{b.name} ({b.fraction * 100:.0f}%)" for b in unmet)
-                     + " (the note under the button says more).") if unmet else ""
-            return "running; the results appear at the top when it is done." + extra
+            return (" Diversity targets not met yet: " + ", ".join(f"{b.name} ({b.fraction * 100:.0f}%)" for b in unmet)
+                    + " (the note under the button says more).") if unmet else ""
         if name == "verify":
-            return "running; the verified pixels appear on the live image and the verdict at the top"
+            return " The verified pixels appear on the live image and the verdict at the top."
+        return ""
+
+    def _describe_outcome(self, name, out) -> str:
+        if name == "capture" and out is not None:
+            similar = out.meta.get("similar_to") if isinstance(out.meta, dict) else None
+            note = (f" (auto-capture had not taken this pose: it is close to {similar}; taken as you asked)"
+                    if similar else "")
+            return f"{out.id} written to the session{note}"
         if isinstance(out, str):
             return out.replace("_", " ") if name not in ("download", "move") else out
         return "done"
 
     def _message(self, ctl: ClientControls, text: str, error: bool = False) -> None:
-        """The message line under "Next:" and a notification (refusals red, successes green)."""
+        """The message line under "Next:" and a notification (refusals red, successes green); it no longer
+        follows an earlier action."""
+        ctl.cache.pop("follow", None)
+        ctl.cache.pop("follow_text", None)
         h = ctl.handles.get("message")
         if h is not None:
             h.content = text
+        self._notify(ctl, "Not possible now" if error else "Done", text, Status.FAILED if error else Status.DONE)
+
+    def _notify(self, ctl: ClientControls, title: str, text: str, status) -> None:
+        colour = {Status.RUNNING: "blue", Status.DONE: "green", Status.FAILED: "red"}[status]
         try:
-            ctl.client.add_notification("Not possible now" if error else "Done", text.replace("**", ""),
-                                        auto_close_seconds=6.0 if error else 3.5, color="red" if error else "green")
+            ctl.client.add_notification(title, text.replace("**", ""), auto_close_seconds=
+                                        6.0 if status is Status.FAILED else 3.5, color=colour)
         except Exception:  # a notification is a nicety; the message line says the same
             pass
 
@@ -409,5 +469,6 @@ class ControlsMixin:
             # the newest capture unless the operator picked another one that still exists
             keep = cur in ids and old is not None and cur != old[0]
             h["which"].value = cur if keep else ids[0]
-        if "follow" in h and self._cached(ctl, "follow", bool(self.station.options.follow_operator)):
-            h["follow"].value = ctl.cache["follow"]
+        if "follow" in h and self._cached(ctl, "follow_operator", bool(self.station.options.follow_operator)):
+            h["follow"].value = ctl.cache["follow_operator"]
+        self._follow(ctl)

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from app.station.autocapture import Bar
+from calib.quality.coverage import cell_counts
 
-GRID = (16, 10)  # coverage cells across the camera image (columns, rows)
 MAP_WIDTH = 300  # pixels of each of the two coverage maps
 
 
@@ -46,15 +46,10 @@ def capture_corners_px(captures) -> list[np.ndarray]:
     return out
 
 
-def coverage_grid(corner_sets, camera_size, grid=GRID) -> np.ndarray:
-    """Corners per cell, (rows, cols) counts."""
-    W, H = camera_size
-    counts = np.zeros((grid[1], grid[0]), int)
-    for a in corner_sets:
-        cx = np.clip((a[:, 0] / W * grid[0]).astype(int), 0, grid[0] - 1)
-        cy = np.clip((a[:, 1] / H * grid[1]).astype(int), 0, grid[1] - 1)
-        np.add.at(counts, (cy, cx), 1)
-    return counts
+def coverage_grid(corner_sets, camera_size) -> np.ndarray:
+    """Corners per cell of the coverage grid (calib.quality.coverage), (rows, cols) counts."""
+    pts = np.concatenate(corner_sets) if corner_sets else np.zeros((0, 2))
+    return cell_counts(pts, *camera_size)
 
 
 def coverage_summary(counts: np.ndarray) -> str:
@@ -64,7 +59,7 @@ def coverage_summary(counts: np.ndarray) -> str:
     qy, qx = max(1, gy // 4), max(1, gx // 4)
     corners = [counts[:qy, :qx], counts[:qy, -qx:], counts[-qy:, :qx], counts[-qy:, -qx:]]
     n = sum(int(c.sum() > 0) for c in corners)
-    return (f"board corners cover **{covered * 100:.0f}%** of the camera image; **{n} of 4** image corners "
+    return (f"coverage **{covered * 100:.0f}%** (board corners); **{n} of 4** image corners "
             "reached (they alone constrain the higher distortion terms)")
 
 

@@ -22,10 +22,11 @@ CYAN = (240, 220, 40)
 ORANGE = (30, 140, 255)
 RED = (50, 50, 235)
 PASS = (60, 210, 60)
+NOT_MEASURED = (170, 170, 170)  # grey: no verdict, not a failure
 
 LEGEND = ("Green: board corners; yellow: the board in the mirror; violet: projected pattern; dashed box: where "
           "to hold the board next. Verification: cyan predicted curve, orange detected stroke, pixel green "
-          "(pass) or red (fail) with its distance in projector px (n/m: not measured).")
+          "(pass) or red (fail) with its distance and unit beside it; a grey circle: not measured (no verdict).")
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 
@@ -88,33 +89,55 @@ def _poly(img, pts, s, colour, thickness) -> None:
 
 
 def check_label(check, passed: bool) -> str:
-    """Short: the distance in projector px (camera px when the scale is unknown, marked "c"), and a
-    FAIL; the colour of the marker says pass too."""
+    """Short, with its unit: the distance in projector px (camera px when the scale is unknown), and a
+    FAIL; "not measured" when the stroke was not found. The colour of the marker says pass too."""
     if not check.ok:
-        return "n/m"
-    d = f"{check.distance_proj_px:.2f}" if check.distance_proj_px is not None else f"{check.distance_px:.2f}c"
+        return "not measured"
+    d = (f"{check.distance_proj_px:.2f} proj px" if check.distance_proj_px is not None
+         else f"{check.distance_px:.2f} cam px")
     return d if passed else f"{d} FAIL"
+
+
+def _label_spot(mask: np.ndarray, px: int, py: int, tw: int, th: int) -> tuple[int, int]:
+    """Where a label of tw x th px next to the pixel (px, py) covers the fewest stroke pixels of `mask`
+    (beside the strokes, not under them); inside the image."""
+    H, W = mask.shape
+    best, spot = None, (px + 8, py - 6)
+    for dx, dy in ((8, -6), (8, th + 10), (-tw - 8, -6), (-tw - 8, th + 10), (-tw // 2, -14), (-tw // 2, th + 18)):
+        x = min(max(px + dx, 2), W - tw - 2)
+        y = min(max(py + dy, th + 3), H - 3)
+        covered = int(mask[max(y - th - 3, 0):y + 3, max(x - 2, 0):x + tw + 2].sum())
+        if best is None or covered < best:
+            best, spot = covered, (x, y)
+    return spot
 
 
 def draw_checks(img: np.ndarray, checks, s: float, threshold_px: float, worst_factor: float,
                 predicted: dict | None = None) -> None:
     """Every verified pixel: predicted curve (from the check, else `predicted[i]`), detected stroke, the
-    pixel coloured by its verdict and its distance written next to it."""
+    pixel coloured by its verdict (a grey circle: not measured, no verdict) and its distance with its unit
+    written beside the strokes."""
+    mask = np.zeros(img.shape[:2], np.uint8)
     for i, c in enumerate(checks):
         pred = c.predicted_curve if c.predicted_curve is not None and len(c.predicted_curve) > 1 else (
             (predicted or {}).get(i))
-        _poly(img, pred, s, CYAN, 1)
-        _poly(img, c.detected_curve, s, ORANGE, 2)
+        for pts, colour, thick in ((pred, CYAN, 1), (c.detected_curve, ORANGE, 2)):
+            _poly(img, pts, s, colour, thick)
+            _poly(mask, pts, s, 1, thick + 6)
+    for c in checks:
         ok = check_passes(c, threshold_px, worst_factor)
         px, py = (int(round(v * s)) for v in c.pixel)
-        colour = PASS if ok else RED
-        cv2.drawMarker(img, (px, py), colour, cv2.MARKER_CROSS, 14, 2)
+        colour = NOT_MEASURED if not c.ok else PASS if ok else RED
+        if c.ok:
+            cv2.drawMarker(img, (px, py), colour, cv2.MARKER_CROSS, 14, 2)
+        else:
+            cv2.circle(img, (px, py), 6, colour, 2, cv2.LINE_AA)
         label = check_label(c, ok)
         (tw, th), _ = cv2.getTextSize(label, FONT, 0.35, 1)
-        x = min(max(px + 8, 0), img.shape[1] - tw - 2)
-        y = min(max(py - 6, th + 2), img.shape[0] - 2)
+        x, y = _label_spot(mask, px, py, tw, th)
         cv2.rectangle(img, (x - 2, y - th - 3), (x + tw + 2, y + 3), (0, 0, 0), -1)
         cv2.putText(img, label, (x, y), FONT, 0.35, colour, 1, cv2.LINE_AA)
+        cv2.rectangle(mask, (x - 2, y - th - 3), (x + tw + 2, y + 3), 1, -1)  # the next label avoids this one
 
 
 def draw_suggestion(img: np.ndarray, suggestion) -> None:

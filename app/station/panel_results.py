@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.words import plural
 from calib.errors import ProcamError, SessionError
 from calib.formats.fileio import RESULT_MAX_BYTES, read_regular
 
@@ -223,6 +224,6 @@ def captures_html(captures, store, per_view_rms: dict, thumbs: dict) -> str:
                     f"<td>{pos}</td><td>{_pose_number(c.meta)}</td>"
                     f"<td>{html.escape(str(c.meta.get('how', '')))}</td><td>{rms_s}</td></tr>")
     head = ("<tr><th></th><th>capture</th><th>position</th><th>pose</th><th>how</th><th>RMS px</th></tr>")
-    return (f"<p>{len(caps)} captures (newest first)</p><div style='max-height:70vh;overflow-y:auto'>"
+    return (f"<p>{plural(len(caps), 'capture')} (newest first)</p><div style='max-height:70vh;overflow-y:auto'>"
             f"<table style='font-size:0.85em;border-collapse:collapse' cellpadding='3'>{head}{''.join(rows)}"
             "</table></div>")

@@ -46,8 +46,10 @@ def grid_numbers(grid: dict) -> tuple[float, float]:
     return float(np.median(s)), float(np.max(s))
 
 
-def uncertainty_text(result, device: str) -> str:
-    """The numbers and the plain-language line of one device (markdown)."""
+def uncertainty_text(result, device: str, coverage: float | None = None) -> str:
+    """The numbers and the plain-language line of one device (markdown). With the device's `coverage`
+    (calib.quality.coverage) below 1, a small sigma is claimed only where the captures reach: elsewhere
+    the model is extrapolated, and a small sigma there says nothing."""
     pu = getattr(result, "projection_uncertainty", None)
     if not isinstance(pu, dict):
         return NOT_COMPUTED if device == "camera" else ""
@@ -63,7 +65,10 @@ def uncertainty_text(result, device: str) -> str:
     if "LARGE" in line:
         plain = "**Large** " + line.split("LARGE", 1)[1].strip()
     else:
-        plain = (f"Nowhere above {LARGE_SIGMA_PX:g} px: the captures constrain the whole {device} image.")
+        plain = f"Nowhere above {LARGE_SIGMA_PX:g} px: the captures constrain the whole {device} image."
+        if coverage is not None and coverage < 1.0:
+            plain = (f"Nowhere above {LARGE_SIGMA_PX:g} px where the captures reach ({device} coverage "
+                     f"{coverage * 100:.0f}%); elsewhere the model is extrapolated, not measured.")
     return f"**{device}**: median **{med:.3f} px**, max **{top_s}** (1 sigma). {plain}"
 
 

@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from app.station.activity import CHECK_RIG_NAME, Activities, activity_name, outcome_text, rig_findings
 from app.station.autocapture import (
     AutoCapture,
     AutoCaptureSettings,
@@ -108,6 +109,7 @@ class Station:
 
         self.is_sim = is_simulated(self.kind)
         self.log = log or (lambda text: None)
+        self.activities = Activities(log=machine.log)  # what runs and what the last actions came to (the panel)
         if self.options.follow_operator is None:
             self.options.follow_operator = self.options.auto or not self.is_sim
         cam = self.rig.camera
@@ -188,7 +190,19 @@ class Station:
         self._failing_frames = 0
 
     def check_rig(self) -> list[RigCheck]:
-        """Camera streaming, projector window presenting, board and pattern specs usable."""
+        """Camera streaming, projector window presenting, board and pattern specs usable; an activity
+        ("Check rig") with a line per stage while it runs, and its findings logged and kept as its outcome."""
+        with self.activities.running(CHECK_RIG_NAME, "camera: waiting for a frame") as act:
+            checks = self._check_rig()
+            for c in checks:
+                self.machine.log(f"rig check: {c.name} {'ok' if c.ok else 'FAILED'}: {c.detail}")
+            act.outcome, act.failed = rig_findings(checks), not all(c.ok for c in checks)
+        return checks
+
+    def _rig_stage(self, line: str) -> None:
+        self.activities.progress(CHECK_RIG_NAME, line)
+
+    def _check_rig(self) -> list[RigCheck]:
         man = self.machine.manifest
         checks = []
         try:
@@ -202,6 +216,7 @@ class Station:
         except DeviceError as e:
             checks.append(RigCheck("camera", False, str(e)))
         try:
+            self._rig_stage("projector: showing a black image")
             self._show(self._black())
             self._shown = ("black",)
             pw, ph = self.rig.projector.size
@@ -268,6 +283,7 @@ class Station:
                 else:
                     from drivers.exposure import search_exposure
 
+                    self._rig_stage("camera exposure: searching while the pattern lights the board")
                     self._show(self.pattern_image(man.pattern.positions // 2))
                     time.sleep(0.5)  # any projector's latency: the pattern lights the board now
                     choice = search_exposure(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
@@ -298,6 +314,7 @@ class Station:
                 else:
                     from drivers.settle import measure_settle
 
+                    self._rig_stage("projector latency: measuring (several trials)")
                     m = measure_settle(proj, cam)
                     latency_s = m.settle_s
                     detail = (f"latency {latency_s * 1000:.0f} ms (trials "
@@ -328,6 +345,7 @@ class Station:
         if old is not None:
             return RigCheck("camera response", True, f"recorded tone curve {old.model}, gamma {old.gamma:g} re-used")
         try:
+            self._rig_stage("camera response: measuring a bracket of gains under the projector's white")
             self._show(white(self.projector_size))
             time.sleep(0.5)  # any projector's latency: the white lights the board now
             fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
@@ -661,9 +679,7 @@ class Station:
             return
         s = m.state
         if s == CHECK_RIG:
-            checks = self.check_rig()
-            self.log("rig check: " + "; ".join(f"{c.name} {'ok' if c.ok else 'FAILED'} ({c.detail})" for c in checks))
-            m.start_session(checks)
+            m.start_session(self.check_rig())  # (its findings are logged)
         elif s == MIRROR_CAPTURE:
             if m.mirror_method is None:
                 m.choose_mirror_method(self._default_mirror_method())
@@ -700,15 +716,20 @@ class Station:
             f"the station is busy ({self.machine.busy}); wait until it finishes" if self.machine.busy else None)
         if reason is not None:
             raise ActionRefused(name, reason)
+        label = activity_name(name)
         if not self.background_long_actions:
-            return fn()
+            with self.activities.running(label) as act:
+                out = fn()
+                act.outcome = outcome_text(name, out)
+            return out
         if self._worker is not None and self._worker.is_alive():
             raise ActionRefused(name, "another long action is running")
         self._worker_error = None
+        self.activities.start(label)  # before the thread: whoever pressed the button sees it running
 
         def work():
             try:
-                fn()
+                self.activities.conclude(label, fn, lambda out: outcome_text(name, out))
             except ProcamError as e:
                 self._worker_error = str(e)
                 self.log(f"{name} failed: {e}")
@@ -723,6 +744,7 @@ class Station:
 
         def progress(done, total, label=""):
             self.progress = (int(done), int(total), str(label))
+            self.activities.progress(activity_name("calibrate"), f"{label or 'step'} {done} of {total}", log=False)
             if self.on_progress is not None:
                 self.on_progress(done, total, label)
 
