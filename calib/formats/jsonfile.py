@@ -40,7 +40,8 @@ def parse_json(raw: bytes, path):
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         bad = f"byte 0x{raw[e.start]:02x} at offset {e.start}"
-        raise FormatError(path, "<file>", f"is not UTF-8 text ({bad}); save it as UTF-8") from None
+        raise FormatError(path, "<file>", f"is not a text file (a zip?): {bad} is not UTF-8; save it as UTF-8 "
+                          "JSON") from None
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:
