@@ -154,6 +154,15 @@ CalibrateFn = Callable[[Path, "str | None", "Callable | None"], CalibrationResul
 VerifyFn = Callable[[CalibrationResult], object]
 
 
+def write_calibration(folder, result: CalibrationResult, log) -> None:
+    """calibration.json and its OpenCV export calibration.yaml in the session folder."""
+    result.save_json(Path(folder) / CALIBRATION_FILE)
+    try:
+        result.save_opencv_yaml(Path(folder) / CALIBRATION_YAML)
+    except Exception as e:  # the YAML export is a convenience; the JSON is the result
+        log(f"OpenCV YAML export failed: {e}")
+
+
 class SessionMachine:
     """One session's progress through the guideline, backed by a SessionStore."""
 
@@ -643,11 +652,7 @@ class SessionMachine:
         result = self._run_busy(lambda: _keep_rejected(self.store.folder, lambda: self._calibrate_fn(
             self.store.folder, self.camera_intrinsics, progress)), "calibration_error", "calibration failed")
         with self._lock:
-            result.save_json(self.store.folder / CALIBRATION_FILE)
-            try:
-                result.save_opencv_yaml(self.store.folder / CALIBRATION_YAML)
-            except Exception as e:  # the YAML export is a convenience; the JSON is the result
-                self._log(f"OpenCV YAML export failed: {e}")
+            write_calibration(self.store.folder, result, self._log)
             self.result = result
             self.result_stale = False
             self.busy = None
