@@ -931,8 +931,13 @@ def own_residuals(cal: CalibrationResult, obs: SessionObservations) -> dict:
     n_res, rw2 = 0, 0.0
     for v in _views(obs, "mirror+pattern"):
         mirror_view = v.real is not None and v.virtual is not None
-        sol = least_squares(lambda p: _residuals(cal, v, _pose_T(p), sig, mirror_view),
-                            _pose_p(_initial_pose(cal, v)), method="lm")
+        try:
+            sol = least_squares(lambda p: _residuals(cal, v, _pose_T(p), sig, mirror_view),
+                                _pose_p(_initial_pose(cal, v)))
+        except Exception:  # no board pose: the capture has no residual to show (as the fits leave it out)
+            per_view.append({"capture_id": v.capture_id, "step": "mirror" if mirror_view else "projector",
+                             "n_points": 0, "rms_px": None})
+            continue
         r = _residuals(cal, v, _pose_T(sol.x), unit, mirror_view)
         n_res, rw2 = n_res + r.size, rw2 + float(sol.fun @ sol.fun)
         pts = r[0::2] ** 2 + r[1::2] ** 2
