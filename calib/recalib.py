@@ -954,7 +954,7 @@ def own_residuals(cal: CalibrationResult, obs: SessionObservations) -> dict:
     every = [a for k in e2 for a in e2[k]]
     rms = {k: float(np.sqrt(np.concatenate(a).mean())) for k, a in (("joint", every), *e2.items())
            if a and np.concatenate(a).size}
-    dof = max(n_res - 6 * len(per_view), 1)
+    dof = max(n_res - 6 * sum(1 for p in per_view if p["n_points"]), 1)
     worst = sorted((p for p in per_view if p["rms_px"] is not None), key=lambda p: -p["rms_px"])[:5]
     return {"rms": rms, "per_view": per_view, "worst_views": worst, "dof": dof, "variance_factor": rw2 / dof}
 
