@@ -78,8 +78,8 @@ class ControlsMixin:
         h["take"].on_click(lambda event: self._take_control(ctl, event))
         h["message"] = g.add_markdown("", order=1.2)
         h["download"] = g.add_button("Download results (zip)", order=1.5, color="teal", visible=False,
-                                     hint="calibration.json, calibration.yaml, verification.json, report.html and recalibration.json, "
-                                          "those that exist")
+                                     hint="calibration.json, calibration.yaml, verification.json, report.html and "
+                                          "recalibration.json, those that exist")
         with g.add_folder("Step controls", order=3) as h["steps"]:
             with g.add_folder(FOLDER_TITLES["rig"]) as f["rig"]:
                 h["check"] = g.add_button("Check rig")
