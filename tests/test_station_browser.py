@@ -73,6 +73,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
         with sync_playwright() as p:
             browser = launch_chromium(p)
             page = browser.new_page(viewport={"width": 1600, "height": 1000}, accept_downloads=True)
+            page.set_default_timeout(WAIT_MS)  # clicks and the download wait on state (report.html is written first)
             page.goto(st.url)
             see(page, r"Simulated rig")
             see(page, r"no RealSense camera is connected|Check rig")
@@ -257,9 +258,11 @@ def test_one_browser_drives_the_others_watch(tmp_path):
         with sync_playwright() as p:
             browser = launch_chromium(p)
             one = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+            one.set_default_timeout(WAIT_MS)
             one.goto(st.url)
             see(one, r"Connected: browser 1 \(drives\) = this browser\. This browser drives the station")
             two = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+            two.set_default_timeout(WAIT_MS)
             two.goto(st.url)
             see(two, r"Connected: browser 1 \(drives\), browser 2 = this browser\. This browser is watching")
             see(one, r"Connected: browser 1 \(drives\) = this browser, browser 2\. This browser drives")

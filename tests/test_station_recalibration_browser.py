@@ -142,6 +142,7 @@ def test_recalibration_mode_shows_its_own_controls_numbers_and_files(tmp_path):
         with sync_playwright() as p:
             browser = launch_chromium(p)
             page = browser.new_page(viewport={"width": 1600, "height": 1000}, accept_downloads=True)
+            page.set_default_timeout(WAIT_MS)  # clicks and the download wait on state
             page.goto(st.url)
             see(page, r"press \*?Start check")
             start = page.get_by_role("button", name="Start check", exact=True)
@@ -177,7 +178,7 @@ def test_recalibration_mode_shows_its_own_controls_numbers_and_files(tmp_path):
             cells = page.get_by_role("cell", name=re.compile(r"^(p|mrv)\d{4}$"))
             expect(cells.first).to_be_visible()
             assert set(cells.all_inner_texts()) <= ids
-            with page.expect_download(timeout=WAIT_MS) as dl:  # report.html is written first
+            with page.expect_download() as dl:  # report.html is written first
                 download.click()
             zpath = tmp_path / "results.zip"
             dl.value.save_as(zpath)
