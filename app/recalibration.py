@@ -15,7 +15,9 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from app.station.machine import CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target
+from app.station.machine import (
+    CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target, write_calibration,
+)
 from app.station.station import Station
 from app.words import signed
 from calib.errors import CalibrationError, SessionError
@@ -326,7 +328,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
 
     from calib.detection.detect import detect_session
     from calib.recalib import (
-        RecalibrationRecord, check_rig, compare_calibrations, reestimate,
+        RecalibrationRecord, check_rig, compare_calibrations, reestimate, with_own_residuals,
     )
 
     folder = Path(machine.store.folder)
@@ -396,7 +398,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
         machine._persist()
     report = check_rig(previous, only_captures(obs, set(check_ids)))
     for p, c in report.parts.items():
-        log(f"  {p}: {c.status} ({c.reason})")
+        log(f"  {p}: {c.status} ({part_line(c, previous.units)})")
     log(f"check verdict: {report.verdict} after {time.monotonic() - t0:.1f} s")
     re = None
     comparison = None
@@ -447,8 +449,9 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     diag = dict(result.diagnostics) if isinstance(result.diagnostics, dict) else {}
     diag["recalibration"] = {"verdict": report.verdict, "previous_sha256": digest}
     result = result.with_(diagnostics=diag, method=result.method if not report.moved else "recalibration")
+    result = with_own_residuals(result, obs, bool(report.moved))
     if ok:
-        result.save_json(folder / "calibration.json")  # before verifying: the report records its hash
+        write_calibration(folder, result, log)  # before verifying: the report records its hash
         machine.result = result
         if verify is not None and report.moved:
             if prompt is not None:
@@ -480,6 +483,14 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     outcome = Outcome(rec, result, ok, message)
     stage("done", outcome)
     return outcome
+
+
+def part_line(check, units: str) -> str:
+    """A checked part's movement in physical units, then the statistic that decided its status."""
+    from calib.recalib import describe_movement
+
+    move = describe_movement(check, units)
+    return f"{move}; {check.reason}" if move else check.reason
 
 
 def only_captures(obs, ids: set):

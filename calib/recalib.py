@@ -592,6 +592,22 @@ def describe_change(part: str, delta: np.ndarray, cov: np.ndarray, units: str) -
              f"t_{units}": float(np.sqrt(np.trace(cov[3:, 3:])))})
 
 
+def describe_movement(check: PartCheck, units: str) -> str:
+    """A part's fitted change in physical units with its 1-sigma: what the check's statistic stands for
+    ("" for a part not checked)."""
+    c, s = check.change, check.sigma
+    if not c:
+        return ""
+    if check.part == "camera":
+        return (f"fx {c['fx_px']:+.2f} px, fy {c['fy_px']:+.2f} px (1-sigma {s['fx_px']:.2f}, "
+                f"{s['fy_px']:.2f} px)")
+    if check.part == "mirror":
+        return (f"tilted {c['normal_deg']:.3f} deg, offset {c[f'd_{units}']:+.2f} {units} (1-sigma "
+                f"{s['normal_deg']:.3f} deg, {s[f'd_{units}']:.2f} {units})")
+    return (f"turned {c['rot_deg']:.3f} deg, shifted {c[f't_{units}']:.2f} {units} (1-sigma {s['rot_deg']:.3f} deg, "
+            f"{s[f't_{units}']:.2f} {units})")
+
+
 def _test(previous: CalibrationResult, fit: Fit, part: str, alpha: float, factor: float) -> PartCheck:
     from scipy.stats import chi2
 
@@ -896,6 +912,66 @@ def _with_updated_uncertainty(result: CalibrationResult, previous: CalibrationRe
     diag = dict(out.diagnostics) if isinstance(out.diagnostics, dict) else {}
     diag["trust"] = check_calibration(out).to_dict()
     return out.with_(diagnostics=diag)
+
+
+# ---- the recalibration's own residuals ------------------------------------------------------------
+#: diagnostics of the previous calibration that describe its own captures (names this session lacks)
+_PREVIOUS_CAPTURE_KEYS = ("worst_points", "board_poses", "rejected", "n_rejected", "views_left_out", "n_points",
+                          "n_residuals", "sigma_px")
+
+
+def own_residuals(cal: CalibrationResult, obs: SessionObservations) -> dict:
+    """`cal`'s reprojection residuals (px) on this session's captures, each board pose fitted with the
+    calibration held: "rms" per kind ("board", "pattern", "mirror_real", "mirror_virtual", "joint"),
+    "per_view" (capture_id, step, n_points, rms_px, as a calibration's), "worst_views", and "dof" and
+    "variance_factor" of the whitened residuals (6 pose parameters per view)."""
+    from scipy.optimize import least_squares
+
+    unit = dict.fromkeys(("board", "pattern", "mirror_real", "mirror_virtual"), 1.0)
+    sig = _class_sigma(cal)
+    per_view, e2 = [], {k: [] for k in unit}
+    n_res, rw2 = 0, 0.0
+    for v in _views(obs, "mirror+pattern"):
+        mirror_view = v.real is not None and v.virtual is not None
+        try:
+            sol = least_squares(lambda p: _residuals(cal, v, _pose_T(p), sig, mirror_view),
+                                _pose_p(_initial_pose(cal, v)))
+        except Exception:  # no board pose: the capture has no residual to show (as the fits leave it out)
+            per_view.append({"capture_id": v.capture_id, "step": "mirror" if mirror_view else "projector",
+                             "n_points": 0, "rms_px": None})
+            continue
+        r = _residuals(cal, v, _pose_T(sol.x), unit, mirror_view)
+        n_res, rw2 = n_res + r.size, rw2 + float(sol.fun @ sol.fun)
+        pts = r[0::2] ** 2 + r[1::2] ** 2
+        kinds = [("mirror_real" if mirror_view else "board", v.real), ("mirror_virtual" if mirror_view else "board",
+                                                                         v.virtual)]
+        i = 0
+        for kind, ob in kinds:
+            if ob is not None:
+                e2[kind].append(pts[i:i + len(ob.ids)])
+                i += len(ob.ids)
+        e2["pattern"].append(pts[i:])
+        per_view.append({"capture_id": v.capture_id, "step": "mirror" if mirror_view else "projector",
+                         "n_points": int(pts.size), "rms_px": float(np.sqrt(pts.mean())) if pts.size else None})
+    every = [a for k in e2 for a in e2[k]]
+    rms = {k: float(np.sqrt(np.concatenate(a).mean())) for k, a in (("joint", every), *e2.items())
+           if a and np.concatenate(a).size}
+    dof = max(n_res - 6 * sum(1 for p in per_view if p["n_points"]), 1)
+    worst = sorted((p for p in per_view if p["rms_px"] is not None), key=lambda p: -p["rms_px"])[:5]
+    return {"rms": rms, "per_view": per_view, "worst_views": worst, "dof": dof, "variance_factor": rw2 / dof}
+
+
+def with_own_residuals(result: CalibrationResult, obs: SessionObservations, reestimated: bool) -> CalibrationResult:
+    """`result` with this session's residuals in place of the previous calibration's (RMS, per-view,
+    worst views; the previous session's per-capture diagnostics dropped). Re-estimated, its uncertainty
+    came from these captures: their degrees of freedom and variance factor too."""
+    own = own_residuals(result, obs)
+    diag = {k: v for k, v in (result.diagnostics or {}).items() if k not in _PREVIOUS_CAPTURE_KEYS}
+    diag["worst_views"] = own["worst_views"]
+    u = result.uncertainty
+    if reestimated and isinstance(u, dict):
+        u = dict(u, dof=own["dof"], variance_factor=own["variance_factor"])
+    return result.with_(rms=own["rms"], per_view=tuple(own["per_view"]), diagnostics=diag, uncertainty=u)
 
 
 # ---- stage 3: compare -------------------------------------------------------------------------------

@@ -129,6 +129,29 @@ def _reestimated(part: str, n_projector: int, n_mirror: int, intrinsics: str = "
     return b, rep, re
 
 
+def test_recalibrated_result_carries_this_sessions_residuals_not_the_previous_ones():
+    """The result written states the RMS, per-view residuals, worst views and degrees of freedom of the
+    recalibration's own captures (the previous session's capture names never appear)."""
+    from calib.recalib import with_own_residuals
+
+    b, rep = check("projector")
+    obs = merge_observations(observe(_session(b, 2, 2, 0), NOISE_PX, 7), observe(_session(b, 8, 0, 1), NOISE_PX, 8))
+    re = reestimate(rep.current, obs, rep.moved, intrinsics="held")
+    res = with_own_residuals(re.result, obs, True)
+    ids = [v.capture_id for v in obs.mirror_views] + [v.capture_id for v in obs.projector_views]
+    assert [p["capture_id"] for p in res.per_view] == ids
+    assert {w["capture_id"] for w in res.diagnostics["worst_views"]} <= set(ids)
+    assert "board_poses" not in res.diagnostics and "worst_points" not in res.diagnostics
+    # 0.1 px noise per coordinate: a point's residual about 0.14 px
+    assert 0.05 < res.rms["joint"] < 0.3 and 0.05 < res.rms["pattern"] < 0.3
+    n_res = sum(2 * p["n_points"] for p in res.per_view)
+    assert res.uncertainty["dof"] == n_res - 6 * len(ids)
+    assert res.uncertainty["variance_factor"] == pytest.approx(1.0, abs=0.5)  # whitened by the class sigma
+    assert res.rms != previous().rms
+    kept = with_own_residuals(previous(), obs, False)  # nothing re-estimated: the covariance is the previous one's
+    assert kept.uncertainty["dof"] == previous().uncertainty["dof"] and kept.per_view != previous().per_view
+
+
 def test_projector_reestimate_with_exact_held_parts_is_within_05mm_005deg():
     """With the held parts exact (the unbumped truth carrying the previous calibration's uncertainty),
     the re-estimated pose alone reaches the bumped truth; error from held parts is the next test's."""

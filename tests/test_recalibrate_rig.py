@@ -271,7 +271,7 @@ def test_station_checklist_prompts_the_operator_on_sim_realsense(tmp_path):
         while rp.stage not in ("verdict", "failed") and time.monotonic() < t_end:
             time.sleep(0.2)
         assert rp.stage == "verdict", rp.error
-        assert rp.h_accept.label == "Sign off: unchanged"
+        assert rp.accept_label() == "Sign off: unchanged"
         rp.accept()
         while rp.stage not in ("done", "failed") and time.monotonic() < t_end:
             time.sleep(0.2)

@@ -73,6 +73,7 @@ def test_a_session_operated_from_the_browser(tmp_path):
         with sync_playwright() as p:
             browser = launch_chromium(p)
             page = browser.new_page(viewport={"width": 1600, "height": 1000}, accept_downloads=True)
+            page.set_default_timeout(WAIT_MS)  # clicks and the download wait on state (report.html is written first)
             page.goto(st.url)
             see(page, r"Simulated rig")
             see(page, r"no RealSense camera is connected|Check rig")
@@ -247,3 +248,45 @@ def test_network_panel_needs_the_access_code(tmp_path):
         st.stop()
     assert any("access code" in ln for ln in st.lines)
     assert any("wrong access code from 127.0.0.1" in ln for ln in st.lines)  # the process log too
+
+
+def test_one_browser_drives_the_others_watch(tmp_path):
+    """Two browsers on one station: the first drives, the second watches (its controls disabled) until it
+    takes control; after each hand-over the other one watches, and the log names who did what."""
+    st = StationProcess(*SMALL, "--session", str(tmp_path / "session"))
+    try:
+        with sync_playwright() as p:
+            browser = launch_chromium(p)
+            one = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+            one.set_default_timeout(WAIT_MS)
+            one.goto(st.url)
+            see(one, r"Connected: browser 1 \(drives\) = this browser\. This browser drives the station")
+            two = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+            two.set_default_timeout(WAIT_MS)
+            two.goto(st.url)
+            see(two, r"Connected: browser 1 \(drives\), browser 2 = this browser\. This browser is watching")
+            see(one, r"Connected: browser 1 \(drives\) = this browser, browser 2\. This browser drives")
+            expect(two.get_by_role("button", name="Check rig", exact=True)).to_be_disabled()
+            expect(one.get_by_role("button", name="Take control", exact=True)).to_have_count(0)
+            click(two, "Take control")
+            see(two, r"This browser drives the station")
+            see(one, r"This browser is watching")
+            expect(one.get_by_role("button", name="Check rig", exact=True)).to_be_disabled()
+            expect(two.get_by_role("button", name="Take control", exact=True)).to_have_count(0)
+            click(two, "Check rig")
+            see(one, r"Check the rig: camera ok; projector ok")
+            click(one, "Take control")
+            see(two, r"This browser is watching")
+            expect(two.get_by_role("button", name="Start", exact=True)).to_be_disabled()
+            click(one, "Start")
+            see(two, r"Choose how to calibrate the mirror")
+            one.get_by_role("tab", name="Log").click()
+            see(one, r"browser 2 took control from browser 1")
+            see(one, r"browser 2: pressed Check rig")
+            see(one, r"browser 1 took control from browser 2")
+            see(one, r"browser 1: pressed Start")
+            one.screenshot(path=str(tmp_path / "driving.png"))
+            two.screenshot(path=str(tmp_path / "watching.png"))
+            browser.close()
+    finally:
+        st.stop()

@@ -113,3 +113,83 @@ def test_unchanged_signoff_from_the_panel(tmp_path):
     assert new.diagnostics["recalibration"]["verdict"] == "unchanged"
     assert new.method == old.method and (new.camera.K == old.camera.K).all()
     assert (new.T_cam_proj == old.T_cam_proj).all() and (new.mirror.normal == old.mirror.normal).all()
+
+
+def green(locator) -> bool:
+    """The button is drawn green (the highlighted next action)."""
+    r, g, b = (int(v) for v in re.findall(r"\d+", locator.evaluate("e => getComputedStyle(e).backgroundColor"))[:3])
+    return g > r + 40 and g > b + 40
+
+
+def test_recalibration_mode_shows_its_own_controls_numbers_and_files(tmp_path):
+    """After each action of a projector recalibration, the panel shows only this mode's controls with the
+    next one highlighted, the verdict's movement in mm and degrees, this recalibration's own RMS and worst
+    views, the files as they are, a download with recalibration.json and calibration.yaml, and a live
+    image (with a true frame rate) that keeps updating once it is over."""
+    import zipfile
+
+    from calib.formats.session import SessionStore
+    from tests.test_recalibrate import previous
+    from tests.test_station_browser import live_image_updates
+
+    prev = tmp_path / "prev" / "calibration.json"
+    prev.parent.mkdir()
+    previous().save_json(prev)
+    folder = tmp_path / "recal"
+    st = StationProcess("--rig", "sim", "--sim-bump", "projector", "--recalibrate", str(prev.parent),
+                        "--session", str(folder))
+    try:
+        with sync_playwright() as p:
+            browser = launch_chromium(p)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000}, accept_downloads=True)
+            page.set_default_timeout(WAIT_MS)  # clicks and the download wait on state
+            page.goto(st.url)
+            see(page, r"press \*?Start check")
+            start = page.get_by_role("button", name="Start check", exact=True)
+            expect(start).to_be_visible()
+            assert green(start)
+            for normal in ("Calibrate", "Next step", "Back", "Check rig"):  # the normal flow's controls are gone
+                expect(page.get_by_role("button", name=normal, exact=True)).to_have_count(0)
+            see(page, r"camera [1-9]\d* frames/s")  # the preview runs before the flow ticks the station
+            start.click()
+            expect(start).to_have_count(0)
+            see(page, r"projector: moved \(turned (0\.9|1\.0)\d+ deg, shifted \d+\.\d+ mm \(1-sigma \d+\.\d+ deg, "
+                      r"\d+\.\d+ mm\); change \d+\.\d+ > \d+\.\d+ \(chi-square", timeout=WAIT_MS)
+            accept = page.get_by_role("button", name="Accept verdict", exact=True)
+            expect(accept).to_be_visible()
+            assert green(accept)
+            accept.click()
+            expect(accept).to_have_count(0)
+            see(page, r"Compare.*\(ok\)", timeout=WAIT_MS)
+            see(page, r"files written: recalibration\.json, calibration\.json")
+            see(page, r"Recalibration of.*✔ done")
+            download = page.get_by_role("button", name="Download results (zip)", exact=True)
+            expect(download).to_be_visible()
+            until(lambda: green(download))
+            page.get_by_text("Files written", exact=True).click()
+            see(page, r"recalibration\.json \(\d+(\.\d)? (bytes|kB)\)")
+            see(page, r"calibration\.yaml \(\d+(\.\d)? (bytes|kB)\)")
+            # this recalibration's own numbers: its RMS and worst views name its captures only
+            ids = {c.id for c in SessionStore.open(folder).manifest.captures}
+            saved = json.loads((folder / "calibration.json").read_text())
+            assert {pv["capture_id"] for pv in saved["per_view"]} == ids
+            see(page, rf"RMS reprojection error: joint {saved['rms']['joint']:.3f} px")
+            page.get_by_text("Worst views (reprojection RMS)", exact=True).click()
+            cells = page.get_by_role("cell", name=re.compile(r"^(p|mrv)\d{4}$"))
+            expect(cells.first).to_be_visible()
+            assert set(cells.all_inner_texts()) <= ids
+            with page.expect_download() as dl:  # report.html is written first
+                download.click()
+            zpath = tmp_path / "results.zip"
+            dl.value.save_as(zpath)
+            # the live image keeps updating once the flow is over, and its frame rate says so
+            assert len(live_image_updates(page, 3)) >= 3
+            see(page, r"camera [1-9]\d* frames/s")
+            page.screenshot(path=str(tmp_path / "done.png"))
+            browser.close()
+    finally:
+        st.stop()
+    with zipfile.ZipFile(zpath) as z:
+        names = z.namelist()
+        assert "recalibration.json" in names and "calibration.yaml" in names
+        assert z.read("recalibration.json") == (folder / "recalibration.json").read_bytes()

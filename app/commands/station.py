@@ -145,7 +145,7 @@ def run_recalibration_mode(args, kind: str, defaulted: bool) -> int:
     panel = StationPanel(station, args.host, args.port, code, rig_note(req, defaulted))
     RecalibrationPanel(panel, ctx["src"], verify=rig_verify_fn(rig, store.folder), workers=args.workers,
                        resume=rargs.resume)
-    rc = serve(args, rig, store, station, panel, code, lambda: None)
+    rc = serve(args, rig, store, station, panel, code, station.start_preview)  # the flow ticks the station
     if not (Path(store.folder) / RECALIBRATION_FILE).exists():
         print(f"procam station: the recalibration is not finished; continue it with --recalibrate {args.recalibrate} "
               f"--resume {store.folder}")

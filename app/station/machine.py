@@ -157,6 +157,18 @@ CalibrateFn = Callable[[Path, "str | None", "Callable | None"], CalibrationResul
 VerifyFn = Callable[[CalibrationResult], object]
 
 
+def write_calibration(folder, result: CalibrationResult, log) -> None:
+    """calibration.json and the default exports (calib.export.registry.DEFAULTS) in the session folder."""
+    from calib.export.registry import DEFAULTS, write_exports
+
+    result.save_json(Path(folder) / CALIBRATION_FILE)
+    try:
+        for warning in write_exports(result, DEFAULTS, Path(folder), Path(CALIBRATION_FILE).stem):
+            log(f"export: {warning}")
+    except Exception as e:  # noqa: BLE001 - the exports are a convenience; the JSON is the result
+        log(f"export of {', '.join(DEFAULTS)} failed: {e}")
+
+
 class SessionMachine:
     """One session's progress through the guideline, backed by a SessionStore."""
 
@@ -658,14 +670,7 @@ class SessionMachine:
         result = self._run_busy(lambda: _keep_rejected(self.store.folder, lambda: self._calibrate_fn(
             self.store.folder, self.intrinsics_path, progress)), "calibration_error", "calibration failed")
         with self._lock:
-            result.save_json(self.store.folder / CALIBRATION_FILE)
-            from calib.export.registry import DEFAULTS, write_exports
-
-            try:
-                for warning in write_exports(result, DEFAULTS, self.store.folder, Path(CALIBRATION_FILE).stem):
-                    self._log(f"export: {warning}")
-            except Exception as e:  # the exports are a convenience; the JSON is the result
-                self._log(f"export of {', '.join(DEFAULTS)} failed: {e}")
+            write_calibration(self.store.folder, result, self._log)
             self.result = result
             self.result_stale = False
             self.busy = None

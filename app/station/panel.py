@@ -49,6 +49,7 @@ from app.station.machine import (
     VERIFICATION,
 )
 from app.station.panel_controls import ClientControls, ControlsMixin  # noqa: F401
+from app.station.panel_driver import DriverSeat
 from app.station.panel_guidance import (
     camera_coverage_image,
     capture_corners_px,
@@ -72,6 +73,7 @@ from app.station.panel_results import (
     captures_html,
     check_passes,
     files_text,
+    folder_stamp,
     parameters_text,
     worst_views_text,
     write_report_if_available,
@@ -133,6 +135,8 @@ class StationPanel(ControlsMixin):
         self.server = start_viser_server(self.gate, host=host, port=port, label="procam station", verbose=verbose)
         self.port = self.server.get_port()
         self._clients: dict[int, ClientControls] = {}
+        self.seat = DriverSeat(self.machine.log)  # one browser drives, the others watch
+        self.mode_controls = None  # a mode's own controls in place of the steps' (panel_recal.py)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -625,7 +629,7 @@ class StationPanel(ControlsMixin):
             self._set(self.h_params, "content", parameters_text(r, bool(m.camera_intrinsics)) if r else "")
             self._set(self.h_worst, "content", worst_views_text(r) if r else "")
             self._update_uncertainty(r)
-            files_key = (tuple(c.id for c in m.manifest.captures), id(r), id(m.report), m.state, m.busy)
+            files_key = folder_stamp(m.store.folder)
             if self._global_cache.get("files") != files_key:
                 self._global_cache["files"] = files_key
                 self._set(self.h_files, "content", files_text(m.store.folder))

@@ -23,6 +23,7 @@ from app.station.machine import (
     VERIFICATION,
     ActionRefused,
 )
+from app.station.panel_driver import TAKE_CONTROL
 from app.station.panel_guidance import unmet_targets
 from app.station.panel_results import results_zip, write_report_if_available
 from app.station.panel_scene import click_to_pixel, view_from_camera, view_whole_rig
@@ -65,22 +66,27 @@ class ControlsMixin:
         with self._lock:
             self._clients[client.client_id] = ctl
         view_whole_rig(self.server, client)  # framed from the start, not only once calibrated
+        self.seat.join(client.client_id)
         self._build_controls(ctl)
 
     def _on_disconnect(self, client) -> None:
         with self._lock:
             self._clients.pop(client.client_id, None)
+        self.seat.leave(client.client_id)
 
     def _build_controls(self, ctl: ClientControls) -> None:
         g = ctl.client.gui
         h, f = ctl.handles, ctl.folders
         sim = self.station.is_sim
         m = self.machine
+        h["who"] = g.add_markdown(self.seat.roster(ctl.client.client_id), order=1.1)
+        h["take"] = g.add_button(TAKE_CONTROL, order=1.15, color="green", visible=False)
+        h["take"].on_click(lambda event: self._take_control(ctl, event))
         h["message"] = g.add_markdown("", order=1.2)
         h["download"] = g.add_button("Download results (zip)", order=1.5, color="teal", visible=False,
-                                     hint="calibration.json, calibration.yaml, verification.json and report.html, "
-                                          "those that exist")
-        with g.add_folder("Step controls", order=3):
+                                     hint="calibration.json, calibration.yaml, verification.json, report.html and "
+                                          "recalibration.json, those that exist")
+        with g.add_folder("Step controls", order=3) as h["steps"]:
             with g.add_folder(FOLDER_TITLES["rig"]) as f["rig"]:
                 h["check"] = g.add_button("Check rig")
                 h["start"] = g.add_button("Start")
@@ -162,6 +168,7 @@ class ControlsMixin:
         def _(event):
             if self._allowed(ctl, event):
                 st.options.auto_capture = bool(h["auto_capture"].value)
+                self._log_action(ctl, f"set Auto-capture {'on' if st.options.auto_capture else 'off'}")
 
         @h["show_all"].on_update
         def _(event):
@@ -174,11 +181,24 @@ class ControlsMixin:
                 if self._allowed(ctl, event):
                     st.options.follow_operator = bool(h["follow"].value)
                     st._requested = None
+                    self._log_action(ctl, f"set the simulated operator {'on' if h['follow'].value else 'off'}")
 
+        if self.mode_controls is not None:
+            self.mode_controls.build(ctl)
         self._refresh_controls(ctl)
 
     def _allowed(self, ctl: ClientControls, event) -> bool:
-        return ctl.unlocked and event.client_id == ctl.client.client_id
+        """Only the driving browser acts (the others' controls are disabled; this catches a stale click)."""
+        return ctl.unlocked and event.client_id == ctl.client.client_id and self.seat.drives(event.client_id)
+
+    def _log_action(self, ctl: ClientControls, what: str) -> None:
+        self.machine.log(f"{self.seat.name(ctl.client.client_id)}: {what}")
+
+    def _take_control(self, ctl: ClientControls, event) -> None:
+        if event.client_id != ctl.client.client_id:
+            return
+        self._message(ctl, f"**{TAKE_CONTROL}:** {self.seat.take(event.client_id)}")
+        self.refresh()
 
     def _selected(self, value):
         if not value or value == "(none)":
@@ -245,7 +265,7 @@ class ControlsMixin:
     def on_image_click(self, event) -> None:
         """A click on the camera image in the 3D view: check that pixel (operators only)."""
         ctl = self._clients.get(event.client_id)
-        if ctl is None or not ctl.unlocked:
+        if ctl is None or not ctl.unlocked or not self.seat.drives(event.client_id):
             return
         px = click_to_pixel(self.click_camera(), event)
         if px is None:
@@ -272,6 +292,7 @@ class ControlsMixin:
             act_name = FOLLOWED.get(name)
             before = acts.get(act_name) if act_name else None
             ctl.cache.pop("busy_refusal", None)
+            self._log_action(ctl, f"pressed {label}")
             try:
                 out = fn()
             except ActionRefused as e:
@@ -429,8 +450,9 @@ class ControlsMixin:
         if not h:
             return
         m = self.machine
+        self._refresh_seat(ctl)
         refusals = self._refusals()
-        rec = self._recommended()
+        rec = self._recommended() if self.mode_controls is None else self.mode_controls.recommended()
         unmet = unmet_targets(self.bars_now()) if m.state in (PROJECTOR_CAPTURE, CALIBRATION) else []
         for name, reason in refusals.items():
             b = h.get(name)
@@ -472,3 +494,17 @@ class ControlsMixin:
         if "follow" in h and self._cached(ctl, "follow_operator", bool(self.station.options.follow_operator)):
             h["follow"].value = ctl.cache["follow_operator"]
         self._follow(ctl)
+        if self.mode_controls is not None:
+            self.mode_controls.refresh(ctl)
+
+    def _refresh_seat(self, ctl: ClientControls) -> None:
+        """Who is connected; a watching browser's controls disabled, with Take control shown instead."""
+        h, cid = ctl.handles, ctl.client.client_id
+        drives = self.seat.drives(cid)
+        if self._cached(ctl, "who", self.seat.roster(cid)):
+            h["who"].content = ctl.cache["who"]
+        if self._cached(ctl, "drives", drives):
+            h["take"].visible = not drives
+            for name, handle in h.items():
+                if name != "take" and hasattr(handle, "disabled"):
+                    handle.disabled = not drives

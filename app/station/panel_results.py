@@ -23,7 +23,7 @@ from calib.errors import ProcamError, SessionError
 from calib.formats.fileio import RESULT_MAX_BYTES, read_regular
 
 #: The files the results zip carries, in this order, when they exist in the session folder.
-RESULT_FILES = ("calibration.json", "calibration.yaml", "verification.json", "report.html")
+RESULT_FILES = ("calibration.json", "calibration.yaml", "verification.json", "report.html", "recalibration.json")
 REPORT_FILE = "report.html"
 REPORT_MISSING = "the report module is not installed"
 THUMB_WIDTH = 112
@@ -120,6 +120,16 @@ def session_files(folder) -> list[FileEntry]:
     except OSError:
         pass
     return out
+
+
+def folder_stamp(folder) -> tuple:
+    """The top of the session folder as (name, size, mtime) of each entry: changes whenever a file is
+    written there, so the files list is redrawn then (whoever wrote it)."""
+    try:
+        return tuple(sorted((p.name, st.st_size, st.st_mtime_ns) for p in Path(folder).iterdir()
+                            for st in [p.stat()]))
+    except OSError:
+        return ()
 
 
 def _size(n: int) -> str:

@@ -775,13 +775,18 @@ class Station:
         return check
 
     # ---- background loop (panel) ------------------------------------------------------------------
+    def start_preview(self, preview_fps: float = 20.0) -> None:
+        """Keep the newest camera frame in a thread (the live image, its frame rate, and the frames
+        `tick` detects on), whoever ticks the station."""
+        self._grab_thread = threading.Thread(target=self._grab_loop, args=(preview_fps,), name="station-preview",
+                                             daemon=True)
+        self._grab_thread.start()
+
     def start_loop(self, preview_fps: float = 20.0) -> None:
         """Run the station in background threads: a preview thread keeping the newest frame and a
         station thread detecting and capturing on it (the panel only draws)."""
         self.background_long_actions = True
-        self._grab_thread = threading.Thread(target=self._grab_loop, args=(preview_fps,), name="station-preview",
-                                             daemon=True)
-        self._grab_thread.start()
+        self.start_preview(preview_fps)
 
         self._loop_thread = threading.Thread(target=self._supervised_loop, name="station-loop", daemon=True)
         self._loop_thread.start()
