@@ -82,8 +82,10 @@ def _import_error_message(e: BaseException) -> str:
         return (f"pyrealsense2 cannot be loaded because Debian's libusb is missing ({text}): install it with "
                 "`sudo apt-get install libusb-1.0-0`, or use the simulated rig (--rig sim)")
     if isinstance(e, ModuleNotFoundError) and getattr(e, "name", "") == "pyrealsense2":
-        return ("pyrealsense2 is not installed: install it with `pip install pyrealsense2` (it also needs "
-                "`apt-get install libusb-1.0-0`), or use the simulated rig (--rig sim)")
+        return ("pyrealsense2 is not installed: install it with `pip install 'procam-station[realsense]'` "
+                "(PyPI has wheels for Linux x86_64 and Windows; elsewhere build librealsense with "
+                "-DBUILD_PYTHON_BINDINGS=ON; on Linux it also needs `apt-get install libusb-1.0-0`), "
+                "or use the simulated rig (--rig sim)")
     return (f"pyrealsense2 cannot be imported ({text}); install it with pip and Debian's libusb-1.0-0 "
             "(apt-get install libusb-1.0-0), or use the simulated rig (--rig sim)")
 
