@@ -276,6 +276,11 @@ class Station:
                               f"lit board at level {choice.level:.0f} ({choice.frames} frames)")
                     if not choice.whole_periods:
                         detail += "; not a whole number of refresh periods: the image may band"
+                    if choice.dim:
+                        checks.append(RigCheck("camera exposure", False, detail + ": too dim at the longest "
+                                               "exposure and the highest gain; bring the projector closer to "
+                                               "the board, shorten the mirror path or use a brighter projector"))
+                        return checks
                 settings.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
                                  "gain": float(applied["gain"]), "emitter_enabled": False})
                 checks.append(RigCheck("camera exposure", True, detail + "; IR emitter off"))
