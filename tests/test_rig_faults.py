@@ -158,3 +158,23 @@ def test_a_small_specular_spot_does_not_set_the_exposure(host_clock_rig):
 def test_a_saturating_red_channel_is_metered(host_clock_rig):
     c, img = _search_through(host_clock_rig, _reddish)
     assert (img[:, :, 2] >= 254).mean() < 1e-3, c
+
+
+# ---- defect 3: latency jitter measured on the RealSense path ----------------------------------------------
+def test_the_settle_measurement_reads_the_exposure_the_realsense_driver_records():
+    """The partial-frame timing needs each frame's exposure: the RealSense driver records it as
+    `actual_exposure_us` (through librealsense's metadata), which the settle measurement must read."""
+    from drivers.settle import _exposure_s
+
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0)
+    try:
+        rig.camera.start()
+        applied = rig.camera.set_manual_exposure(16700, 16)
+        f = rig.camera.get_frame(5.0)
+        for _ in range(12):  # until the frames show the change
+            if f.meta.get("actual_exposure_us") == applied["exposure_us"]:
+                break
+            f = rig.camera.get_frame(5.0, newer_than=f.frame_number)
+        assert "exposure_us" not in f.meta and _exposure_s(f) == pytest.approx(applied["exposure_us"] * 1e-6)
+    finally:
+        rig.close()

@@ -305,8 +305,11 @@ class Station:
 
                     m = measure_settle(proj, cam)
                     latency_s = m.settle_s
+                    jitter = "not measured" if m.jitter_s is None else f"{m.jitter_s * 1000:.0f} ms"
                     detail = (f"latency {latency_s * 1000:.0f} ms (trials "
-                              + ", ".join(f"{x * 1000:.0f}" for x in m.samples_s) + " ms)")
+                              + ", ".join(f"{x * 1000:.0f}" for x in m.samples_s) + f" ms, jitter {jitter})")
+                    if m.jitter_s is not None:
+                        timing["jitter_ms"] = round(m.jitter_s * 1000.0, 3)
                 proj.settle_s = latency_s
                 refresh = float(getattr(proj, "refresh_hz", 0.0) or 0.0)
                 timing.update({"latency_ms": round(latency_s * 1000.0, 3), "refresh_hz": refresh})
