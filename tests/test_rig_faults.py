@@ -178,3 +178,25 @@ def test_the_settle_measurement_reads_the_exposure_the_realsense_driver_records(
         assert "exposure_us" not in f.meta and _exposure_s(f) == pytest.approx(applied["exposure_us"] * 1e-6)
     finally:
         rig.close()
+
+
+# ---- defect 4: white balance and auto exposure priority ---------------------------------------------------
+def test_the_driver_fixes_the_white_balance_and_clears_auto_exposure_priority():
+    """A D455 starts with auto white balance on: its colour gains drift as the projected image changes.
+    The driver turns it off (and auto exposure priority, which may halve the frame rate) at start."""
+    rs = pytest.importorskip("pyrealsense2")
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, faults=parse_faults("auto-white-balance"))
+    try:
+        rig.camera.start()
+        colour = rig.device.colour
+        assert colour.get_option(rs.option.enable_auto_white_balance) == 0
+        assert colour.get_option(rs.option.auto_exposure_priority) == 0
+        s = rig.camera.settings()
+        assert s["auto_white_balance"] is False and s["auto_exposure_priority"] is False
+        f = rig.camera.get_frame(5.0)
+        for _ in range(4):
+            f = rig.camera.get_frame(5.0, newer_than=f.frame_number)
+            means = f.image.reshape(-1, 3).mean(axis=0)
+            assert np.ptp(means) < 0.5, means  # the simulated camera's grey, untinted
+    finally:
+        rig.close()

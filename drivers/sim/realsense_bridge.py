@@ -191,16 +191,19 @@ class SimRealSenseDevice:
     # ---- frames ----------------------------------------------------------------------------------------
     def white_balance(self, img: np.ndarray) -> np.ndarray:
         """Under the auto-white-balance fault, while the device's auto white balance is on: the colour
-        gains it applies, moving each frame halfway to grey-world gains of the frame before (so they
-        drift with what the projector shows). Off (or without the fault): the fixed white balance, the
-        simulated camera's own colours."""
+        gains it applies, moving each frame halfway to the gains the frame before asks for (grey-world,
+        and a colour temperature guessed from the brightness: warmer when dark), so they drift with
+        what the projector shows. Off (or without the fault): the fixed white balance, the simulated
+        camera's own colours."""
         rs = self.rs
         if "auto-white-balance" not in self.faults or not self.colour.get_option(rs.option.enable_auto_white_balance):
             self._awb_gains = np.ones(3)
             return img
         out = np.clip(img * self._awb_gains, 0, 255).astype(np.uint8)
         means = img.reshape(-1, 3).mean(axis=0) + 1.0
-        self._awb_gains = 0.5 * self._awb_gains + 0.5 * np.clip(means.mean() / means, 0.6, 1.6)
+        tint = 0.3 * (means.mean() / 255.0 - 0.5)
+        want = means.mean() / means * np.array([1.0 + tint, 1.0, 1.0 - tint])
+        self._awb_gains = 0.5 * self._awb_gains + 0.5 * np.clip(want, 0.6, 1.6)
         return out
 
     def push(self, frame, exposure_us: float, exposure_start_s: float) -> None:
