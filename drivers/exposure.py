@@ -131,9 +131,9 @@ def apply_exposure(camera, exposure_us: float, gain: float, timeout_s: float = 3
 
 def _level(image: np.ndarray, percentile: float) -> tuple[float, float]:
     """(the `percentile` of the brightest channel of each pixel, the fraction of pixels with a channel at
-    saturation): every channel is metered (red or blue saturate first under a coloured light), and a
-    small specular spot (the mirror showing the lens, a glossy board), smaller than the share of the
-    image above `percentile`, does not set the level."""
+    saturation): every channel is metered (red or blue saturate first under a coloured light). A lower
+    percentile would ignore a specular spot but also the projected pattern's small bright dots, which
+    it then overexposes."""
     a = np.asarray(image)
     top = a if a.ndim == 2 else a.max(axis=2)
     return float(np.percentile(top, percentile)), float((top >= 254).mean())
@@ -147,7 +147,7 @@ def unit_gain(g_lo: float, g_hi: float) -> float:
 
 
 def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_level: float = 245.0,
-                    percentile: float = 99.9, wait_frames: int = WAIT_FRAMES,
+                    percentile: float = 99.99, wait_frames: int = WAIT_FRAMES,
                     timeout_s: float = 3.0) -> ExposureChoice:
     """Search the exposure as the module doc says; leaves the camera in manual mode at the choice.
     Raises DeviceError when the camera cannot be set or the image stays dark."""
