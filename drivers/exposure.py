@@ -56,6 +56,8 @@ class ExposureChoice:
     level: float
     saturated_fraction: float
     frames: int
+    #: the lit board stays below 70 % of the target level at the longest exposure and the highest gain
+    dim: bool = False
 
     def camera_settings(self) -> dict:
         """The manifest's rig.camera_settings keys (docs/FORMATS.md)."""
@@ -128,9 +130,20 @@ def apply_exposure(camera, exposure_us: float, gain: float, timeout_s: float = 3
 
 
 def _level(image: np.ndarray, percentile: float) -> tuple[float, float]:
+    """(the `percentile` of the brightest channel of each pixel, the fraction of pixels with a channel at
+    saturation): every channel is metered (red or blue saturate first under a coloured light). A lower
+    percentile would ignore a specular spot but also the projected pattern's small bright dots, which
+    it then overexposes."""
     a = np.asarray(image)
-    g = a if a.ndim == 2 else a[:, :, 1]
-    return float(np.percentile(g, percentile)), float((g >= 254).mean())
+    top = a if a.ndim == 2 else a.max(axis=2)
+    return float(np.percentile(top, percentile)), float((top >= 254).mean())
+
+
+def unit_gain(g_lo: float, g_hi: float) -> float:
+    """The gain taken to amplify 1x: the range's minimum, or for a control starting at 0 (the D455's
+    0..128, no unit) an eighth of its maximum, the gain proportional to the amplification above it and
+    every gain below it amplifying as it does (an assumption verified only in emulation)."""
+    return g_lo if g_lo > 0 else g_hi / 8.0
 
 
 def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_level: float = 245.0,
@@ -181,7 +194,8 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
             if lvl < 2.0:
                 raise DeviceError("the camera image stays dark at the longest exposure: is the lens covered, "
                                   "or the projector off?")
-            gain = float(np.clip(gain * target_level / lvl, g_lo, g_hi))  # only as much gain as needed
+            # only as much gain as needed; from a gain of 0 (the D455's minimum) a product stays 0
+            gain = float(np.clip(max(gain, unit_gain(g_lo, g_hi)) * target_level / lvl, g_lo, g_hi))
         else:
             break
         exp, gain, lvl, sat = measure(exp, gain)
@@ -189,8 +203,12 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
     # a device sets exposure in steps (the D455: 100 us), so a whole number of periods is met to within
     # half a step (16700 us for 16667 us): the residue is at most that share of one period
     tolerance = max(1e-3, 0.5 * float(e_step or 0.0) / period_us + 1e-9)
+    dim = lvl < 0.7 * target_level and gain >= g_hi
+    if dim:
+        _log.warning("the lit board reaches only level %.0f of %.0f at the longest exposure and the highest gain",
+                     lvl, target_level)
     return ExposureChoice(exp, gain, periods, bool(whole and abs(periods - round(periods)) <= tolerance), lvl, sat,
-                          frames)
+                          frames, dim)
 
 
 # ---- the camera's response (tone curve) -----------------------------------------------------------------
@@ -230,7 +248,7 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
     exposure = float(np.clip(1e6 / float(refresh_hz), e_lo, e_hi))
     # a device whose gain control starts at 0 (the D455: 0..128, no unit) is taken as proportional to the
     # amplification, the bracket ending at its maximum (an assumption verified only in emulation)
-    base = g_lo if g_lo > 0 else g_hi / max(gains)
+    base = unit_gain(g_lo, g_hi)
     last = camera.get_frame(timeout_s).frame_number
     frames = 1
 

@@ -82,8 +82,10 @@ def _import_error_message(e: BaseException) -> str:
         return (f"pyrealsense2 cannot be loaded because Debian's libusb is missing ({text}): install it with "
                 "`sudo apt-get install libusb-1.0-0`, or use the simulated rig (--rig sim)")
     if isinstance(e, ModuleNotFoundError) and getattr(e, "name", "") == "pyrealsense2":
-        return ("pyrealsense2 is not installed: install it with `pip install pyrealsense2` (it also needs "
-                "`apt-get install libusb-1.0-0`), or use the simulated rig (--rig sim)")
+        return ("pyrealsense2 is not installed: install it with `pip install 'procam-station[realsense]'` "
+                "(PyPI has wheels for Linux x86_64 and Windows; elsewhere build librealsense with "
+                "-DBUILD_PYTHON_BINDINGS=ON; on Linux it also needs `apt-get install libusb-1.0-0`), "
+                "or use the simulated rig (--rig sim)")
     return (f"pyrealsense2 cannot be imported ({text}); install it with pip and Debian's libusb-1.0-0 "
             "(apt-get install libusb-1.0-0), or use the simulated rig (--rig sim)")
 
@@ -497,6 +499,7 @@ class RealSenseCamera:
         self._thread.start()
         self._depth_sensor = _depth_sensor(dev, sensor)
         self.set_emitter(self._emitter_wanted)
+        self._fix_image_processing()
         if self._manual is not None:
             self.set_manual_exposure(self._manual["exposure_us"], self._manual["gain"])
 
@@ -669,6 +672,17 @@ class RealSenseCamera:
             pass
         return None
 
+    def _fix_image_processing(self) -> None:
+        """Auto white balance off, at the white balance the sensor has (its colour gains would follow
+        the projected image between the exposure search, the tone-curve bracket and the captures; the
+        published method's own code turns it off too), and auto exposure priority off (it may lower the
+        frame rate at long exposures, librealsense #7242). A sensor without a control is left as it is."""
+        rs = self._rs
+        for opt, label in ((rs.option.enable_auto_white_balance, "auto white balance"),
+                           (rs.option.auto_exposure_priority, "auto exposure priority")):
+            if self._sensor.supports(opt):
+                self._set_option(opt, 0.0, label)
+
     def _require_started(self, what: str) -> None:
         if self._sensor is None:
             raise DeviceError(f"RealSense {self._label()}: start() the camera before trying to {what}")
@@ -719,6 +733,8 @@ class RealSenseCamera:
         v = read(rs.option.enable_auto_white_balance)
         out["auto_white_balance"] = None if v is None else bool(v)
         out["white_balance_k"] = read(rs.option.white_balance)
+        v = read(rs.option.auto_exposure_priority)
+        out["auto_exposure_priority"] = None if v is None else bool(v)
         return out
 
     # ---- reconnecting --------------------------------------------------------------------------------

@@ -16,9 +16,13 @@ its exposure start s and duration d, the image appeared at s + (1 - f) d. Otherw
 that shows it fully bounds the moment from above (its exposure start, or for a driver that cannot
 time its frames its arrival) and the last one showing none of it from below (its exposure end). The
 camera's exposures start at a different phase of the projector's refresh in every trial, so the
-smallest upper bound over the trials is the tightest (never below a lower bound). The recommended
-settle time is that plus a margin of max(10 ms, spread of the trials timed within an exposure) for
-the projector's jitter (up to +-5 ms: more jitter needs a larger margin).
+smallest upper bound over the trials is the tightest (never below a lower bound). The trials
+timed within an exposure measure the projector's jitter (their spread: a compositor, a GPU queue or
+the projector's frame conversion can add a whole refresh period), so the recommended settle time is
+the longest delay seen (the tightest bound plus that spread) plus a margin for a delay longer than
+any of the few trials showed: max(10 ms, spread / (timed trials - 1)).
+The exposure is the frame's own metadata: `actual_exposure_us` (the RealSense driver) or
+`exposure_us` (the simulated camera); a camera that reports neither is timed by whole frames only.
 """
 
 from __future__ import annotations
@@ -36,16 +40,19 @@ from drivers.projector_images import black, white
 class SettleMeasurement:
     """settle_s: the recommended settle time (see the module doc); samples_s: each trial's upper bound
     of the delay; frame_interval_s: median camera frame interval seen;
-    changed_fraction: the part of the camera image that saw the change."""
+    changed_fraction: the part of the camera image that saw the change; jitter_s: the spread of the
+    trials timed within an exposure (None when fewer than two were)."""
 
     settle_s: float
     samples_s: tuple[float, ...]
     frame_interval_s: float
     changed_fraction: float
+    jitter_s: float | None = None
 
     def to_dict(self) -> dict:
         return {"settle_s": self.settle_s, "samples_s": list(self.samples_s),
-                "frame_interval_s": self.frame_interval_s, "changed_fraction": self.changed_fraction}
+                "frame_interval_s": self.frame_interval_s, "changed_fraction": self.changed_fraction,
+                "jitter_s": self.jitter_s}
 
 
 def _grey_small(img: np.ndarray, step: int) -> np.ndarray:
@@ -63,7 +70,8 @@ def _arrival(frame, clock) -> float:
 
 
 def _exposure_s(frame) -> float | None:
-    e = frame.meta.get("exposure_us") if isinstance(frame.meta, dict) else None
+    meta = frame.meta if isinstance(frame.meta, dict) else {}
+    e = meta.get("actual_exposure_us", meta.get("exposure_us"))
     return float(e) * 1e-6 if isinstance(e, (int, float)) and e > 0 else None
 
 
@@ -165,8 +173,10 @@ def measure_settle(projector, camera, trials: int = 5, observe_s: float = 1.5, r
     # each trial bounds the latency from above (the first changed frame; exact when a frame caught the
     # change); the smallest bound is the tightest, as long as it is not below another trial's lower bound
     latency = max(min(samples), max(lows))
-    margin = max(0.010, max(exact) - min(exact)) if len(exact) > 1 else 0.010
-    return SettleMeasurement(latency + margin, tuple(samples), interval, float(np.mean(changed)))
+    jitter = max(exact) - min(exact) if len(exact) > 1 else None
+    spread = jitter or 0.0
+    margin = max(0.010, spread / max(1, len(exact) - 1))
+    return SettleMeasurement(latency + spread + margin, tuple(samples), interval, float(np.mean(changed)), jitter)
 
 
 def measure_settle_time(projector, camera, **kwargs) -> float:

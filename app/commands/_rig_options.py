@@ -16,6 +16,7 @@ def add_rig_options(p) -> None:
     p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
     add_sim_latency_option(p)
+    add_sim_faults_option(p)
     add_sim_bump_option(p)
     p.add_argument("--poses-per-position", type=_types.int_range(*POSES_PER_POSITION), default=None,
                    help="board poses per pattern position, %d to %d (default 4)" % POSES_PER_POSITION)
@@ -48,6 +49,22 @@ def add_sim_latency_option(p) -> None:
     p.add_argument("--sim-latency-ms", type=float, default=None, metavar="MS",
                    help="simulated rig: the projector's latency in ms, 0 allowed (default: 60-120 ms, drawn from "
                         "the seed, with a few ms of jitter, as real projectors)")
+
+
+def add_sim_faults_option(p) -> None:
+    """--sim-faults (any command that opens the simulated rig): drivers/sim/faults.py's registry."""
+    from drivers.sim.faults import help_text
+
+    p.add_argument("--sim-faults", default=None, metavar="NAME,...|all", help=help_text())
+
+
+def sim_hardware_options(args) -> dict:
+    """The simulated rig's hardware options from --sim-latency-ms and --sim-faults, checked."""
+    from drivers.sim.faults import parse_faults
+
+    latency = sim_latency_ms(args)
+    faults = parse_faults(getattr(args, "sim_faults", None))
+    return {**({} if latency is None else {"latency_ms": latency}), **({"faults": faults} if faults else {})}
 
 
 def add_sim_bump_option(p) -> None:

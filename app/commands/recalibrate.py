@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from app.commands import _types
-from app.commands._rig_options import add_sim_bump_option, add_sim_latency_option
+from app.commands._rig_options import add_sim_bump_option, add_sim_faults_option, add_sim_latency_option
 
 NAME = "recalibrate"
 HELP = "on-site recalibration: check what moved since PREVIOUS, re-measure only that, compare"
@@ -40,6 +40,7 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default: PREVIOUS's, else 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
     add_sim_latency_option(p)
+    add_sim_faults_option(p)
     add_sim_bump_option(p)
     p.add_argument("--board", default=None,
                    help="projector board COLSxROWS:DICT:SQUARE[:MARKER], only when PREVIOUS is a calibration.json "

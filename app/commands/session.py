@@ -54,10 +54,9 @@ def rig_options(args, kind: str) -> dict:
     from drivers.factory import is_simulated
 
     if is_simulated(kind):
-        from app.commands._rig_options import sim_latency_ms
+        from app.commands._rig_options import sim_hardware_options
 
-        v = sim_latency_ms(args)
-        out = {} if v is None else {"latency_ms": v}
+        out = sim_hardware_options(args)
         if getattr(args, "sim_bump", None):
             out["bump"] = args.sim_bump
         return out

@@ -78,9 +78,10 @@ def add_arguments(p) -> None:
     sim.add_argument("--seed", type=_types.seed, default=None, help="scenario seed (default: the session's)")
     sim.add_argument("--quality", choices=("live", "session"), default="live",
                      help="render quality of the simulated camera (default live: 1 sample per pixel)")
-    from app.commands._rig_options import add_sim_latency_option
+    from app.commands._rig_options import add_sim_faults_option, add_sim_latency_option
 
     add_sim_latency_option(sim)
+    add_sim_faults_option(sim)
     hw = p.add_argument_group("--rig realsense")
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
     hw.add_argument("--screen", type=_types.screen, default=None, metavar="N",
@@ -206,11 +207,9 @@ def _sim_options(manifest, args) -> dict:
         settings = {}
     render = {k: v for k, v in settings.items()
               if k in RenderSettings.__dataclass_fields__ and k != "supersample" and not isinstance(v, (dict, list))}
-    from app.commands._rig_options import sim_latency_ms
+    from app.commands._rig_options import sim_hardware_options
 
-    latency = sim_latency_ms(args)
-    return {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render,
-            **({} if latency is None else {"latency_ms": latency})}
+    return {"scenario": scenario, "seed": int(seed), "quality": args.quality, **render, **sim_hardware_options(args)}
 
 
 def run(args) -> int:

@@ -292,6 +292,11 @@ class Station:
                               f"lit board at level {choice.level:.0f} ({choice.frames} frames)")
                     if not choice.whole_periods:
                         detail += "; not a whole number of refresh periods: the image may band"
+                    if choice.dim:
+                        checks.append(RigCheck("camera exposure", False, detail + ": too dim at the longest "
+                                               "exposure and the highest gain; bring the projector closer to "
+                                               "the board, shorten the mirror path or use a brighter projector"))
+                        return checks
                 settings.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
                                  "gain": float(applied["gain"]), "emitter_enabled": False})
                 checks.append(RigCheck("camera exposure", True, detail + "; IR emitter off"))
@@ -317,8 +322,11 @@ class Station:
                     self._rig_stage("projector latency: measuring (several trials)")
                     m = measure_settle(proj, cam)
                     latency_s = m.settle_s
+                    jitter = "not measured" if m.jitter_s is None else f"{m.jitter_s * 1000:.0f} ms"
                     detail = (f"latency {latency_s * 1000:.0f} ms (trials "
-                              + ", ".join(f"{x * 1000:.0f}" for x in m.samples_s) + " ms)")
+                              + ", ".join(f"{x * 1000:.0f}" for x in m.samples_s) + f" ms, jitter {jitter})")
+                    if m.jitter_s is not None:
+                        timing["jitter_ms"] = round(m.jitter_s * 1000.0, 3)
                 proj.settle_s = latency_s
                 refresh = float(getattr(proj, "refresh_hz", 0.0) or 0.0)
                 timing.update({"latency_ms": round(latency_s * 1000.0, 3), "refresh_hz": refresh})

@@ -46,6 +46,7 @@ COLOUR_OPTIONS = {
     "gain": (0, 128, 1, 64),
     "enable_auto_white_balance": (0, 1, 1, 1),
     "white_balance": (2800, 6500, 10, 4600),
+    "auto_exposure_priority": (0, 1, 1, 1),
 }
 
 
@@ -63,7 +64,7 @@ class SimRealSenseDevice:
     """A software D455 fed by a simulated camera; a librealsense context for RealSenseCamera (see the
     module doc). `unplug()` / `replug()` take it away and bring a fresh one (controls at their defaults)."""
 
-    def __init__(self, sim_camera, fps: int = 30, serial: str = "SIM-D455-0001"):
+    def __init__(self, sim_camera, fps: int = 30, serial: str = "SIM-D455-0001", faults=()):
         from drivers.clock import clock_of
 
         if clock_of(sim_camera).simulated:
@@ -79,6 +80,8 @@ class SimRealSenseDevice:
         self._applied: dict[str, float] = {}
         self._device_gain: dict[float, float] = {}  # simulated gain -> the device gain last set for it
         self.forwarded: list[tuple[str, Any]] = []  # (what, value) handed to the simulated camera
+        self.faults = frozenset(faults)  # drivers/sim/faults.py
+        self._awb_gains = np.ones(3)  # auto white balance's colour gains (B, G, R) now
         self._build()
 
     # ---- the software device ------------------------------------------------------------------------
@@ -186,6 +189,23 @@ class SimRealSenseDevice:
         return float(np.clip(float(device_gain) / hi * ghi, glo, ghi))
 
     # ---- frames ----------------------------------------------------------------------------------------
+    def white_balance(self, img: np.ndarray) -> np.ndarray:
+        """Under the auto-white-balance fault, while the device's auto white balance is on: the colour
+        gains it applies, moving each frame halfway to the gains the frame before asks for (grey-world,
+        and a colour temperature guessed from the brightness: warmer when dark), so they drift with
+        what the projector shows. Off (or without the fault): the fixed white balance, the simulated
+        camera's own colours."""
+        rs = self.rs
+        if "auto-white-balance" not in self.faults or not self.colour.get_option(rs.option.enable_auto_white_balance):
+            self._awb_gains = np.ones(3)
+            return img
+        out = np.clip(img * self._awb_gains, 0, 255).astype(np.uint8)
+        means = img.reshape(-1, 3).mean(axis=0) + 1.0
+        tint = 0.3 * (means.mean() / 255.0 - 0.5)
+        want = means.mean() / means * np.array([1.0 + tint, 1.0, 1.0 - tint])
+        self._awb_gains = 0.5 * self._awb_gains + 0.5 * np.clip(want, 0.6, 1.6)
+        return out
+
     def push(self, frame, exposure_us: float, exposure_start_s: float) -> None:
         """Deliver a simulated frame through librealsense: global-time stamp at the start of readout,
         metadata placing the exposure so that the driver's estimate comes out at `exposure_start_s`
@@ -200,17 +220,18 @@ class SimRealSenseDevice:
         sensor_ts_us = frame_ts_us - int(math.ceil((exposure_us * 1e-6 - exp_dev_s / 2) * 1e6))
         wall_minus_mono = time.time() - time.monotonic()
         sensor = self.colour
-        md = rs.frame_metadata_value
-        sensor.set_metadata(md.actual_exposure, units)
-        gain = frame.meta.get("gain") if isinstance(frame.meta, dict) else None
-        if gain is not None:  # the gain the frame was taken with, in the device's units (as the option)
-            device_gain = self._device_gain.get(round(float(gain), 6))
-            if device_gain is None:  # not set through the device (the camera's power-on gain)
-                device_gain = float(gain) / self.sim_gain(COLOUR_OPTIONS["gain"][1]) * COLOUR_OPTIONS["gain"][1]
-            sensor.set_metadata(md.gain_level, int(round(device_gain)))
-        sensor.set_metadata(md.frame_timestamp, frame_ts_us)
-        sensor.set_metadata(md.sensor_timestamp, sensor_ts_us)
-        img = np.ascontiguousarray(frame.image, dtype=np.uint8)
+        if "no-metadata" not in self.faults:
+            md = rs.frame_metadata_value
+            sensor.set_metadata(md.actual_exposure, units)
+            gain = frame.meta.get("gain") if isinstance(frame.meta, dict) else None
+            if gain is not None:  # the gain the frame was taken with, in the device's units (as the option)
+                device_gain = self._device_gain.get(round(float(gain), 6))
+                if device_gain is None:  # not set through the device (the camera's power-on gain)
+                    device_gain = float(gain) / self.sim_gain(COLOUR_OPTIONS["gain"][1]) * COLOUR_OPTIONS["gain"][1]
+                sensor.set_metadata(md.gain_level, int(round(device_gain)))
+            sensor.set_metadata(md.frame_timestamp, frame_ts_us)
+            sensor.set_metadata(md.sensor_timestamp, sensor_ts_us)
+        img = self.white_balance(np.ascontiguousarray(frame.image, dtype=np.uint8))
         f = rs.software_video_frame()
         f.pixels = img
         f.bpp = 3
@@ -321,9 +342,9 @@ class SimRealSenseRig:
 
     kind = "sim-realsense"
 
-    def __init__(self, sim_rig, fps: int = 30):
+    def __init__(self, sim_rig, fps: int = 30, faults=()):
         self.sim = sim_rig
-        self.device = SimRealSenseDevice(sim_rig.camera, fps)
+        self.device = SimRealSenseDevice(sim_rig.camera, fps, faults=faults)
         self.camera = SimRealSenseCamera(self.device)
 
     def __getattr__(self, name):  # scenario, projector, operator, ground_truth, renderer, ...
@@ -343,9 +364,9 @@ class SimRealSenseRig:
 
 
 def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int = 30,
-                           **settings) -> SimRealSenseRig:
+                           faults=(), **settings) -> SimRealSenseRig:
     """The simulated rig of `scenario` (drivers.sim.rig.open_sim_rig options) with its camera delivered
-    through librealsense and drivers/realsense.py."""
+    through librealsense and drivers/realsense.py; `faults` (drivers.sim.faults) apply to both."""
     from drivers.sim.rig import open_sim_rig
 
     args = () if scenario is None else (scenario,)
@@ -353,6 +374,6 @@ def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: 
 
     # librealsense stamps frames on the host's clock: the simulated hardware behind it must keep the same
     settings.setdefault("clock", MONOTONIC)
-    sim = open_sim_rig(*args, seed=seed, quality=quality, **settings)
+    sim = open_sim_rig(*args, seed=seed, quality=quality, faults=faults, **settings)
     sim.camera.start()
-    return SimRealSenseRig(sim, fps)
+    return SimRealSenseRig(sim, fps, faults)

@@ -366,7 +366,7 @@ class SimRig:
     def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
                  latency_ms: float | None = None, hardware: HardwareModel | None = None,
-                 clock: Clock | None = None, realtime: bool = True, **settings):
+                 clock: Clock | None = None, realtime: bool = True, faults=(), **settings):
         if quality not in QUALITIES:
             raise SpecError(f"unknown quality '{quality}' (one of {', '.join(QUALITIES)})")
         self.scenario = scenario
@@ -384,7 +384,11 @@ class SimRig:
         self.renderer = Renderer(r.camera, r.projector, r.T_cam_proj, r.mirror, r.mirror_rect, self.settings)
         self.motion_jitter_mm = float(motion_jitter_mm)
         try:
-            self.hardware = hardware or HardwareModel.for_seed(scenario.seed, latency_ms, ideal=ideal)
+            from drivers.sim.faults import hardware_overrides
+
+            self.faults = frozenset(faults)  # drivers/sim/faults.py
+            self.hardware = hardware or HardwareModel.for_seed(scenario.seed, latency_ms, ideal=ideal,
+                                                               **({} if ideal else hardware_overrides(self.faults)))
         except ValueError as e:
             raise SpecError(str(e)) from None
         #: frame number -> ((projector ticket, fraction of the exposure it was visible), ...)
@@ -525,7 +529,8 @@ def open_sim_rig(scenario: str = DEFAULT_SCENARIO, seed: int = 0, quality: str =
     motion_jitter_mm, ideal (no latency, no frame clock, no exposure model: the fast mode for unit tests),
     latency_ms (the projector's latency; default drawn in 60-120 ms from the seed), realtime (False: the
     simulated clock never waits for the wall clock; drivers.clock.SimClock), clock (another clock: the
-    RealSense emulation runs the rig on drivers.clock.MONOTONIC, the clock librealsense stamps on), and any RenderSettings field (ambient, projector_gain, blur_sigma_px, read_noise_dn,
+    RealSense emulation runs the rig on drivers.clock.MONOTONIC, the clock librealsense stamps on), faults
+    (names of drivers.sim.faults.FAULTS: the hardware faults to emulate), and any RenderSettings field (ambient, projector_gain, blur_sigma_px, read_noise_dn,
     electrons_per_dn, ...). bump: 'projector' | 'mirror' | 'camera' | 'none' (drivers.sim.bump): the
     rig as it is after that part was bumped on site; its ground truth is the bumped rig."""
     sc = get_scenario(scenario, seed)

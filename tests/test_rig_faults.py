@@ -1,0 +1,189 @@
+"""The real rig, round two (issue 24): the simulated rig made as unkind as the hardware, fault by fault
+(drivers/sim/faults.py, `--sim-faults`), and the driver path working under each. Everything goes
+through the RealSense driver on librealsense's software device (`--rig sim-realsense`)."""
+
+import numpy as np
+import pytest
+
+from _station_helpers import run_procam
+from calib.errors import SpecError
+from drivers.base import Frame
+from drivers.exposure import search_exposure
+from drivers.factory import open_rig
+from drivers.projector_images import white
+from drivers.sim.faults import FAULTS, parse_faults
+from drivers.sim.realsense_bridge import SimRealSenseCamera, SimRealSenseDevice
+
+SCENE = "nonoverlap-136"
+DIM_ROOM = {"ambient": 0.002, "background": False, "background_level": 0.002}  # only the projector lights the board
+
+
+def _lit(rig, image=None):
+    W, H = rig.projector.size
+    rig.projector.wait_presented(rig.projector.show(white((W, H)) if image is None else image))
+    rig.projector.clock.sleep(0.3)  # longer than the latency: the light is on the board
+
+
+# ---- the registry and the option ----------------------------------------------------------------------
+def test_faults_are_parsed_from_one_registry_and_listed_in_every_rig_commands_help():
+    assert parse_faults("all") == frozenset(FAULTS)
+    assert parse_faults("no-metadata, apply-lag") == {"no-metadata", "apply-lag"}
+    assert parse_faults(None) == frozenset()
+    with pytest.raises(SpecError, match="--sim-faults: unknown fault.*bogus.*no-metadata"):
+        parse_faults("no-metadata,bogus")
+    for command in ("session", "station", "verify", "recalibrate"):
+        text = run_procam(command, "--help", timeout=120).stdout.replace("\n", " ").replace(" ", "")
+        assert all(name.replace(" ", "") in text for name in FAULTS), command
+
+
+def test_a_bad_fault_name_is_one_line_and_creates_nothing(tmp_path):
+    r = run_procam("session", "--rig", "sim", "--sim-faults", "slow", "--auto", "--out", str(tmp_path / "s"))
+    assert r.returncode == 2 and "--sim-faults: unknown fault(s) slow" in r.stderr
+    assert not (tmp_path / "s").exists()
+
+
+def test_hardware_faults_change_the_simulated_hardware():
+    rig = open_rig("sim", scenario=SCENE, seed=0, latency_ms=100.0, faults=parse_faults("apply-lag,latency-jitter"))
+    try:
+        assert rig.hardware.settings_lag_frames == 5.0
+        assert rig.hardware.jitter_ms == pytest.approx(1000.0 / rig.projector.refresh_hz)
+        lat = [rig.projector.timeline.latency_s(t) for t in range(200)]
+        assert max(lat) - min(lat) > 1.5 / rig.projector.refresh_hz  # a refresh period either side
+    finally:
+        rig.close()
+
+
+def test_no_metadata_frames_carry_neither_exposure_nor_gain_nor_sensor_times():
+    for faults, has in ((frozenset(), True), (parse_faults("no-metadata"), False)):
+        rig = open_rig("sim-realsense", scenario=SCENE, seed=0, faults=faults)
+        try:
+            rig.camera.start()
+            f = rig.camera.get_frame(5.0)
+            keys = {"actual_exposure_us", "gain", "frame_timestamp_us", "sensor_timestamp_us"}
+            assert (keys <= set(f.meta)) is has and (not keys & set(f.meta)) is (not has)
+        finally:
+            rig.close()
+
+
+# ---- defect 2: the gain can rise from the D455's 0 ---------------------------------------------------------
+def test_the_exposure_search_raises_a_gain_that_starts_at_zero():
+    """The D455's colour gain runs 0..128: a search that scales the gain multiplicatively from the minimum
+    stays at 0 and leaves a dim board dim."""
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, **DIM_ROOM, projector_gain=0.04)
+    try:
+        rig.camera.start()
+        rig.operator.request_pose("verification", None, 0)  # the board in the projector's light
+        assert rig.camera.exposure_limits()["gain"][0] == 0.0
+        _lit(rig)
+        c = search_exposure(rig.camera, rig.projector.refresh_hz)
+        assert c.gain > 16 and not c.dim and c.level >= 0.7 * 200
+    finally:
+        rig.close()
+
+
+def test_a_board_too_dim_for_the_highest_gain_fails_the_rig_check(tmp_path):
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig as open_station_rig
+    from app.station.station import Station
+
+    req = RigRequest("sim-realsense", SCENE, 0)
+    rig = open_station_rig(req, latency_ms=0.0, **DIM_ROOM, projector_gain=0.002)
+    plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+    try:
+        store = create_session(tmp_path / "s", rig, req, plan)
+        checks = {c.name: c for c in Station(rig, make_machine(store, rig, plan)).check_rig()}
+        assert not checks["camera exposure"].ok and "too dim" in checks["camera exposure"].detail
+    finally:
+        rig.close()
+
+
+# ---- defect 5: metering ----------------------------------------------------------------------------------
+class Altered:
+    """The simulated camera with its images changed as a real scene would change them (what the
+    software device then delivers through librealsense): `alter(image) -> image`."""
+
+    def __init__(self, cam, alter):
+        self._cam, self._alter = cam, alter
+
+    def __getattr__(self, name):
+        return getattr(self._cam, name)
+
+    def get_frame(self, *a, **k):
+        f = self._cam.get_frame(*a, **k)
+        return Frame(self._alter(f.image), f.frame_number, f.timestamp_ms, f.meta, f.exposure_start_s)
+
+
+def _reddish(img):
+    out = np.array(img, dtype=np.float32)
+    out[:, :, 2] *= 1.5  # a projector whose red is stronger than its green (BGR order)
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def _search_through(rig, alter):
+    dev = SimRealSenseDevice(Altered(rig.camera, alter))
+    cam = SimRealSenseCamera(dev)
+    cam.start()
+    try:
+        _lit(rig)
+        c = search_exposure(cam, rig.projector.refresh_hz)
+        return c, cam.get_frame(5.0, newer_than=cam.get_frame(5.0).frame_number).image
+    finally:
+        cam.stop()
+
+
+@pytest.fixture
+def host_clock_rig():
+    from drivers.clock import MONOTONIC
+    from drivers.sim.rig import open_sim_rig
+
+    rig = open_sim_rig(SCENE, seed=0, quality="live", clock=MONOTONIC, latency_ms=0.0)
+    rig.camera.start()
+    yield rig
+    rig.close()
+
+
+def test_a_saturating_red_channel_is_metered(host_clock_rig):
+    c, img = _search_through(host_clock_rig, _reddish)
+    assert (img[:, :, 2] >= 254).mean() < 1e-3, c
+
+
+# ---- defect 3: latency jitter measured on the RealSense path ----------------------------------------------
+def test_the_settle_measurement_reads_the_exposure_the_realsense_driver_records():
+    """The partial-frame timing needs each frame's exposure: the RealSense driver records it as
+    `actual_exposure_us` (through librealsense's metadata), which the settle measurement must read."""
+    from drivers.settle import _exposure_s
+
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0)
+    try:
+        rig.camera.start()
+        applied = rig.camera.set_manual_exposure(16700, 16)
+        f = rig.camera.get_frame(5.0)
+        for _ in range(12):  # until the frames show the change
+            if f.meta.get("actual_exposure_us") == applied["exposure_us"]:
+                break
+            f = rig.camera.get_frame(5.0, newer_than=f.frame_number)
+        assert "exposure_us" not in f.meta and _exposure_s(f) == pytest.approx(applied["exposure_us"] * 1e-6)
+    finally:
+        rig.close()
+
+
+# ---- defect 4: white balance and auto exposure priority ---------------------------------------------------
+def test_the_driver_fixes_the_white_balance_and_clears_auto_exposure_priority():
+    """A D455 starts with auto white balance on: its colour gains drift as the projected image changes.
+    The driver turns it off (and auto exposure priority, which may halve the frame rate) at start."""
+    rs = pytest.importorskip("pyrealsense2")
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, faults=parse_faults("auto-white-balance"))
+    try:
+        rig.camera.start()
+        colour = rig.device.colour
+        assert colour.get_option(rs.option.enable_auto_white_balance) == 0
+        assert colour.get_option(rs.option.auto_exposure_priority) == 0
+        s = rig.camera.settings()
+        assert s["auto_white_balance"] is False and s["auto_exposure_priority"] is False
+        f = rig.camera.get_frame(5.0)
+        for _ in range(4):
+            f = rig.camera.get_frame(5.0, newer_than=f.frame_number)
+            means = f.image.reshape(-1, 3).mean(axis=0)
+            assert np.ptp(means) < 0.5, means  # the simulated camera's grey, untinted
+    finally:
+        rig.close()
