@@ -120,8 +120,11 @@ def test_camera_intrinsics_that_are_not_a_regular_file_are_named_so(session, tmp
 # ---- board sizes -------------------------------------------------------------------------------------
 def test_a_board_too_large_to_print_is_refused(tmp_path):
     out = tmp_path / "board.pdf"
-    line = refused("board", "--board", "8x6:DICT_4X4_50:1e12", "--out", str(out))
+    line = refused("board", "--board", "8x6:DICT_4X4_50:400", "--out", str(out))  # a 3.6 m page
     assert "--board" in line and "2000 mm" in line and "--units" in line
+    assert not out.exists()
+    line = refused("board", "--board", "8x6:DICT_4X4_50:1e12", "--out", str(out))  # beyond any board
+    assert "--board" in line and "--units" in line
     assert not out.exists()
 
 

@@ -10,6 +10,7 @@ import shutil
 
 import numpy as np
 import pytest
+from calib.errors import FormatError
 
 from app.cli import main
 from tests._station_helpers import launch_chromium, make_store, run_procam
@@ -202,17 +203,23 @@ def test_odd_optional_fields_of_calibration_json_do_not_break_the_report(calibra
     folder = tmp_path / "s"
     shutil.copytree(calibrated, folder)
     cal = json.loads((folder / "calibration.json").read_text())
-    cal["units"] = "<b>mm</b>"
+    cal["units"] = "<b>mm</b>"  # text where a unit belongs: refused by the calibration file's reader, naming it
+    (folder / "calibration.json").write_text(json.dumps(cal))
+    with pytest.raises(FormatError) as e:
+        write_report(folder)
+    assert e.value.field == "units"
+    cal["units"] = "mm"
+    cal["method"] = "<b>joint</b>"  # free text from the file is escaped
     cal["uncertainty"]["camera"] = {"fx": "big", "dist": 3}
     cal["uncertainty"]["T_cam_proj"] = [1, 2]
     cal["diagnostics"]["worst_views"] = [{"capture_id": 7}, "x", {"capture_id": "p0003", "rms_px": "high"}]
     cal["diagnostics"]["rejected"] = 5
     cal["diagnostics"]["board_poses"]["p0000"] = "not a pose"
-    cal["per_view"] = [1, {"capture_id": "p0001", "rms_px": None}]
-    cal["rms"] = {"joint": "low", "board": 0.05}
+    cal["per_view"] = [{"capture_id": "p0001", "rms_px": None}]  # (entries that are not objects: refused by the reader)
+    cal["rms"] = {"joint": None, "board": 0.05}
     (folder / "calibration.json").write_text(json.dumps(cal))
     html = write_report(folder).read_text()
-    assert "<b>mm</b>" not in html and "&lt;b&gt;mm&lt;/b&gt;" in html
+    assert "<b>joint</b>" not in html and "&lt;b&gt;joint&lt;/b&gt;" in html
     assert 'data-key="camera.fx" data-value="' in html and 'id="recomputed-rms"' in html
     assert "board poses from PnP (calibration.json&#x27;s board poses are unreadable)" in html
     assert 'data-key="worst.p0003" data-value="None">n/a<' in html

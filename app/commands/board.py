@@ -161,7 +161,10 @@ def run(args) -> int:
     fmt = out.suffix.lower()
     if args.dpi is not None and fmt != ".png":
         raise SpecError(f"--dpi applies to PNG output only; {fmt[1:].upper()} is vector (true size at any zoom)")
-    spec = CharucoSpec.parse(args.board, args.units)
+    try:
+        spec = CharucoSpec.parse(args.board, args.units)
+    except SpecError as e:  # the spec's own bounds: say which option holds it
+        raise SpecError(f"--board {args.board} (--units {args.units}): {e}") from None
     blank = _blank_for(spec, args.blank_area)
     data, sheet = board_file(spec, blank, fmt, args.paper.lower(), DEFAULT_DPI if args.dpi is None else args.dpi)
     warning = size_warning(spec)  # after the layout: a board too large to draw is an error alone
