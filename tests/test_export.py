@@ -143,7 +143,7 @@ def _mrcal_project(files_points: dict) -> dict:
     """mrcal's own projection (Debian's python3-mrcal, in the system Python) of points in the reference frame."""
     probe = subprocess.run([SYSTEM_PYTHON, "-c", "import mrcal"], capture_output=True, env={"PATH": os.environ["PATH"]})
     if probe.returncode != 0:
-        pytest.skip("Debian's python3-mrcal is not installed (apt-get install python3-mrcal)")
+        pytest.fail("Debian's python3-mrcal is not installed (apt-get install python3-mrcal; .ci/run installs it)")
     done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_SCRIPT], input=json.dumps(files_points), capture_output=True,
                           text=True, env={"PATH": os.environ["PATH"]}, check=True)
     return json.loads(done.stdout)
@@ -254,7 +254,7 @@ def three_build():
     """three.js's build folder, fetched from the npm registry once into a cache folder."""
     npm = shutil.which("npm")
     if npm is None:
-        pytest.skip("npm is not installed (apt-get install npm)")
+        pytest.fail("npm is not installed (apt-get install npm; .ci/run installs it)")
     cache = Path(os.environ.get("PROCAM_TEST_CACHE", Path.home() / ".cache" / "procam-station-tests")) / "npm"
     build = cache / "node_modules" / "three" / "build"
     if not (build / "three.module.js").is_file():
@@ -262,7 +262,7 @@ def three_build():
         done = subprocess.run([npm, "install", "--no-save", "--no-audit", "--no-fund", "--prefix", str(cache),
                                f"three@{THREE_VERSION}"], capture_output=True, text=True)
         if done.returncode != 0:
-            pytest.skip(f"npm could not fetch three@{THREE_VERSION}: {done.stderr.strip()[-300:]}")
+            pytest.fail(f"npm could not fetch three@{THREE_VERSION}: {done.stderr.strip()[-300:]}")
     return build
 
 

@@ -82,6 +82,7 @@ from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane
 from app.station.panel_uncertainty import DEVICES as UNCERTAINTY_DEVICES
 from app.station.panel_uncertainty import INTRO as UNCERTAINTY_INTRO
 from app.station.panel_uncertainty import uncertainty_image, uncertainty_text
+from app.station.station import rate_of
 from app.words import plural
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from calib.quality.coverage import GRID_COLUMNS, coverage_fraction
@@ -92,10 +93,9 @@ IMAGE_RATE_HZ = 25.0  # most live-image updates per second (one per new camera f
 PLANE_RATE_HZ = 4.0  # updates per second of the clickable camera image in the 3D view
 
 
-def rate_of(times, window_s: float = 2.0) -> float:
-    """Events per second over the last `window_s` seconds of a list of time.monotonic() stamps."""
-    now = time.monotonic()
-    return sum(1 for t in list(times) if now - t <= window_s) / window_s
+def rate_text(rate: float) -> str:
+    """A rate as the live line shows it: tenths below 10/s, so a slow source never reads as 0."""
+    return f"{rate:.1f}" if rate < 10 else f"{rate:.0f}"
 
 
 def needs_access_code(host: str) -> bool:
@@ -740,8 +740,8 @@ class StationPanel(ControlsMixin):
                         self._image_times.append(time.monotonic())
                         del self._image_times[:-60]
                         self._set(self.h_live, "content",
-                                  f"Live: {self.image_rate:.0f} updates/s, camera {self.station.preview_fps:.0f} "
-                                  f"frames/s, detection {self.station.detection_fps:.0f}/s. {LEGEND}")
+                                  f"Live: {rate_text(self.image_rate)} updates/s, camera {rate_text(self.station.preview_fps)} "
+                                  f"frames/s, detection {rate_text(self.station.detection_fps)}/s. {LEGEND}")
                         if self.h_plane is not None and t0 - self._plane_s >= 1.0 / PLANE_RATE_HZ:
                             self._plane_s = t0
                             self.h_plane.image = img

@@ -63,9 +63,15 @@ class LoopError:
     traceback: str
 
 
-def _rate(times, window_s: float = 2.0) -> float:
+def rate_of(times, window_s: float = 2.0, longest_s: float = 10.0) -> float:
+    """Events per second of a list of time.monotonic() stamps, over the last `window_s` seconds or, when
+    events come slower (a starved machine), over the span of the last three (up to `longest_s`): a slow
+    but live source reads as slow, not as 0."""
+    stamps = list(times)
     now = time.monotonic()
-    return sum(1 for t in list(times) if now - t <= window_s) / window_s
+    if len(stamps) >= 3:
+        window_s = min(longest_s, max(window_s, now - stamps[-3]))
+    return sum(1 for t in stamps if now - t <= window_s) / window_s
 
 
 @dataclass
@@ -498,12 +504,12 @@ class Station:
     @property
     def preview_fps(self) -> float:
         """Camera frames per second over the last two seconds."""
-        return _rate(self._preview_times)
+        return rate_of(self._preview_times)
 
     @property
     def detection_fps(self) -> float:
         """Frames detected per second over the last two seconds."""
-        return _rate(self._tick_times)
+        return rate_of(self._tick_times)
 
     def taken_for(self, target: Target | None) -> list[tuple[str, PoseFeatures]]:
         """Features of the captured poses a new capture for `target` must differ from."""

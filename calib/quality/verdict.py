@@ -9,14 +9,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-import numpy as np
-
 from calib.quality.trust import check_calibration
 
-
-#: a distortion coefficient beyond this is no lens (wide-angle rational models stay within tens); the trust
-#: check lets a monotonic one through, however absurd
-MAX_ABS_DISTORTION = 1e4
 
 
 class Level(str, enum.Enum):
@@ -50,11 +44,6 @@ def overall_verdict(result, mirror_rig: bool | None = None) -> Verdict:
     needs = []
     if mirror_rig and getattr(result, "mirror", None) is None:
         needs.append("the rig sees the projector through a mirror, but the result has no mirror plane")
-    for name in ("camera", "projector"):
-        d = np.asarray(getattr(getattr(result, name, None), "dist", ()), float).reshape(-1)
-        if d.size and np.nanmax(np.abs(d)) > MAX_ABS_DISTORTION:
-            needs.append(f"the {name}'s distortion coefficients reach {np.nanmax(np.abs(d)):.3g} (no lens has "
-                         f"one beyond {MAX_ABS_DISTORTION:g})")
     try:
         report = check_calibration(result)
     except (ArithmeticError, ValueError, TypeError, IndexError, KeyError, AttributeError) as e:
