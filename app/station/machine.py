@@ -81,10 +81,9 @@ class Plan:
     real_virtual_captures: int = 14
     real_mirror_captures: int = 14
     min_real_virtual: int = 3
-    # real-mirror: at least 3 placements of the board on the mirror (each capture a new place and angle).
-    # One placement leaves the mirror normal to a single board's tilt: on the simulator (10 seeds,
-    # benchmarks/real_mirror_placements.py) the joint's mirror normal error is 0.043 deg with 1 placement,
-    # 0.032 with 3, 0.030 with 5, 0.022 with 14 (its 1-sigma 0.043, 0.026, 0.024, 0.019 deg).
+    # real-mirror: at least 3 placements of the board on the mirror (each capture a new place and angle):
+    # one placement leaves the mirror's normal resting on a single board's tilt (docs/JOINT.md, measured
+    # by benchmarks/real_mirror_placements.py).
     min_real_mirror: int = 3
     min_projector_captures: int = 6
 
@@ -334,149 +333,139 @@ class SessionMachine:
 
     # ---- refusals -------------------------------------------------------------------------------
     def why_not(self, action: str, arg=None) -> str | None:
-        """None when `action` is possible now, else the reason it is not."""
+        """None when `action` is possible now, else the reason it is not.
+
+        Whether the current state allows an action comes from the transition table (transitions'
+        `may_<trigger>`, conditions included) for the actions that move the machine, and from
+        `_RULES[action].where` for those that stay in their state; each action's domain checks are one
+        small guard."""
         if action not in ACTIONS:
             return f"unknown action '{action}'"
         if self.busy:
             return f"the station is busy ({self.busy}); wait until it finishes"
-        s = self.state
-        title = STATE_TITLES[s]
-        if action == "start":
-            if s != CHECK_RIG:
-                return "the rig check is already done; go back to it first"
-            bad = [c for c in self.rig_checks if not c.ok]
-            if not self.rig_checks:
-                return "the rig has not been checked yet"
-            if bad:
-                return "the rig check failed: " + "; ".join(f"{c.name}: {c.detail}" for c in bad)
+        rule = _RULES[action]
+        for check in (rule.before, self._state_refusal(rule), rule.guard):
+            reason = check(self, arg) if check is not None else None
+            if reason is not None:
+                return reason
+        return None
+
+    def _state_refusal(self, rule: "_Rule"):
+        if isinstance(rule.where, str):
+            allowed = getattr(self, f"may_{rule.where}")()
+        else:
+            allowed = self.state in rule.where
+        return None if allowed else (lambda m, _arg: rule.refused(m))
+
+    @property
+    def _title(self) -> str:
+        return STATE_TITLES[self.state]
+
+    def _guard_start(self, _arg) -> str | None:
+        if not self.rig_checks:
+            return "the rig has not been checked yet"
+        bad = [c for c in self.rig_checks if not c.ok]
+        if bad:
+            return "the rig check failed: " + "; ".join(f"{c.name}: {c.detail}" for c in bad)
+        return None
+
+    def _guard_mirror_method(self, arg) -> str | None:
+        if arg is not None and arg not in MIRROR_METHODS:
+            return f"unknown mirror method '{arg}' (one of {', '.join(MIRROR_METHODS)})"
+        if self.manifest.mirror_board is None:
+            return "the session has no mirror board; it cannot calibrate the mirror"
+        if arg is not None and arg != self.mirror_method:
+            others = self.mirror_captures()
+            if others:
+                return (f"{plural(len(others), self.mirror_method + ' capture')} taken; delete them first to "
+                        f"switch to {arg}")
+        return None
+
+    def _guard_thickness(self, arg) -> str | None:
+        if arg is None:
             return None
-        if action == "choose_mirror_method":
-            if self.direct:
-                return "this rig views the board directly (overlapping): there is no mirror to calibrate"
-            if s not in (CHECK_RIG, MIRROR_CAPTURE):
-                return f"the mirror method is chosen in the mirror step (now: {title}); go back first"
-            if arg is not None and arg not in MIRROR_METHODS:
-                return f"unknown mirror method '{arg}' (one of {', '.join(MIRROR_METHODS)})"
-            if self.manifest.mirror_board is None:
-                return "the session has no mirror board; it cannot calibrate the mirror"
-            if arg is not None and arg != self.mirror_method:
-                others = self.mirror_captures()
-                if others:
-                    return (f"{plural(len(others), self.mirror_method + ' capture')} taken; delete them first to "
-                            f"switch to {arg}")
+        try:
+            v = float(arg)
+        except (TypeError, ValueError):
+            return f"the board thickness must be a number ({self.manifest.units}), got '{arg}'"
+        if not v >= 0:
+            return f"the board thickness must be 0 or more ({self.manifest.units}), got {arg}"
+        return None
+
+    def _guard_capture(self, _arg) -> str | None:
+        if self.state == MIRROR_CAPTURE and self.mirror_method is None:
+            return "choose the mirror method (real-virtual or real-mirror) first"
+        if self.target is not None:
             return None
-        if action == "set_board_thickness":
-            if s in (VERIFICATION, DONE):
-                return "the board thickness cannot change now; go back to the calibration step first"
-            if arg is not None:
-                try:
-                    v = float(arg)
-                except (TypeError, ValueError):
-                    return f"the board thickness must be a number ({self.manifest.units}), got '{arg}'"
-                if not v >= 0 or v != v:
-                    return f"the board thickness must be 0 or more ({self.manifest.units}), got {arg}"
-            return None
-        if action == "capture":
-            if s not in CAPTURE_STATES:
-                return f"nothing is captured in the {title} step; go back to a capture step to add captures"
-            if s == MIRROR_CAPTURE and self.mirror_method is None:
-                return "choose the mirror method (real-virtual or real-mirror) first"
-            if self.target is None:
-                if s == MIRROR_CAPTURE:
-                    return (f"all {self.mirror_total} mirror captures are taken; press 'Next step', or delete or "
-                            "retake a capture")
-                return (f"all {self.projector_total} projector captures are taken; calibrate, or delete or "
-                        "retake a capture")
-            return None
-        if action in ("delete", "retake"):
-            if s in (VERIFICATION, DONE):
-                return f"captures cannot change during {title}; go back to the calibration step first"
-            if action == "retake" and s == CHECK_RIG:
-                return "finish the rig check first"
-            if arg is None:
-                return "choose a capture first"
-            if not any(c.id == arg for c in self.manifest.captures):
-                return f"there is no capture '{arg}' in this session"
-            if action == "retake":
-                cap = next(c for c in self.manifest.captures if c.id == arg)
-                if cap.step != STEP_PROJECTOR and self.direct:
-                    return "this rig has no mirror step; delete the capture instead"
-            return None
-        if action == "proceed":
-            if s == MIRROR_CAPTURE:
-                if self.mirror_method is None:
-                    return "choose the mirror method and take the mirror captures first"
-                n = len(self.captures_of(mirror_step(self.mirror_method)))
-                need = self.plan.min_mirror(self.mirror_method)
-                if n < need:
-                    return f"take at least {need} {self.mirror_method} captures first ({n} so far)"
-                return None
-            if s == PROJECTOR_CAPTURE:
-                n = len(self.captures_of(STEP_PROJECTOR))
-                if self.target is not None:
-                    return (f"{n} of {self.projector_total} projector captures are taken; finish them, or "
-                            "press Calibrate to calibrate with what is there")
-                return None
-            nxt = {CHECK_RIG: "Start", CALIBRATION: "Verify", VERIFICATION: "Finish"}.get(s)
-            if nxt:
-                return f"use '{nxt}' to leave the {title} step"
-            return "the session is complete"
-        if action == "back":
-            if s == CHECK_RIG:
-                return "this is the first step"
-            return None
-        if action in ("skip_camera", "use_camera_calibration"):
-            if s in (VERIFICATION, DONE):
-                return "the camera model cannot change now; go back to the calibration step first"
-            if action == "use_camera_calibration" and self.camera_intrinsics is None:
-                return "the camera is already calibrated from the captures"
-            if action == "skip_camera" and arg is not _FILE_CHECKED:
-                if not arg:
-                    return "give the path of an intrinsics file (a calibration.json or a camera JSON)"
-                try:
-                    checked_intrinsics(arg, self.manifest.rig.camera_size)
-                except ProcamError as e:
-                    return str(e)
-            return None
-        if action == "calibrate":
-            if s not in (PROJECTOR_CAPTURE, CALIBRATION, VERIFICATION, DONE):
-                return f"calibration comes after the captures (now: {title})"
+        if self.state == MIRROR_CAPTURE:
+            return (f"all {self.mirror_total} mirror captures are taken; press 'Next step', or delete or "
+                    "retake a capture")
+        return f"all {self.projector_total} projector captures are taken; calibrate, or delete or retake a capture"
+
+    def _guard_capture_id(self, arg) -> str | None:
+        if arg is None:
+            return "choose a capture first"
+        if not any(c.id == arg for c in self.manifest.captures):
+            return f"there is no capture '{arg}' in this session"
+        return None
+
+    def _guard_retake(self, arg) -> str | None:
+        reason = self._guard_capture_id(arg)
+        if reason is None:
+            cap = next(c for c in self.manifest.captures if c.id == arg)
+            if cap.step != STEP_PROJECTOR and self.direct:
+                return "this rig has no mirror step; delete the capture instead"
+        return reason
+
+    def _guard_proceed(self, _arg) -> str | None:
+        if self.state == MIRROR_CAPTURE:
+            if self.mirror_method is None:
+                return "choose the mirror method and take the mirror captures first"
+            n = len(self.captures_of(mirror_step(self.mirror_method)))
+            need = self.plan.min_mirror(self.mirror_method)
+            return f"take at least {need} {self.mirror_method} captures first ({n} so far)" if n < need else None
+        if self.target is not None:  # the projector step, not complete
             n = len(self.captures_of(STEP_PROJECTOR))
-            if n < self.plan.min_projector_captures:
-                return f"take at least {self.plan.min_projector_captures} projector captures first ({n} so far)"
-            if not self.direct:
-                if self.mirror_method is None:
-                    return "the mirror has no captures yet; go back to the mirror step"
-                m = len(self.captures_of(mirror_step(self.mirror_method)))
-                need = self.plan.min_mirror(self.mirror_method)
-                if m < need:
-                    return f"the mirror step needs at least {need} {self.mirror_method} captures ({m} so far)"
+            return (f"{n} of {self.projector_total} projector captures are taken; finish them, or "
+                    "press Calibrate to calibrate with what is there")
+        return None
+
+    def _guard_skip_camera(self, arg) -> str | None:
+        if arg is _FILE_CHECKED:
             return None
-        if action == "verify":
-            if self._verify_fn is None:
-                return "verification is not available in this installation"
-            if s not in (CALIBRATION, VERIFICATION):
-                return f"verification comes after calibration (now: {title})"
-            if self.result is None:
-                return "calibrate first"
-            if self.result_stale:
-                return "the captures or the camera model changed since the last calibration; calibrate again"
+        if not arg:
+            return "give the path of an intrinsics file (a calibration.json or a camera JSON)"
+        try:
+            checked_intrinsics(arg, self.manifest.rig.camera_size)
+        except ProcamError as e:
+            return str(e)
+        return None
+
+    def _guard_calibrate(self, _arg) -> str | None:
+        n = len(self.captures_of(STEP_PROJECTOR))
+        if n < self.plan.min_projector_captures:
+            return f"take at least {self.plan.min_projector_captures} projector captures first ({n} so far)"
+        if self.direct:
             return None
-        if action == "finish":
-            if s == VERIFICATION:
-                if self.report is None:
-                    return "run the verification first"
-                return None
-            if s == CALIBRATION:
-                if self._verify_fn is not None:
-                    return "verify the calibration first"
-                if self.result is None or self.result_stale:
-                    return "calibrate first"
-                return None
-            if s == DONE:
-                return "the session is already complete"
-            return f"the session ends after calibration and verification (now: {title})"
-        return None  # pragma: no cover
+        if self.mirror_method is None:
+            return "the mirror has no captures yet; go back to the mirror step"
+        m = len(self.captures_of(mirror_step(self.mirror_method)))
+        need = self.plan.min_mirror(self.mirror_method)
+        if m < need:
+            return f"the mirror step needs at least {need} {self.mirror_method} captures ({m} so far)"
+        return None
+
+    def _guard_verify(self, _arg) -> str | None:
+        if self.result is None:
+            return "calibrate first"
+        if self.result_stale:
+            return "the captures or the camera model changed since the last calibration; calibrate again"
+        return None
+
+    def _guard_finish(self, _arg) -> str | None:
+        if self.state == VERIFICATION:
+            return "run the verification first" if self.report is None else None
+        return "calibrate first" if self.result is None or self.result_stale else None  # a rig without verification
 
     def available(self) -> dict[str, str | None]:
         """Every action with None (possible) or the reason it is refused."""
@@ -771,6 +760,85 @@ class SessionMachine:
         del self.events[:-200]
         if self.on_event is not None:
             self.on_event(text)
+
+
+@dataclass(frozen=True)
+class _Rule:
+    """When an operator action is possible. `where`: a trigger of the transition table (the table and
+    its conditions decide) or the states an action that moves nothing is possible in; `refused`: the
+    reason when the state does not allow it; `before`: a check that comes before the state's (what no
+    step can change); `guard`: the action's own checks once the state allows it."""
+
+    where: "str | tuple[str, ...]"
+    refused: Callable[[SessionMachine], str]
+    guard: "Callable[[SessionMachine, object], str | None] | None" = None
+    before: "Callable[[SessionMachine, object], str | None] | None" = None
+
+
+_BEFORE_VERIFICATION = (CHECK_RIG, MIRROR_CAPTURE, PROJECTOR_CAPTURE, CALIBRATION)
+
+
+def _captures_frozen(m: SessionMachine) -> str:
+    return f"captures cannot change during {m._title}; go back to the calibration step first"
+
+
+def _no_mirror(m: SessionMachine, _arg) -> str | None:
+    return "this rig views the board directly (overlapping): there is no mirror to calibrate" if m.direct else None
+
+
+def _no_verifier(m: SessionMachine, _arg) -> str | None:
+    return "verification is not available in this installation" if m._verify_fn is None else None
+
+
+def _proceed_refused(m: SessionMachine) -> str:
+    nxt = {CHECK_RIG: "Start", CALIBRATION: "Verify", VERIFICATION: "Finish"}.get(m.state)
+    return f"use '{nxt}' to leave the {m._title} step" if nxt else "the session is complete"
+
+
+def _finish_refused(m: SessionMachine) -> str:
+    if m.state == CALIBRATION:
+        return "verify the calibration first"
+    if m.state == DONE:
+        return "the session is already complete"
+    return f"the session ends after calibration and verification (now: {m._title})"
+
+
+def _camera_frozen(_m: SessionMachine) -> str:
+    return "the camera model cannot change now; go back to the calibration step first"
+
+
+_RULES: dict[str, _Rule] = {
+    "start": _Rule("ev_start", lambda m: "the rig check is already done; go back to it first",
+                   SessionMachine._guard_start),
+    "choose_mirror_method": _Rule(
+        (CHECK_RIG, MIRROR_CAPTURE),
+        lambda m: f"the mirror method is chosen in the mirror step (now: {m._title}); go back first",
+        SessionMachine._guard_mirror_method, before=_no_mirror),
+    "set_board_thickness": _Rule(
+        _BEFORE_VERIFICATION,
+        lambda m: "the board thickness cannot change now; go back to the calibration step first",
+        SessionMachine._guard_thickness),
+    "capture": _Rule(
+        CAPTURE_STATES,
+        lambda m: f"nothing is captured in the {m._title} step; go back to a capture step to add captures",
+        SessionMachine._guard_capture),
+    "delete": _Rule(_BEFORE_VERIFICATION, _captures_frozen, SessionMachine._guard_capture_id),
+    "retake": _Rule("ev_retake",
+                    lambda m: "finish the rig check first" if m.state == CHECK_RIG else _captures_frozen(m),
+                    SessionMachine._guard_retake),
+    "proceed": _Rule("ev_proceed", _proceed_refused, SessionMachine._guard_proceed),
+    "back": _Rule("ev_back", lambda m: "this is the first step"),
+    "skip_camera": _Rule(_BEFORE_VERIFICATION, _camera_frozen, SessionMachine._guard_skip_camera),
+    "use_camera_calibration": _Rule(
+        _BEFORE_VERIFICATION, _camera_frozen,
+        lambda m, _arg: "the camera is already calibrated from the captures" if m.camera_intrinsics is None else None),
+    "calibrate": _Rule("ev_calibrate", lambda m: f"calibration comes after the captures (now: {m._title})",
+                       SessionMachine._guard_calibrate),
+    "verify": _Rule("ev_verify", lambda m: f"verification comes after calibration (now: {m._title})",
+                    SessionMachine._guard_verify, before=_no_verifier),
+    "finish": _Rule("ev_finish", _finish_refused, SessionMachine._guard_finish),
+}
+assert set(_RULES) == set(ACTIONS), "every operator action has its rule"
 
 
 def _keep_rejected(folder, work):
