@@ -12,8 +12,7 @@ Rectangles are drawn with their exact area coverage; text with OpenCV's Hershey 
 
 from __future__ import annotations
 
-import struct
-import zlib
+import io
 from xml.sax.saxutils import escape
 
 import cv2
@@ -163,21 +162,19 @@ def rasterise(sheet: Sheet, dpi: float) -> np.ndarray:
 
 
 def png_bytes(image: np.ndarray, dpi: float | None = None) -> bytes:
-    """PNG of `image` (OpenCV's encoder, maximum compression), with a pHYs chunk giving `dpi` so that
-    viewers and printers know its true size."""
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    if not ok:
-        raise SpecError("OpenCV could not encode the PNG")
-    data = buf.tobytes()
+    """PNG of `image` at maximum compression. With `dpi`, Pillow writes it with a pHYs chunk so that
+    viewers and printers know its true size; without, OpenCV's encoder (the committed pattern images
+    are its bytes)."""
     if dpi is None:
-        return data
-    ppm = int(round(dpi / 0.0254))
-    body = b"pHYs" + struct.pack(">IIB", ppm, ppm, 1)
-    chunk = struct.pack(">I", 9) + body + struct.pack(">I", zlib.crc32(body) & 0xFFFFFFFF)
-    ihdr_end = 8 + 4 + 4 + 13 + 4  # signature, then the IHDR chunk (length, type, 13 bytes, CRC)
-    if data[12:16] != b"IHDR":
-        raise SpecError("unexpected PNG layout from OpenCV's encoder")
-    return data[:ihdr_end] + chunk + data[ihdr_end:]
+        ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        if not ok:
+            raise SpecError("OpenCV could not encode the PNG")
+        return buf.tobytes()
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(out, format="PNG", dpi=(dpi, dpi), compress_level=9)
+    return out.getvalue()
 
 
 def sheet_png(sheet: Sheet, dpi: float) -> bytes:
