@@ -1,6 +1,6 @@
 """The headless recalibration flow: a session folder whose captures are asked for by the recalibration
 (a few to check, then only what the moved parts need), driven by the station as any session is
-(Station + SessionMachine), and the calibration math of calib/recalib.py. docs/RECALIBRATION.md.
+(Station + SessionMachine), and the calibration math of calib/recalib/. docs/RECALIBRATION.md.
 
     previous/calibration.json   the calibration recalibrated, archived (never overwritten)
     calibration.json            the recalibrated result (the previous one when nothing moved)
