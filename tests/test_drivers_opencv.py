@@ -1,0 +1,234 @@
+"""Any camera OpenCV opens (drivers/opencv_camera.py), tested through cv2.VideoCapture itself: the simulated
+camera served as a live MJPEG stream on 127.0.0.1 (drivers/sim/stream.py), its frames stamped with their
+exposure start on the rig's simulated clock (drivers/frame_stamp.py). Only exposure and gain, which a
+stream has not, go through the stream's side channel."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from _station_helpers import run_procam
+from drivers.base import CameraDriver, ExposureControl
+from drivers.errors import DeviceDisconnected, DeviceError, ExposureUnsupported
+from drivers.exposure import frames_after_change
+from drivers.frame_stamp import FrameStamp, decode_stamp, encode_stamp, split_stamp, strip_rows
+from drivers.opencv_camera import OpenCVCamera, list_opencv_cameras
+from drivers.sim.stream import SimStreamCamera, open_sim_uvc_rig
+
+
+@pytest.fixture
+def rig():
+    r = open_sim_uvc_rig("nonoverlap-136", seed=0, realtime=False)
+    r.camera.start()
+    yield r
+    r.close()
+
+
+def test_a_frame_stamp_survives_jpeg_and_a_damaged_one_is_refused():
+    rng = np.random.default_rng(3)
+    for width in (1280, 640, 424):
+        for _ in range(5):
+            s = FrameStamp(int(rng.integers(0, 2**31)), int(rng.integers(0, 2**62)),
+                           round(float(rng.uniform(50, 33333)), 2), round(float(rng.uniform(0, 128)), 3))
+            picture = rng.integers(0, 256, (480, width, 3), dtype=np.uint8)
+            full = np.vstack([picture, encode_stamp(s, width)])
+            assert full.shape[0] - 480 == strip_rows(width) and strip_rows(width) % 16 == 0
+            ok, buf = cv2.imencode(".jpg", full, [cv2.IMWRITE_JPEG_QUALITY, 60])
+            got_picture, got = split_stamp(cv2.imdecode(buf, cv2.IMREAD_COLOR))
+            assert got == s and got_picture.shape == picture.shape
+    strip = encode_stamp(FrameStamp(7, 10**12, 16667.0, 2.0), 1280)
+    strip[:, 8 * 40:8 * 41] = 255 - strip[:, 8 * 40:8 * 41]  # one bit flipped: the checksum fails
+    assert decode_stamp(strip) is None
+    assert decode_stamp(np.zeros((16, 1280, 3), np.uint8)) is None
+
+
+def test_frames_through_videocapture_carry_the_simulated_exposure_times(rig):
+    cam = rig.camera
+    assert isinstance(cam, CameraDriver) and isinstance(cam, ExposureControl)
+    assert cam.size == rig.sim.camera.size and cam.backend == "FFMPEG"
+    f = cam.get_frame(2.0)
+    assert f.image.shape == (800, 1280, 3)
+    last, seen = f.frame_number, []
+    for _ in range(8):
+        g = cam.get_frame(2.0, newer_than=last)
+        assert g.frame_number > last
+        last = g.frame_number
+        n = g.meta["device_frame_number"]
+        # the exposure start is the simulated camera's own, on the rig's clock, to the microsecond
+        assert g.exposure_start_s == pytest.approx(rig.sim.camera.exposure_start_s(n), abs=1e-6)
+        assert g.exposure_start_s <= rig.clock.now()
+        seen.append(n)
+    assert seen == sorted(set(seen))
+    # a frame repeated by the stream (its idle keep-alive) carries the same stamp and is dropped
+    assert cam.settings()["frames"]["accepted"] >= 9
+
+
+def test_a_frame_gated_by_its_stamped_time_shows_only_the_new_image(rig):
+    """The station's rule (a frame counts once its exposure began after the image became visible) holds
+    through VideoCapture's buffering: the simulator's own record of what each frame saw."""
+    cam, proj = rig.camera, rig.projector
+    hw = rig.sim.hardware
+    proj.settle_s = (hw.latency_ms + hw.jitter_ms) / 1000.0 + 0.005  # what the rig check measures, and a margin
+    last = cam.get_frame(2.0).frame_number
+    white = np.full((proj.size[1], proj.size[0]), 255, np.uint8)
+    mixed = 0
+    for k in range(4):
+        ticket = proj.show(white if k % 2 == 0 else np.zeros_like(white))
+        visible = proj.wait_presented(ticket)
+        for _ in range(6):
+            f = cam.get_frame(2.0, newer_than=last)
+            last = f.frame_number
+            truth = rig.sim.frame_truth[cam.device_numbers[f.frame_number]]
+            if f.exposure_start_s >= visible:
+                assert truth == ((ticket, 1.0),), (truth, ticket)
+            elif truth != ((ticket, 1.0),):
+                mixed += 1
+    assert mixed > 0  # frames before the gate did show the old image: the gate had something to refuse
+
+
+def test_manual_exposure_goes_through_the_side_channel_and_shows_in_the_frames(rig):
+    cam = rig.camera
+    lim = cam.exposure_limits()
+    assert lim == {k: tuple(v) for k, v in rig.sim.camera.exposure_limits().items()}
+    last = cam.get_frame(2.0).frame_number
+    t_set = rig.clock.now()
+    applied = cam.set_manual_exposure(8333.0, 2.5)
+    assert applied == {"exposure_us": 8333.0, "gain": 2.5}
+    assert rig.stream.forwarded[-1] == ("manual", (8333.0, 2.5))
+    f, _, _ = frames_after_change(cam, t_set, applied, last, 2, 3.0)
+    assert f.meta["exposure_us"] == pytest.approx(8333.0) and f.meta["gain"] == pytest.approx(2.5)
+    assert cam.settings()["exposure_us"] == 8333.0
+
+
+def test_a_camera_that_ignores_manual_exposure_is_named():
+    r = open_sim_uvc_rig("nonoverlap-136", seed=0, realtime=False, faults=("ignores-exposure",))
+    try:
+        r.camera.start()
+        with pytest.raises(ExposureUnsupported, match="ignores manual exposure.*reads back"):
+            r.camera.set_manual_exposure(8333.0, 2.0)
+        assert r.stream.forwarded == []
+        # the stream's own properties (FFmpeg has none to set): refused
+        plain = OpenCVCamera(r.stream.url, timing="stamp", clock=r.clock)
+        with r.stream.hold():
+            plain.start()
+        try:
+            with pytest.raises(ExposureUnsupported, match="FFMPEG backend has no exposure control"):
+                plain.set_manual_exposure(8333.0, 2.0)
+        finally:
+            plain.stop()
+    finally:
+        r.close()
+
+
+def test_an_unplugged_camera_is_a_device_error_and_reconnects(rig):
+    cam = rig.camera
+    last = cam.get_frame(2.0).frame_number
+    rig.stream.unplug()
+    with pytest.raises(DeviceDisconnected, match="unplugged.*plug it back in"):
+        for _ in range(20):
+            last = cam.get_frame(2.0, newer_than=last).frame_number
+    with pytest.raises(DeviceDisconnected, match="did not come back"):
+        cam.reconnect(timeout_s=0.5)
+    rig.stream.replug()
+    cam.reconnect(timeout_s=5.0)
+    f = cam.get_frame(2.0, newer_than=last)
+    assert f.frame_number > last
+
+
+def test_a_camera_index_that_does_not_exist_is_a_device_error():
+    with pytest.raises(DeviceError, match="no camera at index 63.*procam devices"):
+        OpenCVCamera(63).start()
+    with pytest.raises(DeviceError, match="cannot open the camera source"):
+        OpenCVCamera("http://127.0.0.1:9/none.mjpg", open_timeout_s=2.0).start()
+
+
+def test_the_rig_check_warns_about_a_camera_that_ignores_exposure_and_goes_on(tmp_path):
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.station import Station, StationOptions
+
+    req = RigRequest("sim-uvc", "nonoverlap-136", 0)
+    rig = open_rig(req, realtime=False, faults=("ignores-exposure",))
+    try:
+        plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+        store = create_session(tmp_path / "s", rig, req, plan)
+        st = Station(rig, make_machine(store, rig, plan), StationOptions(auto=False, follow_operator=True))
+        checks = {c.name: c for c in st.check_rig()}
+        assert all(c.ok for c in checks.values()), checks
+        assert "WARNING" in checks["camera exposure"].detail and "ignores manual exposure" in checks["camera exposure"].detail
+        # its auto exposure follows the dark-to-bright switch the latency is measured by: when that defeats
+        # the measurement, a latency longer than projectors' is assumed, and said
+        lat = checks["projector latency"]
+        assert lat.ok and ("300 ms assumed" in lat.detail or lat.detail.startswith("latency ")), lat
+        assert "camera response" not in checks  # no gains to bracket
+        settings = store.manifest.rig.camera_settings
+        assert settings["manual_exposure"] == "ignored by the camera"
+        assert rig.projector.settle_s == settings["projector"]["latency_ms"] / 1000.0 > 0
+    finally:
+        rig.close()
+
+
+def test_opencv_cameras_are_listed(rig):
+    found = list_opencv_cameras([rig.stream.url])
+    assert found == [{"source": rig.stream.url, "backend": "FFMPEG", "width": 1280, "height": 800 + strip_rows(1280),
+                      "fps": found[0]["fps"]}]
+    assert list_opencv_cameras(["http://127.0.0.1:9/none.mjpg"]) == []
+    r = run_procam("devices", "--json", timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert isinstance(out["opencv_cameras"], list)
+
+
+@pytest.mark.slow
+def test_captures_through_the_stream_show_only_the_image_recorded_for_them(tmp_path):
+    """A short session's captures through VideoCapture: each saw only its projector image for its whole
+    exposure (SimRig.frame_truth), with the rig check's measured exposure, latency and response."""
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.station import Station, StationOptions
+    from calib.models.observations import STEP_PROJECTOR
+    from _station_helpers import tick_until_projector_captures
+
+    req = RigRequest("sim-uvc", "nonoverlap-136", 0)
+    rig = open_rig(req, latency_ms=150.0, realtime=False)
+    try:
+        assert isinstance(rig.camera, SimStreamCamera)
+        plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+        store = create_session(tmp_path / "s", rig, req, plan)
+        m = make_machine(store, rig, plan)
+        st = Station(rig, m, StationOptions(auto=False, follow_operator=True, auto_capture=True))
+        checks = {c.name: c for c in st.check_rig()}
+        assert all(c.ok for c in checks.values()), checks
+        assert "gamma 2.2" in checks["camera response"].detail
+        tick_until_projector_captures(st, m, 3)
+        numbers = rig.camera.device_numbers
+        for c in m.manifest.captures:
+            sim_n, ticket = numbers[c.meta["frame_number"]], c.meta["projector_ticket"]
+            assert rig.sim.frame_truth[sim_n] == ((int(ticket), 1.0),), (c.id, rig.sim.frame_truth[sim_n], ticket)
+    finally:
+        rig.close()
+
+
+@pytest.mark.slow
+def test_a_whole_session_runs_through_the_opencv_driver(tmp_path):
+    out = tmp_path / "S"
+    r = run_procam("session", "--rig", "sim-uvc", "--auto", "--poses-per-position", "2",
+                   "--mirror-captures", "6", "--out", str(out), timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "camera through the OpenCV driver" in r.stdout and "verification PASSED" in r.stdout
+    man = json.loads((out / "session.json").read_text())
+    assert man["state"]["rig_request"]["kind"] == "sim-uvc"
+    settings = man["rig"]["camera_settings"]
+    assert settings["driver"] == "opencv" and settings["timing"] == "stamp"
+    assert settings["auto_exposure"] is False and settings["response"]["source"] == "measured"
+    from calib.models.result import CalibrationResult
+    from calib.quality.metrics import compare
+
+    m = compare(CalibrationResult.load_json(out / "calibration.json"),
+                CalibrationResult.load_json(out / "ground_truth.json"))
+    # a frame from the wrong image costs mm and px; a short live-quality session scatters by itself up to
+    # about 1 px in projector K (see the RealSense path's test), so K gets 1.5 px
+    assert m.distance < 0.5 and m.angle_deg < 0.05 and m.proj_k_px < 1.5
+    assert json.loads((out / "verification.json").read_text())["passed"] is True
