@@ -33,6 +33,7 @@ stream forwards them to its camera through a side channel: a stream has no such 
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import math
 import sys
@@ -117,6 +118,23 @@ def _cv2():
     import cv2
 
     return cv2
+
+
+@contextlib.contextmanager
+def quiet_opencv():
+    """OpenCV's own warnings off (a camera that is not there prints two WARN lines per open): the driver
+    says what happened in its own error."""
+    cv2 = _cv2()
+    try:
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    except AttributeError:
+        level = None
+    try:
+        yield
+    finally:
+        if level is not None:
+            cv2.utils.logging.setLogLevel(level)
 
 
 def default_api(source) -> int:
@@ -206,7 +224,8 @@ class OpenCVCamera:
         api = self._api if self._api is not None else default_api(self.source)
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self._open_timeout_s * 1000),
                   cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(self._read_timeout_s * 1000)]
-        cap = cv2.VideoCapture(self.source, api, params)
+        with quiet_opencv():
+            cap = cv2.VideoCapture(self.source, api, params)
         if not cap.isOpened():
             cap.release()
             if isinstance(self.source, int):
@@ -508,12 +527,7 @@ def list_opencv_cameras(sources=None, max_index: int = 8) -> list[dict]:
         else:
             sources = list(range(max_index))
     out = []
-    try:
-        level = cv2.utils.logging.getLogLevel()
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
-    except AttributeError:
-        level = None
-    try:
+    with quiet_opencv():
         for s in sources:
             src = parse_source(s)
             cap = cv2.VideoCapture(src, default_api(src), [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, 3000])
@@ -527,7 +541,4 @@ def list_opencv_cameras(sources=None, max_index: int = 8) -> list[dict]:
                             "height": int(img.shape[0]), "fps": float(cap.get(cv2.CAP_PROP_FPS) or 0.0)})
             finally:
                 cap.release()
-    finally:
-        if level is not None:
-            cv2.utils.logging.setLogLevel(level)
     return out

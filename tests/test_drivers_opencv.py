@@ -144,6 +144,29 @@ def test_a_camera_index_that_does_not_exist_is_a_device_error():
         OpenCVCamera("http://127.0.0.1:9/none.mjpg", open_timeout_s=2.0).start()
 
 
+def test_a_missing_camera_is_one_line_and_no_session_folder(tmp_path):
+    out = tmp_path / "S"
+    r = run_procam("session", "--rig", "uvc", "--camera", "63", "--board", "8x6:DICT_4X4_50:50:30", "--out", str(out),
+                   timeout=120)
+    assert r.returncode == 2 and not out.exists()
+    assert r.stderr.strip().splitlines() == ["procam session: error: no camera at index 63 (or it is in use by another "
+                                             "program): plug it in; `procam devices` lists the cameras OpenCV can open"]
+
+
+@pytest.mark.parametrize("text, ok", [("0", 0), ("12", 12), ("http://127.0.0.1:8080/video", "http://127.0.0.1:8080/video"),
+                                      ("100", None), ("", None), ("cam\x01", None)])
+def test_the_camera_option_takes_an_index_or_a_url(text, ok):
+    import argparse
+
+    from app.commands._types import camera_source
+
+    if ok is None:
+        with pytest.raises(argparse.ArgumentTypeError, match="camera index from 0 to 99, or a URL"):
+            camera_source(text)
+    else:
+        assert camera_source(text) == ok
+
+
 def test_the_rig_check_warns_about_a_camera_that_ignores_exposure_and_goes_on(tmp_path):
     from app.station.machine import Plan
     from app.station.setup import RigRequest, create_session, make_machine, open_rig
