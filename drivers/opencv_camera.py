@@ -24,6 +24,9 @@ projector's image became visible, so `exposure_start_s` must never be later than
 The default is `device` on V4L2 (when its timestamps fall within a second before arrival, else
 `arrival` for that frame) and `arrival` elsewhere.
 
+Autofocus is switched off at start (CAP_PROP_AUTOFOCUS 0; settings() records whether the camera took it):
+a lens that refocuses changes the intrinsics between captures.
+
 Controls: OpenCV writes CAP_PROP_AUTO_EXPOSURE / EXPOSURE / GAIN / AUTO_WB in each backend's own units
 (BACKEND_UNITS). A camera or backend that refuses a write, or reads back another value, ignores manual
 exposure: set_manual_exposure raises ExposureUnsupported, and the station's rig check goes on with the
@@ -195,6 +198,7 @@ class OpenCVCamera:
         self.fps = float(fps) if fps else 30.0
         self.backend = "?"
         self._manual: dict | None = None
+        self.autofocus_off: bool | None = None  # whether the camera accepted autofocus off (None: not started)
         self.stats = _Stats()
 
     # ---- CameraDriver ------------------------------------------------------------------------------
@@ -264,6 +268,8 @@ class OpenCVCamera:
             self._latest = None
             self._last_device_number = None  # a source reopened may count its frames from 0 again
             self._running = True
+        # a lens that refocuses moves the focal length mid-session: the intrinsics must hold for every capture
+        self.autofocus_off = bool(self._controls.set(cv2.CAP_PROP_AUTOFOCUS, 0.0))
         self._stop_evt = threading.Event()
         self._thread = threading.Thread(target=self._capture_loop, args=(cap, self._stop_evt),
                                         name="opencv-capture", daemon=True)
@@ -347,6 +353,7 @@ class OpenCVCamera:
                                "stream": {"width": self._size[0] if self._size else None,
                                           "height": self._size[1] if self._size else None, "fps": self.fps},
                                "timing": self._timing().value, "manual_exposure": self._manual is not None,
+                               "autofocus_off": self.autofocus_off,
                                "frames": {"accepted": self.stats.accepted,
                                           "dropped_duplicates": self.stats.duplicates,
                                           "dropped_unstamped": self.stats.unstamped}}

@@ -100,6 +100,7 @@ def test_manual_exposure_goes_through_the_side_channel_and_shows_in_the_frames(r
     f, _, _ = frames_after_change(cam, t_set, applied, last, 2, 3.0)
     assert f.meta["exposure_us"] == pytest.approx(8333.0) and f.meta["gain"] == pytest.approx(2.5)
     assert cam.settings()["exposure_us"] == 8333.0
+    assert cam.settings()["autofocus_off"] is False  # the stream has no focus to hold; a webcam says True
 
 
 def test_a_camera_that_ignores_manual_exposure_is_named():
