@@ -168,6 +168,29 @@ def test_the_camera_option_takes_an_index_or_a_url(text, ok):
         assert camera_source(text) == ok
 
 
+def test_a_pre_calibration_asks_the_camera_for_its_size(rig, tmp_path):
+    import argparse
+
+    from app.commands.session import rig_options
+
+    rig.sim.ground_truth().save_json(tmp_path / "calibration.json")
+    args = argparse.Namespace(camera=rig.stream.url, projector_screen=None, settle_s=None,
+                              camera_intrinsics=str(tmp_path / "calibration.json"))
+    opts = rig_options(args, "uvc")
+    assert (opts["width"], opts["height"]) == (1280, 800) and opts["intrinsics"].size == (1280, 800)
+    # the stream's frames carry the stamp strip under the picture: another size than the pre-calibration's
+    cam = OpenCVCamera(opts["camera"], opts["width"], opts["height"], intrinsics=opts["intrinsics"])
+    with rig.stream.hold(), pytest.raises(DeviceError, match=r"delivers 1280x816 frames, not the 1280x800 asked for"):
+        cam.start()
+    cam = OpenCVCamera(opts["camera"], 1280, 800, timing="stamp", clock=rig.clock, intrinsics=opts["intrinsics"])
+    with rig.stream.hold():
+        cam.start()
+    try:
+        assert cam.factory_intrinsics() is opts["intrinsics"] and cam.size == (1280, 800)
+    finally:
+        cam.stop()
+
+
 def test_the_rig_check_warns_about_a_camera_that_ignores_exposure_and_goes_on(tmp_path):
     from app.station.machine import Plan
     from app.station.setup import RigRequest, create_session, make_machine, open_rig

@@ -64,6 +64,13 @@ def rig_options(args, kind: str) -> dict:
         camera = getattr(args, "camera", None)
         opts = {"camera": 0 if camera is None else camera, "projector_screen": args.projector_screen,
                 "settle_s": args.settle_s}
+        if getattr(args, "camera_intrinsics", None):
+            # a pre-calibration holds for one image size: the camera is asked for it, and refused if it
+            # delivers another; its model is the camera's own for live detection
+            from app.station.machine import load_intrinsics
+
+            model = load_intrinsics(args.camera_intrinsics)
+            opts.update(intrinsics=model, width=model.width, height=model.height)
         return {k: v for k, v in opts.items() if v is not None}
     opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
     return {k: v for k, v in opts.items() if v is not None}
