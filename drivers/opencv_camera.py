@@ -310,6 +310,8 @@ class OpenCVCamera:
                 return
             except DeviceDisconnected:
                 if time.monotonic() >= deadline:
+                    with self._cond:  # still gone: get_frame keeps saying so, and the station keeps trying
+                        self._disconnected = True
                     raise DeviceDisconnected(f"camera {self.label} did not come back within {timeout_s:.1f} s: "
                                              "plug it back in, then reconnect") from None
                 time.sleep(poll_s)

@@ -138,6 +138,33 @@ def test_an_unplugged_camera_is_a_device_error_and_reconnects(rig):
     assert f.frame_number > last
 
 
+def test_the_station_says_the_camera_is_gone_and_takes_it_back(tmp_path):
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.station import Station, StationOptions
+
+    req = RigRequest("sim-uvc", "nonoverlap-136", 0)
+    rig = open_rig(req, realtime=False)
+    try:
+        plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+        store = create_session(tmp_path / "s", rig, req, plan)
+        m = make_machine(store, rig, plan)
+        st = Station(rig, m, StationOptions(auto=False, follow_operator=True))
+        assert st.tick() is not None and st.device_problem is None
+        rig.stream.unplug()
+        for _ in range(3):  # unplugged: every tick says so (a reconnect is tried each time)
+            assert st.tick() is None
+            assert st.device_problem.startswith("camera: camera http") and "plug it back in" in st.device_problem
+        rig.stream.replug()
+        view = None
+        for _ in range(5):
+            view = st.tick() or view
+        assert view is not None and st.device_problem is None
+        assert any("camera reconnected" in e.text for e in m.events)
+    finally:
+        rig.close()
+
+
 def test_a_camera_index_that_does_not_exist_is_a_device_error():
     with pytest.raises(DeviceError, match="no camera at index 63.*procam devices"):
         OpenCVCamera(63).start()
