@@ -306,3 +306,19 @@ def test_a_whole_session_runs_through_the_opencv_driver(tmp_path):
     # about 1 px in projector K (see the RealSense path's test), so K gets 1.5 px
     assert m.distance < 0.5 and m.angle_deg < 0.05 and m.proj_k_px < 1.5
     assert json.loads((out / "verification.json").read_text())["passed"] is True
+
+
+@pytest.mark.slow
+def test_a_session_with_a_camera_that_ignores_exposure_goes_on_with_warnings(tmp_path):
+    out = tmp_path / "S"
+    r = run_procam("session", "--rig", "sim-uvc", "--sim-faults", "ignores-exposure", "--auto", "--poses-per-position",
+                   "2", "--mirror-captures", "6", "--out", str(out), timeout=900)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "rig check: camera exposure ok: WARNING: camera http" in r.stdout and "ignores manual exposure" in r.stdout
+    assert "verification PASSED" in r.stdout
+    settings = json.loads((out / "session.json").read_text())["rig"]["camera_settings"]
+    assert settings["manual_exposure"] == "ignored by the camera" and "response" not in settings
+    v = run_procam("verify", str(out), "--rig", "sim-uvc", "--sim-faults", "ignores-exposure", "--out",
+                   str(tmp_path / "v.json"), timeout=600)
+    assert v.returncode == 0, v.stdout[-2000:] + v.stderr[-2000:]
+    assert "warning: camera: ignores manual exposure" in v.stderr

@@ -148,8 +148,10 @@ def _apply_recorded(rig, manifest, settle_s: float | None = None) -> tuple[dict,
         lines.append("camera: no exposure control, left as it is")
     proj = got.get("projector")
     if isinstance(proj, dict) and proj.get("latency_ms") is not None:
+        rec_proj = rec.get("projector") if isinstance(rec.get("projector"), dict) else {}
         how = "--settle" if settle_s is not None else \
-            "as the session measured" if recorded_latency_s(manifest) is not None else "measured now"
+            ("as the session assumed: not measurable under the camera's auto exposure" if rec_proj.get("assumed")
+             else "as the session measured") if recorded_latency_s(manifest) is not None else "measured now"
         lines.append(f"projector latency: {float(proj['latency_ms']):.0f} ms ({how})")
     return got, lines
 

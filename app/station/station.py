@@ -360,9 +360,10 @@ class Station:
                     timing.update({"latency_ms": round(UNMEASURED_LATENCY_S * 1000.0, 3), "assumed": True,
                                    "refresh_hz": float(getattr(proj, "refresh_hz", 0.0) or 0.0)})
                     settings["projector"] = timing
-                    text = (f"WARNING: not measurable under the camera's auto exposure ({e}); "
-                            f"{UNMEASURED_LATENCY_S * 1000:.0f} ms assumed")
-                    _log.warning(text)
+                    text = ("WARNING: not measurable while the camera's own auto exposure follows the switches from "
+                            f"dark to bright; {UNMEASURED_LATENCY_S * 1000:.0f} ms assumed (longer than projectors' "
+                            "latency: captures wait a little longer)")
+                    _log.warning("%s (the measurement said: %s)", text, e)
                     checks.append(RigCheck("projector latency", True, text))
         # the RealSense: measured, last (a full white just before the latency trials fooled the first one
         # through the emulation: 0 ms, and a settle time too short for the verification)
