@@ -260,6 +260,60 @@ def test_opencv_cameras_are_listed(rig):
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert isinstance(out["opencv_cameras"], list)
+    text = run_procam("devices", timeout=120)
+    assert text.returncode == 0 and "OpenCV cameras (index for --rig uvc --camera):" in text.stdout
+
+
+UVC_RIG_SCRIPT = r"""
+import json
+from drivers import projector_images as pi
+from drivers.factory import open_rig
+from drivers.projector_window import run_projector_loop
+from drivers.sim.rig import open_sim_rig
+from drivers.sim.stream import SimCameraStream
+
+sim = open_sim_rig("nonoverlap-136", seed=0, realtime=False)
+sim.camera.start()
+stream = SimCameraStream(sim.camera)
+with stream.hold():
+    rig = open_rig("uvc", camera=stream.url, projector_screen=0, settle_s=0.05)
+out = {"kind": rig.kind, "camera": type(rig.camera).__name__, "projector": type(rig.projector).__name__,
+       "operator": type(rig.operator).__name__, "size": rig.camera.size, "timing": rig.camera.settings()["timing"], "fps": rig.camera.fps}
+
+def worker():
+    t = rig.projector.wait_presented(rig.projector.show(pi.white(rig.projector.size)), 5.0)
+    with stream.hold():
+        f = rig.camera.get_frame(5.0)
+    return {"presented": t > 0, "shape": list(f.image.shape), "source": f.meta["exposure_start_source"],
+            "before_arrival_s": f.meta["host_time_s"] - f.exposure_start_s}
+
+out.update(run_projector_loop(rig.projector, worker, close=False))
+rig.close()
+out["closed"] = rig.projector.closed and not rig.camera.running
+stream.close()
+sim.close()
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.display
+def test_the_uvc_rig_combines_an_opencv_camera_with_the_projector_window():
+    """`--rig uvc --camera URL`: the plain driver (frame times by arrival: an FFmpeg stream has no
+    timestamps) and a real projector window under Xvfb."""
+    from _drivers_helpers import run_python, xvfb
+
+    with xvfb((1280, 720)) as display:
+        r = run_python(UVC_RIG_SCRIPT, display, timeout=180)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert (out["kind"], out["camera"], out["projector"], out["operator"]) == (
+        "uvc", "OpenCVCamera", "ProjectorWindow", "HumanOperator")
+    assert out["size"] == [1280, 800 + strip_rows(1280)] and out["timing"] == "arrival"  # the strip is picture here
+    assert out["presented"] and out["shape"] == [800 + strip_rows(1280), 1280, 3] and out["source"] == "arrival"
+    # an exposure (a whole frame period under auto exposure) and three frame periods before it arrived, at
+    # the rate the backend reports (FFmpeg's 25 fps for an MJPEG stream): never later than it could have begun
+    assert out["before_arrival_s"] == pytest.approx(4 / out["fps"], abs=1e-6)
+    assert out["closed"]
 
 
 @pytest.mark.slow
