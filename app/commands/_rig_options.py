@@ -17,6 +17,9 @@ def add_camera_option(p) -> None:
     p.add_argument("--camera", type=_types.camera_source, default=None, metavar="INDEX|URL",
                    help="--rig uvc: the camera, an index (0: /dev/video0 on Linux; `procam devices` lists them) or "
                         "a stream URL / file (default 0)")
+    p.add_argument("--camera-fps", type=_types.float_range(1.0, 1000.0), default=None, metavar="FPS",
+                   help="--rig uvc: the camera's frame rate, asked of it and used to time its frames (default: what "
+                        "the backend reports; FFmpeg says 25 for any MJPEG stream)")
 
 
 def add_rig_options(p) -> None:

@@ -63,7 +63,7 @@ def rig_options(args, kind: str) -> dict:
     if kind == "uvc":
         camera = getattr(args, "camera", None)
         opts = {"camera": 0 if camera is None else camera, "projector_screen": args.projector_screen,
-                "settle_s": args.settle_s}
+                "settle_s": args.settle_s, "fps": getattr(args, "camera_fps", None)}
         if getattr(args, "camera_intrinsics", None):
             # a pre-calibration holds for one image size: the camera is asked for it, and refused if it
             # delivers another; its model is the camera's own for live detection

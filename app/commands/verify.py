@@ -87,6 +87,8 @@ def add_arguments(p) -> None:
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
     hw.add_argument("--camera", type=_types.camera_source, default=0, metavar="INDEX|URL",
                     help="--rig uvc: the camera, an index or a stream URL (default 0)")
+    hw.add_argument("--camera-fps", type=_types.float_range(1.0, 1000.0), default=None, metavar="FPS",
+                    help="--rig uvc: the camera's frame rate (default: what the backend reports)")
     hw.add_argument("--screen", type=_types.screen, default=None, metavar="N",
                     help="projector screen from `procam devices` (default: the non-primary one of two screens)")
     hw.add_argument("--settle", type=_types.seconds, default=None, metavar="S",
@@ -288,7 +290,8 @@ def run(args) -> int:
 
         settle = args.settle if args.settle is not None else recorded_latency_s(man)
         settle = DEFAULT_SETTLE_S if settle is None else settle  # until apply_recorded sets the recorded one
-        camera = {"camera": args.camera} if args.rig == "uvc" else {"serial": args.serial}
+        camera = ({"camera": args.camera, **({"fps": args.camera_fps} if args.camera_fps else {})}
+                  if args.rig == "uvc" else {"serial": args.serial})
         rig = open_rig(args.rig, projector_screen=args.screen, settle_s=settle,
                        projector_size=tuple(man.rig.projector_size), **camera)
         try:
