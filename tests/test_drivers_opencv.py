@@ -318,6 +318,22 @@ def test_the_uvc_rig_combines_an_opencv_camera_with_the_projector_window():
     assert out["closed"]
 
 
+def test_the_station_runs_on_the_streamed_camera(tmp_path):
+    from _station_helpers import StationProcess
+
+    folder = tmp_path / "s"
+    st = StationProcess("--rig", "sim-uvc", "--session", str(folder), timeout_s=180)
+    try:
+        man = json.loads((folder / "session.json").read_text())
+        assert man["state"]["rig_request"]["kind"] == "sim-uvc"
+        assert man["rig"]["camera_settings"]["driver"] == "opencv" and man["rig"]["driver"] == "sim-uvc"
+        assert man["rig"]["camera"] == {"width": 1280, "height": 800}  # the picture, the stamp strip cropped off
+        assert any("Simulated rig" in ln or "simulated rig" in ln for ln in st.lines), st.lines
+    finally:
+        st.stop()
+    assert st.proc.returncode is not None
+
+
 @pytest.mark.slow
 def test_captures_through_the_stream_show_only_the_image_recorded_for_them(tmp_path):
     """A short session's captures through VideoCapture: each saw only its projector image for its whole
