@@ -713,7 +713,7 @@ def file_sha256(path) -> str | None:
         return None
 
 
-VERIFY_RIGS = ("sim", "sim-realsense", "realsense")  # procam verify's --rig choices
+VERIFY_RIGS = ("sim", "sim-realsense", "sim-uvc", "realsense", "uvc")  # procam verify's --rig choices
 
 
 def verify_command(session: Path) -> str:

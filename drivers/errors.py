@@ -13,3 +13,7 @@ class DeviceDisconnected(DeviceError):
 
 class DeviceTimeout(DeviceError):
     """No (new) frame arrived in time."""
+
+
+class ExposureUnsupported(DeviceError):
+    """The camera ignores manual exposure or gain (a webcam, a stream): its own auto exposure stays on."""

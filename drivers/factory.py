@@ -1,5 +1,5 @@
 """Opening a rig by name, so the station swaps the simulated rig and the hardware with one flag
-(`--rig sim|sim-realsense|realsense`).
+(`--rig sim|sim-realsense|sim-uvc|realsense|uvc`).
 
     rig = open_rig("realsense", serial=None, projector_screen=1, settle_s=0.1)
     rig.camera.start(); ...; rig.close()
@@ -9,7 +9,9 @@ Every rig has `.kind`, `.camera` (drivers.base.CameraDriver), `.projector` (Proj
 the instruction the panel shows and does nothing else. The simulated rig is the colleague's
 drivers.sim.rig.open_sim_rig, imported only when asked for; `sim-realsense` is the same simulated
 world with its camera delivered through drivers/realsense.py by a librealsense software device
-(drivers.sim.realsense_bridge).
+(drivers.sim.realsense_bridge); `uvc` is any camera OpenCV opens (drivers/opencv_camera.py) with the
+projector window, and `sim-uvc` the simulated world with its camera served as a live MJPEG stream and
+read through that driver (drivers.sim.stream).
 """
 
 from __future__ import annotations
@@ -20,13 +22,13 @@ from typing import Any
 from calib.errors import SpecError
 from drivers.errors import DeviceError
 
-RIG_KINDS = ("sim", "sim-realsense", "realsense")
+RIG_KINDS = ("sim", "sim-realsense", "sim-uvc", "realsense", "uvc")
 #: rigs whose world is simulated (a scripted operator, a ground truth), whatever the camera path
-SIMULATED_KINDS = ("sim", "sim-realsense")
+SIMULATED_KINDS = ("sim", "sim-realsense", "sim-uvc")
 
 
 def is_simulated(kind: str | None) -> bool:
-    """True for the rigs whose world is simulated (`sim`, `sim-realsense`)."""
+    """True for the rigs whose world is simulated (`sim`, `sim-realsense`, `sim-uvc`)."""
     return kind in SIMULATED_KINDS
 
 STEP_PROJECTOR = "projector"
@@ -73,7 +75,7 @@ class HumanOperator:
 
 @dataclass
 class HardwareRig:
-    """The real rig: a RealSense camera, a projector window and a person."""
+    """The real rig: a RealSense (or OpenCV) camera, a projector window and a person."""
 
     camera: Any
     projector: Any
@@ -105,11 +107,21 @@ def open_rig(kind: str, **options):
     sim: scenario, seed, quality and the simulator's own options (drivers.sim.rig.open_sim_rig).
     sim-realsense: the same, plus fps (30); its camera is drivers.realsense.RealSenseCamera on a
       librealsense software device (drivers.sim.realsense_bridge).
+    uvc: camera (an index, default 0, or a URL / file), width, height, fps (None: the camera's), intrinsics
+      (a pre-calibrated CameraModel), and the projector window's options as for realsense.
+    sim-uvc: the sim options, plus controls ("honour", or "ignore": a camera that ignores manual
+      exposure); its camera is drivers.opencv_camera.OpenCVCamera on an MJPEG stream (drivers.sim.stream).
     """
     if kind == "sim-realsense":
         from drivers.sim.realsense_bridge import open_sim_realsense_rig
 
         return open_sim_realsense_rig(**options)
+    if kind == "sim-uvc":
+        from drivers.sim.stream import open_sim_uvc_rig
+
+        return open_sim_uvc_rig(**options)
+    if kind == "uvc":
+        return _open_uvc_rig(**options)
     if kind == "sim":
         from drivers.sim.rig import open_sim_rig
 
@@ -140,6 +152,29 @@ def open_rig(kind: str, **options):
                                 quit_keys=())
     return HardwareRig(camera, projector, HumanOperator(options.get("pattern_positions")), "realsense",
                        {k: v for k, v in options.items() if k != "context"})
+
+
+def _open_uvc_rig(**options) -> HardwareRig:
+    from drivers.opencv_camera import OpenCVCamera
+    from drivers.projector_window import ProjectorWindow
+
+    known = {"camera", "width", "height", "fps", "intrinsics", "projector_screen", "projector_size", "fullscreen",
+             "settle_s", "pattern_positions"}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise SpecError(f"unknown option(s) for the uvc rig: {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+    camera = OpenCVCamera(options.get("camera", 0), options.get("width"), options.get("height"), options.get("fps"),
+                          intrinsics=options.get("intrinsics"))
+    camera.start()  # its size is known once it streams; a missing camera is refused before the window opens
+    try:
+        projector = ProjectorWindow(options.get("projector_screen"), size=options.get("projector_size"),
+                                    fullscreen=options.get("fullscreen", True), settle_s=options.get("settle_s", 0.0),
+                                    quit_keys=())
+    except BaseException:
+        camera.stop()
+        raise
+    return HardwareRig(camera, projector, HumanOperator(options.get("pattern_positions")), "uvc",
+                       {k: v for k, v in options.items() if k != "intrinsics"})
 
 
 def default_rig_kind(context=None) -> str:

@@ -27,13 +27,16 @@ The exposure is the frame's own metadata: `actual_exposure_us` (the RealSense dr
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from drivers.clock import clock_of
-from drivers.errors import DeviceError
+from drivers.errors import DeviceError, ExposureUnsupported
 from drivers.projector_images import black, white
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -179,6 +182,11 @@ def measure_settle(projector, camera, trials: int = 5, observe_s: float = 1.5, r
     return SettleMeasurement(latency + spread + margin, tuple(samples), interval, float(np.mean(changed)), jitter)
 
 
+#: the latency assumed when it cannot be measured (a camera's auto exposure follows the change): longer
+#: than projectors' (60-150 ms, a compositor's frame included), so no frame of an old image counts
+UNMEASURED_LATENCY_S = 0.3
+
+
 def measure_settle_time(projector, camera, **kwargs) -> float:
     """The recommended settle time in seconds (measure_settle(...).settle_s)."""
     return measure_settle(projector, camera, **kwargs).settle_s
@@ -222,23 +230,33 @@ def apply_timing(camera, projector, camera_settings: dict | None = None, search_
     if isinstance(camera, ExposureControl):
         camera.set_emitter(False)
         recorded = recorded_exposure(rec)
-        if recorded is not None:
-            applied, _ = apply_exposure(camera, *recorded)
-        else:
-            img = white(tuple(projector.size)) if search_image is None else search_image
-            projector.wait_presented(projector.show(img))
-            clock_of(projector).sleep(0.5)  # longer than any projector's latency
-            c = search_exposure(camera, float(getattr(projector, "refresh_hz", 60.0) or 60.0))
-            applied = {"exposure_us": c.exposure_us, "gain": c.gain}
-        out.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
-                    "gain": float(applied["gain"]), "emitter_enabled": False})
+        try:
+            if recorded is not None:
+                applied, _ = apply_exposure(camera, *recorded)
+            else:
+                img = white(tuple(projector.size)) if search_image is None else search_image
+                projector.wait_presented(projector.show(img))
+                clock_of(projector).sleep(0.5)  # longer than any projector's latency
+                c = search_exposure(camera, float(getattr(projector, "refresh_hz", 60.0) or 60.0))
+                applied = {"exposure_us": c.exposure_us, "gain": c.gain}
+            out.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
+                        "gain": float(applied["gain"]), "emitter_enabled": False})
+        except ExposureUnsupported as e:  # a webcam's own auto exposure: frames are still timed
+            _log.warning("%s", e)
+            out.update({"auto_exposure": True, "manual_exposure": "ignored by the camera"})
     timing = dict(rec.get("projector") or {})
     if hasattr(projector, "settle_s"):
         latency_s = recorded_latency_s(rec)
         if latency_s is not None:
             projector.settle_s = latency_s
         elif measure:
-            projector.settle_s = measure_settle(projector, camera).settle_s
+            try:
+                projector.settle_s = measure_settle(projector, camera).settle_s
+            except DeviceError:
+                if out.get("manual_exposure") != "ignored by the camera":
+                    raise
+                projector.settle_s = UNMEASURED_LATENCY_S  # the rig check's rule (app/station/station.py)
+                timing["assumed"] = True
         timing.update({"latency_ms": round(float(projector.settle_s) * 1000.0, 3),
                        "refresh_hz": float(getattr(projector, "refresh_hz", 0.0) or 0.0)})
         out["projector"] = timing

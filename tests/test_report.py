@@ -15,7 +15,8 @@ from calib.errors import FormatError
 from app.cli import main
 from tests._station_helpers import launch_chromium, make_store, run_procam
 
-SECTIONS = ("summary", "parameters", "distortion", "residuals", "per-view", "coverage", "rig", "verification")
+SECTIONS = ("summary", "parameters", "distortion", "residuals", "per-view", "coverage", "rig", "verification",
+            "exports")
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +121,21 @@ def test_report_is_self_contained_and_shows_the_calibration(calibrated, report):
 
 
 @pytest.mark.slow
+def test_report_names_the_exports_and_which_the_session_holds(calibrated, report):
+    from calib.export.registry import EXPORTERS
+
+    html = report.read_text()
+    section = html[html.index('id="exports"'):]
+    rows = {m.group(1): m.group(2) for m in re.finditer(r'<tr><td class="l"><code>(\w+)</code></td>(.*?)</tr>', section)}
+    assert set(rows) == set(EXPORTERS)
+    for name, e in EXPORTERS.items():
+        for p in e.paths(calibrated, "calibration"):
+            assert f"<code>{p.name}</code>" in rows[name], (name, p.name)
+    # procam calibrate writes the default (OpenCV YAML) beside calibration.json; the others on request
+    assert "in the session" in rows["opencv"] and "not written yet" in rows["mrcal"]
+    assert f"procam export {calibrated} --format all --out DIR" in section
+
+
 def test_recomputed_residuals_match_every_view_of_the_calibration(calibrated):
     from app.report.data import gather
 

@@ -200,7 +200,11 @@ def test_a_session_operated_from_the_browser(tmp_path):
     assert json.loads((folder / "verification.json").read_text())["passed"] is True
     with zipfile.ZipFile(zpath) as z:
         expected = [n for n in RESULT_FILES if (folder / n).is_file()]
-        assert z.namelist() == expected and "calibration.yaml" in expected
+        names = z.namelist()
+        assert names[:len(expected)] == expected and "calibration.yaml" in expected
+        # and, by default, every export under exports/ (the dropdown's "all exports")
+        assert "exports/calibration-camera.cameramodel" in names and "exports/calibration-unity.json" in names
+        assert all(n.startswith("exports/") for n in names[len(expected):])
         assert z.read("calibration.json") == (folder / "calibration.json").read_bytes()
         assert z.read("verification.json") == (folder / "verification.json").read_bytes()
     assert (tmp_path / "panel.png").stat().st_size > 50_000

@@ -12,7 +12,10 @@ import pytest
 from app.station.autocapture import AutoCapture, AutoCaptureSettings, Bar, diversity_bars
 from app.station.panel_guidance import coverage_grid, suggest_next, unmet_targets
 from app.station.panel_live import FONT, image_plane, pixel_of_click, wrap
-from app.station.panel_results import RESULT_FILES, parameters_text, results_zip, worst_views_text
+from app.station.panel_results import (
+    EXPORTS_ALL, EXPORTS_NONE, RESULT_FILES, export_choices, export_names, parameters_text, results_zip,
+    worst_views_text,
+)
 from calib.errors import ProcamError
 from calib.synthetic import make_rig
 from tests.test_station_autocapture import board_at, det, observe
@@ -52,6 +55,38 @@ def test_results_zip_carries_exactly_the_result_files_there(tmp_path):
         assert z.namelist() == names
         assert z.read("calibration.json") == (tmp_path / "calibration.json").read_bytes()
     assert set(names) <= set(RESULT_FILES)
+
+
+def test_results_zip_carries_the_exports_chosen(tmp_path):
+    from calib.export.registry import EXPORTERS, write_exports
+
+    res = make_rig(136).ground_truth()
+    res.save_json(tmp_path / "calibration.json")
+    assert export_choices()[:2] == (EXPORTS_ALL, EXPORTS_NONE) and set(export_choices()[2:]) == set(EXPORTERS)
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    write_exports(res, tuple(EXPORTERS), ref, "calibration")
+    data, names = results_zip(tmp_path, export_names(EXPORTS_ALL))
+    want = sorted(f"exports/{p.name}" for p in ref.iterdir())
+    assert names[0] == "calibration.json" and sorted(n for n in names if n.startswith("exports/calibration")) == want
+    assert "exports/calibration-camera.cameramodel" in names and "exports/calibration-projector.ros.yaml" in names
+    zpath = tmp_path / "out.zip"
+    zpath.write_bytes(data)
+    with zipfile.ZipFile(zpath) as z:
+        for n in want:  # the bytes `procam export` writes
+            assert z.read(n) == (ref / n.split("/", 1)[1]).read_bytes(), n
+    assert not (tmp_path / "exports").exists()  # written elsewhere, never into the session folder
+    assert results_zip(tmp_path, export_names("ros"))[1] == ["calibration.json", "exports/calibration-camera.ros.yaml",
+                                                             "exports/calibration-projector.ros.yaml"]
+    assert results_zip(tmp_path, export_names(EXPORTS_NONE))[1] == ["calibration.json"]
+    # a calibration the trust check rejects leaves with a note instead of exports
+    trust = {"passed": False, "reasons": [{"code": "rms_high", "message": "residuals of 9 px"}]}
+    res.with_(diagnostics={"trust": trust}).save_json(tmp_path / "calibration.json")
+    data, names = results_zip(tmp_path, export_names(EXPORTS_ALL))
+    assert names == ["calibration.json", "exports/NOTES.txt"]
+    zpath.write_bytes(data)
+    with zipfile.ZipFile(zpath) as z:
+        assert "trust check rejects" in z.read("exports/NOTES.txt").decode() and "rms_high" in z.read("exports/NOTES.txt").decode()
 
 
 def test_parameters_show_fixed_for_a_given_camera_and_the_distortion():

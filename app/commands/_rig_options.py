@@ -8,10 +8,27 @@ POSES_PER_POSITION = (1, 100)
 MIRROR_CAPTURES = (1, 500)
 
 
+#: --rig's choices (drivers.factory.RIG_KINDS)
+RIG_CHOICES = ("sim", "sim-realsense", "sim-uvc", "realsense", "uvc")
+
+
+def add_camera_option(p) -> None:
+    """--camera (the uvc rig's camera)."""
+    p.add_argument("--camera", type=_types.camera_source, default=None, metavar="INDEX|URL",
+                   help="--rig uvc: the camera, an index (0: /dev/video0 on Linux; `procam devices` lists them) or "
+                        "a stream URL / file (default 0)")
+    p.add_argument("--camera-fps", type=_types.float_range(1.0, 1000.0), default=None, metavar="FPS",
+                   help="--rig uvc: the camera's frame rate, asked of it and used to time its frames (default: what "
+                        "the backend reports; FFmpeg says 25 for any MJPEG stream)")
+
+
 def add_rig_options(p) -> None:
-    p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), default=None,
+    p.add_argument("--rig", choices=RIG_CHOICES, default=None,
                    help="rig to use (default: realsense when one is connected, else sim; sim-realsense: the "
-                        "simulated rig with its camera through the RealSense driver and librealsense)")
+                        "simulated rig with its camera through the RealSense driver and librealsense; uvc: any "
+                        "camera OpenCV opens (--camera); sim-uvc: the simulated camera as a live MJPEG stream read "
+                        "through the OpenCV driver)")
+    add_camera_option(p)
     p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
     p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default 0)")
     p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")

@@ -24,6 +24,19 @@ def _bad(text: str, allowed: str) -> argparse.ArgumentTypeError:
     return argparse.ArgumentTypeError(f"must be {allowed}, got {text!r}")
 
 
+def camera_source(text: str):
+    """A camera for cv2.VideoCapture: an index (0..99) or a URL / path (no control characters)."""
+    t = str(text).strip()
+    if t.isdigit():
+        v = int(t)
+        if v > 99:
+            raise _bad(text, "a camera index from 0 to 99, or a URL")
+        return v
+    if not t or len(t) > 2000 or any(ord(c) < 32 for c in t):
+        raise _bad(text, "a camera index from 0 to 99, or a URL")
+    return t
+
+
 def int_range(lo: int, hi: int | None = None):
     """A whole number in [lo, hi] (no upper bound when hi is None)."""
     allowed = f"a whole number from {lo} to {hi}" if hi is not None else f"a whole number >= {lo}"

@@ -1,13 +1,15 @@
-"""`procam devices`: what hardware this machine offers the station: RealSense cameras and screens."""
+"""`procam devices`: what hardware this machine offers the station: RealSense cameras, the cameras OpenCV
+opens and screens."""
 
 from __future__ import annotations
 
 import json
 
 NAME = "devices"
-HELP = "list connected RealSense cameras and the screens a projector window can use"
+HELP = "list connected RealSense cameras, OpenCV cameras and the screens a projector window can use"
 DESCRIPTION = (
-    "Lists the connected Intel RealSense cameras (serial, name, firmware, USB type) and every display output "
+    "Lists the connected Intel RealSense cameras (serial, name, firmware, USB type), the cameras OpenCV opens "
+    "(the index --rig uvc --camera takes, backend, frame size), and every display output "
     "(index, name, primary flag, resolution, position, refresh rate; the index is what --screen / "
     "--projector-screen take) and which one the station would use for the projector: the non-primary screen "
     "of two (with more than two, --projector-screen is required). Empty lists are not an error: without "
@@ -21,8 +23,8 @@ def add_arguments(p) -> None:
 
 
 def collect() -> dict:
-    """{'realsense': [...], 'realsense_available': bool, 'realsense_error': str|None, 'screens': [...],
-    'display_error': str|None, 'projector_screen': int|None, 'projector_screen_note': str|None}"""
+    """{'realsense': [...], 'realsense_available': bool, 'realsense_error': str|None, 'opencv_cameras': [...],
+    'screens': [...], 'display_error': str|None, 'projector_screen': int|None, 'projector_screen_note': str|None}"""
     from drivers.errors import DeviceError
     from drivers.projector_window import choose_projector_screen, list_screens
     from drivers.realsense import list_realsense_devices, realsense_import_error
@@ -31,6 +33,10 @@ def collect() -> dict:
     out = {"realsense": list_realsense_devices() if error is None else [], "realsense_available": error is None,
            "realsense_error": error, "screens": [], "display_error": None, "projector_screen": None,
            "projector_screen_note": None}
+    from drivers.opencv_camera import list_opencv_cameras
+
+    # a RealSense shows up among them too (its colour node is a UVC camera): the realsense rig drives it better
+    out["opencv_cameras"] = list_opencv_cameras()
     try:
         out["screens"] = list_screens()
     except DeviceError as e:
@@ -58,6 +64,12 @@ def run(args) -> int:
     for d in found["realsense"]:
         print(f"  {d.get('serial') or '?'}  {d.get('name') or '?'}  firmware {d.get('firmware') or '?'}  "
               f"USB {d.get('usb_type') or '?'}")
+    print("OpenCV cameras (index for --rig uvc --camera):")
+    if not found["opencv_cameras"]:
+        print("  none found (a webcam another program streams from cannot be opened; on Linux check /dev/video* "
+              "and that you are in the 'video' group)")
+    for c in found["opencv_cameras"]:
+        print(f"  {c['source']}  {c['backend']}  {c['width']}x{c['height']}" + (f" @ {c['fps']:g} fps" if c["fps"] else ""))
     print("Screens (index for --screen / --projector-screen):")
     if found["display_error"]:
         print(f"  none: {found['display_error']}")

@@ -7,7 +7,9 @@ import time
 from pathlib import Path
 
 from app.commands import _types
-from app.commands._rig_options import add_sim_bump_option, add_sim_faults_option, add_sim_latency_option
+from app.commands._rig_options import (
+    RIG_CHOICES, add_camera_option, add_sim_bump_option, add_sim_faults_option, add_sim_latency_option,
+)
 
 NAME = "recalibrate"
 HELP = "on-site recalibration: check what moved since PREVIOUS, re-measure only that, compare"
@@ -30,7 +32,7 @@ def add_arguments(p) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the recalibration in DIR where it stopped (Ctrl-C, closed input, crash): its "
                         "captures are kept; PREVIOUS must be the calibration it started from")
-    p.add_argument("--rig", choices=("sim", "sim-realsense", "realsense"), default=None,
+    p.add_argument("--rig", choices=RIG_CHOICES, default=None,
                    help="rig to use (default: realsense when one is connected, else sim; with --resume the "
                         "stopped recalibration's)")
     p.add_argument("--auto", action="store_true",
@@ -48,6 +50,7 @@ def add_arguments(p) -> None:
     p.add_argument("--mirror-board", default=None, help="mirror board spec, with --board (default: --board)")
     p.add_argument("--units", default=None, help="unit of the --board lengths (default: PREVIOUS's)")
     p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
+    add_camera_option(p)
     p.add_argument("--projector-screen", type=_types.screen, default=None,
                    help="real rig: screen the projector is connected to, from `procam devices`")
     p.add_argument("--settle-s", type=_types.seconds, default=None,

@@ -60,6 +60,18 @@ def rig_options(args, kind: str) -> dict:
         if getattr(args, "sim_bump", None):
             out["bump"] = args.sim_bump
         return out
+    if kind == "uvc":
+        camera = getattr(args, "camera", None)
+        opts = {"camera": 0 if camera is None else camera, "projector_screen": args.projector_screen,
+                "settle_s": args.settle_s, "fps": getattr(args, "camera_fps", None)}
+        if getattr(args, "camera_intrinsics", None):
+            # a pre-calibration holds for one image size: the camera is asked for it, and refused if it
+            # delivers another; its model is the camera's own for live detection
+            from app.station.machine import load_intrinsics
+
+            model = load_intrinsics(args.camera_intrinsics)
+            opts.update(intrinsics=model, width=model.width, height=model.height)
+        return {k: v for k, v in opts.items() if v is not None}
     opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
     return {k: v for k, v in opts.items() if v is not None}
 
@@ -126,7 +138,8 @@ def open_session(args, log=print):
             machine.extra_state["method"] = args.method  # a resumed session calibrates the same way
             machine._persist()
         what = f"{kind} rig" if not is_simulated(kind) else f"simulated rig '{req.scenario}' (seed {req.seed})" + (
-            "" if kind == "sim" else ", camera through the RealSense driver")
+            "" if kind == "sim" else ", camera through the OpenCV driver on a live stream" if kind == "sim-uvc"
+            else ", camera through the RealSense driver")
         log(f"new session in {folder} on the {what}")
     if args.camera_intrinsics:
         machine.skip_camera(args.camera_intrinsics)

@@ -1,4 +1,4 @@
-"""`procam verify SESSION --rig sim|sim-realsense|realsense`: the automatic epipolar check of SESSION/calibration.json.
+"""`procam verify SESSION --rig sim|sim-realsense|sim-uvc|realsense|uvc`: the automatic epipolar check of SESSION/calibration.json.
 
 Exit codes (scripts rely on them): 0 the calibration passes, 1 it fails the check (or too few pixels
 could be measured), 2 the check could not run (missing files, devices, bad arguments).
@@ -62,7 +62,8 @@ def add_arguments(p) -> None:
 
     p.add_argument("session", metavar="SESSION", help="session folder (with session.json and calibration.json)")
     p.add_argument("--rig", choices=VERIFY_RIGS, required=True,
-                   help="the rig to measure on (sim-realsense: the simulated rig through the RealSense driver)")
+                   help="the rig to measure on (sim-realsense: the simulated rig through the RealSense driver; "
+                        "sim-uvc: through the OpenCV driver on a live stream; uvc: any camera OpenCV opens)")
     p.add_argument("--threshold", type=_positive, default=DEFAULT_THRESHOLD_PX, metavar="PX",
                    help=f"verdict threshold on the mean distance, projector pixels (default {DEFAULT_THRESHOLD_PX:g}; "
                         "the worst pixel may reach twice it)")
@@ -73,7 +74,7 @@ def add_arguments(p) -> None:
     p.add_argument("--out", metavar="FILE", default=None, help="report file (default SESSION/verification.json)")
     p.add_argument("--average", type=_types.int_range(1, 100), default=1, metavar="N",
                    help="camera frames averaged per image (default 1)")
-    sim = p.add_argument_group("--rig sim, sim-realsense")
+    sim = p.add_argument_group("--rig sim, sim-realsense, sim-uvc")
     sim.add_argument("--scenario", default=None, help="scenario (default: the one the session was simulated with)")
     sim.add_argument("--seed", type=_types.seed, default=None, help="scenario seed (default: the session's)")
     sim.add_argument("--quality", choices=("live", "session"), default="live",
@@ -82,8 +83,12 @@ def add_arguments(p) -> None:
 
     add_sim_latency_option(sim)
     add_sim_faults_option(sim)
-    hw = p.add_argument_group("--rig realsense")
+    hw = p.add_argument_group("--rig realsense, uvc")
     hw.add_argument("--serial", default=None, help="RealSense serial number (default: the first camera)")
+    hw.add_argument("--camera", type=_types.camera_source, default=0, metavar="INDEX|URL",
+                    help="--rig uvc: the camera, an index or a stream URL (default 0)")
+    hw.add_argument("--camera-fps", type=_types.float_range(1.0, 1000.0), default=None, metavar="FPS",
+                    help="--rig uvc: the camera's frame rate (default: what the backend reports)")
     hw.add_argument("--screen", type=_types.screen, default=None, metavar="N",
                     help="projector screen from `procam devices` (default: the non-primary one of two screens)")
     hw.add_argument("--settle", type=_types.seconds, default=None, metavar="S",
@@ -135,6 +140,9 @@ def _apply_recorded(rig, manifest, settle_s: float | None = None) -> tuple[dict,
         else:
             line += " (the session recorded none: searched now)"
         lines.append(line + "; emitter off")
+    elif got.get("manual_exposure") == "ignored by the camera":
+        lines.append("warning: camera: ignores manual exposure, so its own auto exposure stays on (the measurement "
+                     "may flicker)")
     elif got:
         lines.append("camera: the session recorded no manual exposure, so auto exposure is on (the measurement "
                      "may flicker); emitter off")
@@ -142,8 +150,10 @@ def _apply_recorded(rig, manifest, settle_s: float | None = None) -> tuple[dict,
         lines.append("camera: no exposure control, left as it is")
     proj = got.get("projector")
     if isinstance(proj, dict) and proj.get("latency_ms") is not None:
+        rec_proj = rec.get("projector") if isinstance(rec.get("projector"), dict) else {}
         how = "--settle" if settle_s is not None else \
-            "as the session measured" if recorded_latency_s(manifest) is not None else "measured now"
+            ("as the session assumed: not measurable under the camera's auto exposure" if rec_proj.get("assumed")
+             else "as the session measured") if recorded_latency_s(manifest) is not None else "measured now"
         lines.append(f"projector latency: {float(proj['latency_ms']):.0f} ms ({how})")
     return got, lines
 
@@ -247,7 +257,7 @@ def run(args) -> int:
         try:
             instruction = rig.operator.request_pose("verification", None, 0)
             print(instruction, file=sys.stderr, flush=True)
-            if args.rig == "realsense" and args.delay > 0:
+            if args.rig in ("realsense", "uvc") and args.delay > 0:
                 time.sleep(args.delay)
             # exposure, emitter and projector latency as the session recorded them
             applied, lines = _apply_recorded(rig, man, args.settle)
@@ -266,7 +276,7 @@ def run(args) -> int:
 
     if args.settle is not None and not args.settle >= 0:
         raise SessionError(f"--settle must be >= 0 seconds, got {args.settle:g}")
-    if args.rig in ("sim", "sim-realsense"):
+    if args.rig in ("sim", "sim-realsense", "sim-uvc"):
         from drivers.factory import open_rig
 
         rig = open_rig(args.rig, **_sim_options(man, args))
@@ -280,8 +290,10 @@ def run(args) -> int:
 
         settle = args.settle if args.settle is not None else recorded_latency_s(man)
         settle = DEFAULT_SETTLE_S if settle is None else settle  # until apply_recorded sets the recorded one
-        rig = open_rig("realsense", serial=args.serial, projector_screen=args.screen, settle_s=settle,
-                       projector_size=tuple(man.rig.projector_size))
+        camera = ({"camera": args.camera, **({"fps": args.camera_fps} if args.camera_fps else {})}
+                  if args.rig == "uvc" else {"serial": args.serial})
+        rig = open_rig(args.rig, projector_screen=args.screen, settle_s=settle,
+                       projector_size=tuple(man.rig.projector_size), **camera)
         try:
             report = run_projector_loop(rig.projector, lambda: check(rig, settle_frames=2))
         finally:

@@ -148,6 +148,7 @@ class ReportData:
     uncertainty: dict | None = None  # clean_uncertainty
     diagnostics: dict = field(default_factory=dict)  # clean_diagnostics
     per_view: list = field(default_factory=list)  # clean_per_view
+    calibration_stem: str = "calibration"  # the calibration file's name without .json: the exports' prefix
 
 
 def gather(session_dir, calibration_path=None) -> ReportData:
@@ -178,7 +179,7 @@ def gather(session_dir, calibration_path=None) -> ReportData:
         rproblem = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
     return ReportData(session_dir, store, result, calibration, verification, vproblem, residuals, rproblem,
                       clean_uncertainty(calibration.get("uncertainty")), clean_diagnostics(calibration.get("diagnostics")),
-                      clean_per_view(calibration.get("per_view") or []))
+                      clean_per_view(calibration.get("per_view") or []), cal_path.stem)
 
 
 def _read_verification(path: Path, cal_path: Path):

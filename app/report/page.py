@@ -37,7 +37,7 @@ code{background:#f2f2f2;padding:0 3px;border-radius:3px}
 
 SECTIONS = (("summary", "Summary"), ("parameters", "Parameters"), ("distortion", "Distortion"),
             ("residuals", "Residuals"), ("per-view", "Per view"), ("coverage", "Coverage"), ("rig", "Rig"),
-            ("verification", "Verification"))
+            ("verification", "Verification"), ("exports", "Exports"))
 
 
 def _e(x) -> str:
@@ -415,12 +415,37 @@ detected stroke. Drawn over the camera image's frame (verification.json keeps th
 {_table(["#", "pixel (camera px)", "distance (camera px)", "distance (projector px)", "verdict"], rows)}"""
 
 
+def _exports(d: ReportData) -> str:
+    """The files other software loads this calibration from (calib.export), which of them the session
+    holds, and the command that writes the others."""
+    import os
+
+    from calib.export.registry import EXPORTERS
+
+    rows = []
+    for name, e in EXPORTERS.items():
+        files = [p.name for p in e.paths(d.session_dir, d.calibration_stem)]
+        here = [f for f in files if os.path.lexists(d.session_dir / f)]  # named, never read
+        rows.append(f'<tr><td class="l"><code>{_e(name)}</code></td><td class="l">{_e(e.summary)}</td>'
+                    f'<td class="l">{"<br>".join(f"<code>{_e(f)}</code>" for f in files)}</td>'
+                    f'<td class="l">{"in the session" if len(here) == len(files) else "not written yet"}</td></tr>')
+    source = d.session_dir if d.calibration_stem == "calibration" else d.session_dir / f"{d.calibration_stem}.json"
+    return f"""
+<h2 id="exports">Exports</h2>
+<p class="note">This calibration for the software that projects or reconstructs with it: ROS (camera_info), mrcal
+(.cameramodel), OpenGL (projection and view matrices), Unity and three.js (virtual cameras), OpenCV (FileStorage
+YAML). The station's download zip carries the ones chosen under <code>exports/</code>; write any of them with
+<code>procam export {_e(source)} --format all --out DIR</code>. How to load each: docs/FORMATS.md, "Loading the
+exports". A distortion a format cannot hold is left out with a warning giving its residual in px.</p>
+{_table(["format", "what", "files", "here"], rows)}"""
+
+
 def render(d: ReportData) -> str:
     """The whole page."""
     t0 = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     nav = " ".join(f'<a href="#{i}">{t}</a>' for i, t in SECTIONS)
     body = "".join(f(d) for f in (_verdict, _summary, _parameters, _distortion, _residuals, _per_view, _coverage, _rig,
-                                  _verification))
+                                  _verification, _exports))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">

@@ -25,7 +25,9 @@ from app.station.machine import (
 )
 from app.station.panel_driver import TAKE_CONTROL
 from app.station.panel_guidance import unmet_targets
-from app.station.panel_results import results_zip, write_report_if_available
+from app.station.panel_results import (
+    EXPORTS_ALL, export_choices, export_names, results_zip, write_report_if_available,
+)
 from app.station.panel_scene import click_to_pixel, view_from_camera, view_whole_rig
 from calib.errors import ProcamError
 
@@ -85,7 +87,10 @@ class ControlsMixin:
         h["message"] = g.add_markdown("", order=1.2)
         h["download"] = g.add_button("Download results (zip)", order=1.5, color="teal", visible=False,
                                      hint="calibration.json, calibration.yaml, verification.json, report.html and "
-                                          "recalibration.json, those that exist")
+                                          "recalibration.json, those that exist, and the exports chosen below")
+        h["exports"] = g.add_dropdown("Exports in the zip", export_choices(), initial_value=EXPORTS_ALL, order=1.55,
+                                      visible=False, hint="ROS camera_info, mrcal, OpenGL, Unity, three.js, OpenCV: "
+                                                          "under exports/ in the zip (docs/FORMATS.md)")
         with g.add_folder("Step controls", order=3) as h["steps"]:
             with g.add_folder(FOLDER_TITLES["rig"]) as f["rig"]:
                 h["check"] = g.add_button("Check rig")
@@ -250,7 +255,7 @@ class ControlsMixin:
                 _, why = write_report_if_available(folder)
             note = f" (no report.html: {why})" if why else ""
             acts.progress(DOWNLOAD_NAME, "packing the result files", log=False)
-            data, names = results_zip(folder)
+            data, names = results_zip(folder, export_names(ctl.handles["exports"].value))
             name = f"{folder.name}-results.zip"
             acts.progress(DOWNLOAD_NAME, f"sending {name} ({len(data) / 1024:.0f} kB) to this browser", log=False)
             ctl.client.send_file_download(name, data, save_immediately=True)
@@ -476,7 +481,7 @@ class ControlsMixin:
         if self._cached(ctl, "calibrate_note", note):
             h["calibrate_note"].content = note
         if self._cached(ctl, "download_visible", m.result is not None):
-            h["download"].visible = m.result is not None
+            h["download"].visible = h["exports"].visible = m.result is not None
         if self._cached(ctl, "cal_label", "Re-run calibration" if m.result is not None else "Calibrate"):
             h["calibrate"].label = ctl.cache["cal_label"]
         shown = set(STEP_FOLDERS.get(m.state, ())) if not h["show_all"].value else set(ctl.folders)

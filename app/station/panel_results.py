@@ -174,19 +174,71 @@ def write_report_if_available(folder) -> tuple[Path | None, str | None]:
         return None, f"the report failed ({type(e).__name__}: {e})"
 
 
-def results_zip(folder) -> tuple[bytes, list[str]]:
-    """A zip of the result files that exist in `folder` (RESULT_FILES): (bytes, names in it). Each is read
+#: The panel's choice of exports in the zip (calib.export.registry.EXPORTERS): every one, none, or one.
+EXPORTS_ALL, EXPORTS_NONE = "all exports", "no exports"
+EXPORTS_FOLDER = "exports"
+EXPORT_NOTES = "exports/NOTES.txt"
+
+
+def export_choices() -> tuple[str, ...]:
+    from calib.export.registry import EXPORTERS
+
+    return (EXPORTS_ALL, EXPORTS_NONE) + tuple(EXPORTERS)
+
+
+def export_names(choice: str) -> tuple[str, ...]:
+    """The exporters a dropdown choice names (an unknown choice: none)."""
+    from calib.export.registry import EXPORTERS
+
+    if choice == EXPORTS_ALL:
+        return tuple(EXPORTERS)
+    return (choice,) if choice in EXPORTERS else ()
+
+
+def _exports(folder: Path, names) -> list[tuple[str, bytes]]:
+    """(name in the zip, bytes) of the exports `names` of folder/calibration.json, written in a private
+    temporary folder (never the session's); the warnings, or why nothing could be exported, in NOTES.txt."""
+    import tempfile
+
+    from calib.export.registry import EXPORTERS, trust_reasons, write_exports
+    from calib.models.result import CalibrationResult
+
+    try:
+        result = CalibrationResult.load_json(folder / "calibration.json")
+        reasons = trust_reasons(result)
+        if reasons:
+            return [(EXPORT_NOTES, ("not exported: the trust check rejects this calibration: "
+                                    + "; ".join(reasons) + "\n").encode())]
+        out = []
+        with tempfile.TemporaryDirectory(prefix="procam-exports-") as tmp:
+            warnings = write_exports(result, names, Path(tmp), "calibration")
+            for n in names:
+                for p in EXPORTERS[n].paths(tmp, "calibration"):
+                    out.append((f"{EXPORTS_FOLDER}/{p.name}", p.read_bytes()))
+        if warnings:
+            out.append((EXPORT_NOTES, ("".join(f"warning: {w}\n" for w in warnings)).encode()))
+        return out
+    except ProcamError as e:  # an export that cannot be written must not keep the results from leaving
+        return [(EXPORT_NOTES, f"not exported: {e}\n".encode())]
+
+
+def results_zip(folder, exports=()) -> tuple[bytes, list[str]]:
+    """A zip of the result files that exist in `folder` (RESULT_FILES) and, under exports/, the calibration
+    in the formats `exports` names (calib.export; docs/FORMATS.md): (bytes, names in it). Each file is read
     as a regular file of the folder (calib.formats.fileio.read_regular): a link, a pipe or a device there
     is refused with its name, never followed into the zip."""
     folder = Path(folder)
     names = [n for n in RESULT_FILES if os.path.lexists(folder / n)]
     if "calibration.json" not in names:
         raise ProcamError("there is no calibration.json in the session yet; calibrate first")
+    files = [(n, read_regular(folder / n, RESULT_MAX_BYTES, "result file")) for n in names]
+    if exports:
+        files += _exports(folder, tuple(exports))
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        for n in names:
-            z.writestr(n, read_regular(folder / n, RESULT_MAX_BYTES, "result file"))
-    return buf.getvalue(), names
+        for n, data in files:
+            z.writestr(n, data)
+    return buf.getvalue(), [n for n, _ in files]
 
 
 def thumbnail_data_url(data: bytes, width: int = THUMB_WIDTH) -> str | None:

@@ -48,7 +48,7 @@ from calib.errors import ProcamError, SessionError, SpecError
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
 from drivers.clock import clock_of
-from drivers.errors import DeviceDisconnected, DeviceError
+from drivers.errors import DeviceDisconnected, DeviceError, ExposureUnsupported
 
 
 _log = logging.getLogger("procam.station")
@@ -277,7 +277,8 @@ class Station:
         from calib.detection.response import recorded_response
         from drivers.settle import recorded_exposure, recorded_latency_s
 
-        if isinstance(cam, ExposureControl):
+        manual = isinstance(cam, ExposureControl)
+        if manual:
             try:
                 cam.set_emitter(False)
                 if recorded_exposure(recorded) is not None:
@@ -306,6 +307,15 @@ class Station:
                 settings.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
                                  "gain": float(applied["gain"]), "emitter_enabled": False})
                 checks.append(RigCheck("camera exposure", True, detail + "; IR emitter off"))
+            except ExposureUnsupported as e:
+                # a webcam without manual exposure still calibrates: frames are gated by their times, and
+                # the levels may drift with the pattern
+                manual = False
+                text = f"WARNING: {e}; the session continues, the camera's response is not measured"
+                _log.warning(text)
+                self.machine.log(text)
+                settings.update({"auto_exposure": True, "manual_exposure": "ignored by the camera"})
+                checks.append(RigCheck("camera exposure", True, text))
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("camera exposure", False, f"could not be set: {e}"))
                 return checks
@@ -339,10 +349,25 @@ class Station:
                 settings["projector"] = timing
                 checks.append(RigCheck("projector latency", True, detail + (f", {refresh:g} Hz" if refresh else "")))
             except (DeviceError, ProcamError) as e:
-                checks.append(RigCheck("projector latency", False, f"could not be measured: {e}"))
+                if manual or not isinstance(cam, ExposureControl):
+                    checks.append(RigCheck("projector latency", False, f"could not be measured: {e}"))
+                else:
+                    # a camera's own auto exposure follows the change it should show (dark raises it until
+                    # the unlit board looks lit): a latency longer than projectors' keeps frames honest
+                    from drivers.settle import UNMEASURED_LATENCY_S
+
+                    proj.settle_s = UNMEASURED_LATENCY_S
+                    timing.update({"latency_ms": round(UNMEASURED_LATENCY_S * 1000.0, 3), "assumed": True,
+                                   "refresh_hz": float(getattr(proj, "refresh_hz", 0.0) or 0.0)})
+                    settings["projector"] = timing
+                    text = ("WARNING: not measurable while the camera's own auto exposure follows the switches from "
+                            f"dark to bright; {UNMEASURED_LATENCY_S * 1000:.0f} ms assumed (longer than projectors' "
+                            "latency: captures wait a little longer)")
+                    _log.warning("%s (the measurement said: %s)", text, e)
+                    checks.append(RigCheck("projector latency", True, text))
         # the RealSense: measured, last (a full white just before the latency trials fooled the first one
         # through the emulation: 0 ms, and a settle time too short for the verification)
-        if not callable(response) and isinstance(cam, ExposureControl):
+        if not callable(response) and manual:
             checks.append(self._measure_response(cam, proj, recorded, settings))
         return checks
 

@@ -9,7 +9,8 @@ Where each applies: the hardware model (drivers/sim/hardware.py, so both `--rig 
 `--rig sim-realsense`): apply-lag, latency-jitter. The librealsense software device
 (drivers/sim/realsense_bridge.py, `--rig sim-realsense` only): no-metadata, auto-white-balance.
 gain-range names what the software device always emulates (a D455's colour gain, 0..128 from 64);
-the plain simulated camera keeps its 1..8 gain. On `--rig sim` the software device's faults do nothing.
+the plain simulated camera keeps its 1..8 gain. On `--rig sim` the software device's faults do nothing. The simulated stream's controls
+(drivers/sim/stream.py, `--rig sim-uvc` only): ignores-exposure.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ FAULTS = {
     "auto-white-balance": "auto white balance on at power-up, its colour gains drifting with the scene "
                           "(sim-realsense)",
     "latency-jitter": "the projector's latency jitters by one refresh period",
+    "ignores-exposure": "the camera accepts manual exposure and gain writes and ignores them, as many webcams "
+                        "(sim-uvc)",
 }
 
 #: settings applied this many frames late under apply-lag (a D455: librealsense #11228)
