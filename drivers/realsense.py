@@ -21,12 +21,16 @@ time.monotonic() when the frame arrived.
 
 Frame times: `Frame.exposure_start_s` is the host `time.monotonic()` second at which the frame's
 exposure began, estimated from what the frame carries (see `_exposure_start`):
-- global_time / system_time domain (librealsense maps the device clock onto the host's system clock;
-  the default on the D4xx): the frame time minus the part of the frame that precedes it, converted
-  to the monotonic clock with the offset time.time() - time.monotonic() measured when the frame
-  arrives. When the frame carries both `frame_timestamp` (start of readout) and `sensor_timestamp`
+- global_time domain (librealsense maps the device clock onto the host's system clock; the default on
+  the D4xx when frame metadata is available): the frame time minus the part of the frame that precedes
+  it, converted to the monotonic clock with the offset time.time() - time.monotonic() measured when the
+  frame arrives. When the frame carries both `frame_timestamp` (start of readout) and `sensor_timestamp`
   (middle of exposure) metadata, the exposure start is the middle of exposure minus half the exposure;
   otherwise the frame time is taken as the start of readout, i.e. the end of the exposure.
+- system_time domain (no frame metadata: the V4L2 backend without librealsense's kernel patch, Windows
+  without its registry switch; librealsense #13241): the host's clock at the frame's arrival, so the
+  exposure began one frame interval (readout and transfer) and the exposure before it. These times are
+  the host's, with its transfer jitter: drivers.base.TimeSource.HOST (the rig check says so).
 - hardware_clock domain: the device clock mapped to the host clock by the smallest (arrival - device
   time) of the last frames (transfer delays are never negative, so the smallest one has the least
   jitter), minus one frame interval for the readout and transfer that smallest delay still contains.
@@ -927,8 +931,12 @@ class RealSenseCamera:
         else:
             before_ref_s = exposure_s  # the timestamp marks the start of readout = the end of the exposure
         domain = meta.get("timestamp_domain")
-        if domain in ("global_time", "system_time"):
+        if domain == "global_time":
             return timestamp_ms * 1e-3 - wall_minus_mono_s - before_ref_s, domain
+        if domain == "system_time":
+            # no hardware timestamp (no frame metadata, librealsense #13241): librealsense stamped the
+            # frame with the host's clock when it arrived, after the exposure, the readout and the transfer
+            return timestamp_ms * 1e-3 - wall_minus_mono_s - period_s - exposure_s, domain
         if domain == "hardware_clock":
             self._offsets.append(arrival_s - timestamp_ms * 1e-3)
             del self._offsets[:-max(8, 2 * self.fps)]

@@ -187,3 +187,81 @@ def test_the_driver_fixes_the_white_balance_and_clears_auto_exposure_priority():
             assert np.ptp(means) < 0.5, means  # the simulated camera's grey, untinted
     finally:
         rig.close()
+
+
+# ---- defect 1: a change confirmed from the frames when they carry no metadata ------------------------------
+def _taken_with(rig, frame) -> dict:
+    """The settings the simulated camera really took a frame (handed out by the driver) with."""
+    sim_cam = rig.sim.camera
+    n = rig.camera.device_numbers[frame.frame_number]
+    return sim_cam.settings_timeline.at(sim_cam.exposure_start_s(n))
+
+
+def test_without_metadata_a_change_is_confirmed_by_a_measured_lag_not_by_time_alone():
+    """No metadata and a 5-frame apply lag: the frames exposed just after a write still have the old
+    exposure and gain, and nothing in them says so. The lag is measured from brightness steps, and every
+    wait after a change (apply_exposure, the search's measurements) then hands out only frames really
+    taken with the new settings."""
+    from drivers.exposure import ChangeEvidence, apply_exposure, measure_settings_lag
+
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0,
+                   faults=parse_faults("no-metadata,apply-lag"))
+    try:
+        rig.camera.start()
+        rig.operator.request_pose("verification", None, 0)
+        W, H = rig.projector.size
+        _lit(rig, rig.scenario.pattern.render(W, H, 6)[0])
+        timing = measure_settings_lag(rig.camera, rig.projector.refresh_hz)
+        assert timing.evidence is ChangeEvidence.MEASURED_LAG and len(timing.steps_s) == 2
+        # frames are timed on the host's clock, up to an exposure early: the lag comes out a little shorter
+        # than the 5 frames in time, never as short as the 3 frames the search waits
+        assert timing.lag_s > 4 * rig.sim.hardware.period_s
+        for exposure_us, gain in ((8300, 16), (16700, 48), (4100, 96), (16700, 16)):
+            applied, f = apply_exposure(rig.camera, exposure_us, gain, timing=timing)
+            got = _taken_with(rig, f)
+            assert got["exposure_us"] == applied["exposure_us"], (applied, got)
+            assert got["gain"] == pytest.approx(rig.device.sim_gain(applied["gain"])), (applied, got)
+        c = search_exposure(rig.camera, rig.projector.refresh_hz)
+        assert c.timing.evidence is ChangeEvidence.MEASURED_LAG
+        # the level the search believes is the level of the frames taken with its choice
+        f = rig.camera.get_frame(5.0)
+        for _ in range(3):
+            f = rig.camera.get_frame(5.0, newer_than=f.frame_number)
+        assert _taken_with(rig, f)["exposure_us"] == c.exposure_us
+        top = float(np.percentile(f.image.max(axis=2), 99.99))
+        assert abs(top - c.level) < 8, (top, c)
+    finally:
+        rig.close()
+
+
+def test_the_rig_check_says_and_records_how_the_camera_is_timed(tmp_path):
+    """The rig check's findings (the panel's line and the log) and session.json name the clock the
+    frames are timed by and how a change is confirmed: metadata, or a lag measured on a camera without
+    it; through the emulation without metadata the measured tone curve is the simulated camera's."""
+    from app.station.activity import CHECK_RIG_NAME
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig as open_station_rig
+    from app.station.station import Station
+
+    plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+    for faults, clock, confirmed in (("", "device clock", "frame metadata"),
+                                     ("no-metadata,apply-lag", "host clock", "measured lag")):
+        req = RigRequest("sim-realsense", SCENE, 0)
+        rig = open_station_rig(req, latency_ms=0.0, faults=parse_faults(faults))
+        try:
+            store = create_session(tmp_path / (faults or "none"), rig, req, plan)
+            machine = make_machine(store, rig, plan)
+            st = Station(rig, machine)
+            checks = {c.name: c for c in st.check_rig()}
+            assert all(c.ok for c in checks.values()), checks
+            timing = store.manifest.rig.camera_settings["timing"]
+            assert timing["frame_times"] == clock and timing["settings_confirmed_by"] == confirmed
+            outcome = st.activities.get(CHECK_RIG_NAME).outcome
+            assert f"camera timing: frame times from the {clock}" in outcome
+            assert any(f"camera timing ok: frame times from the {clock}" in e.text for e in machine.events)
+            gamma = store.manifest.rig.camera_settings["response"]["gamma"]
+            assert gamma == pytest.approx(rig.sim.settings.camera_gamma, abs=0.1)
+            if confirmed == "measured lag":
+                assert timing["lag_ms"] > 4 * 1000 * rig.sim.hardware.period_s
+        finally:
+            rig.close()

@@ -160,6 +160,7 @@ class Station:
         self._detector = ThreadPoolExecutor(max_workers=1, thread_name_prefix="station-detect")
         self._detecting: list[Future] = []
         self.pixel_check = None  # the last live epipolar check (app.verification.PixelCheck)
+        self._change_timing = None  # how the camera confirms a changed setting (drivers.exposure.ChangeTiming)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
 
@@ -281,9 +282,13 @@ class Station:
             try:
                 cam.set_emitter(False)
                 if recorded_exposure(recorded) is not None:
-                    from drivers.exposure import apply_exposure
+                    from drivers.exposure import ASSUMED_TIMING, METADATA_TIMING, apply_exposure, has_settings_metadata
 
-                    applied, f = apply_exposure(cam, *recorded_exposure(recorded), self.options.frame_timeout_s)
+                    # nothing is measured on a resume: without metadata, the longest lag allowed
+                    self._change_timing = METADATA_TIMING if has_settings_metadata(
+                        cam.get_frame(timeout_s=self.options.frame_timeout_s)) else ASSUMED_TIMING
+                    applied, f = apply_exposure(cam, *recorded_exposure(recorded), self.options.frame_timeout_s,
+                                                timing=self._change_timing)
                     self._last_frame = max(self._last_frame, f.frame_number)
                     detail = f"recorded {applied['exposure_us']:g} us, gain {applied['gain']:g} re-applied"
                 else:
@@ -293,6 +298,7 @@ class Station:
                     self._show(self.pattern_image(man.pattern.positions // 2))
                     time.sleep(0.5)  # any projector's latency: the pattern lights the board now
                     choice = search_exposure(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
+                    self._change_timing = choice.timing
                     applied = {"exposure_us": choice.exposure_us, "gain": choice.gain}
                     detail = (f"{choice.exposure_us:g} us ({choice.periods:.2f} refresh periods), gain {choice.gain:g}, "
                               f"lit board at level {choice.level:.0f} ({choice.frames} frames)")
@@ -306,6 +312,11 @@ class Station:
                 settings.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
                                  "gain": float(applied["gain"]), "emitter_enabled": False})
                 checks.append(RigCheck("camera exposure", True, detail + "; IR emitter off"))
+                from drivers.exposure import camera_timing
+
+                settings["timing"], text = camera_timing(cam.get_frame(timeout_s=self.options.frame_timeout_s),
+                                                         self._change_timing)
+                checks.append(RigCheck("camera timing", True, text))
             except (DeviceError, ProcamError) as e:
                 checks.append(RigCheck("camera exposure", False, f"could not be set: {e}"))
                 return checks
@@ -362,7 +373,7 @@ class Station:
             self._rig_stage("camera response: measuring a bracket of gains under the projector's white")
             self._show(white(self.projector_size))
             time.sleep(0.5)  # any projector's latency: the white lights the board now
-            fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
+            fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0), timing=self._change_timing)
         except (DeviceError, ProcamError) as e:
             text = f"camera response not measured ({e}): centroids use the camera's levels uncorrected"
             _log.warning(text)
@@ -383,7 +394,8 @@ class Station:
         from drivers.exposure import apply_exposure
 
         try:
-            _, f = apply_exposure(cam, settings["exposure_us"], settings["gain"], self.options.frame_timeout_s)
+            _, f = apply_exposure(cam, settings["exposure_us"], settings["gain"], self.options.frame_timeout_s,
+                                  timing=self._change_timing)
             self._last_frame = max(self._last_frame, f.frame_number)
         except (DeviceError, ProcamError, KeyError) as e:
             _log.warning("could not restore the exposure after measuring the response: %s", e)

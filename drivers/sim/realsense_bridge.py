@@ -15,7 +15,8 @@ reconnecting) runs through librealsense.
 Frames: a pusher thread takes frames from the simulated camera and hands them to librealsense with
 their frame numbers, in the global_time domain (host system clock, ms, at the start of readout) with
 `actual_exposure`, `frame_timestamp` and `sensor_timestamp` metadata, so the driver's exposure_start_s
-estimate is exercised as on hardware. The simulated camera renders lazily, so the pusher renders only
+estimate is exercised as on hardware. Under the no-metadata fault a frame carries none of them and is
+stamped in the system_time domain at its arrival, as librealsense does without metadata. The simulated camera renders lazily, so the pusher renders only
 what the driver will hand out: it pushes while a caller waits in get_frame (the camera class below
 tells it), no faster than the stream's frame rate, and always the newest frame the simulated camera
 has delivered (as the driver's capture thread, draining a streaming camera, always holds the newest).
@@ -236,8 +237,15 @@ class SimRealSenseDevice:
         f.pixels = img
         f.bpp = 3
         f.stride = img.shape[1] * 3
-        f.timestamp = (readout_s + wall_minus_mono) * 1000.0
-        f.domain = rs.timestamp_domain.global_time
+        if "no-metadata" in self.faults:
+            # without metadata librealsense has no hardware timestamp: it stamps the frame with the host's
+            # system clock on arrival (librealsense #13241), here when a streaming D455's frame would
+            # arrive: a frame interval after its exposure began (the simulated camera delivers it then)
+            f.timestamp = (exposure_start_s + 1.0 / self.fps + wall_minus_mono) * 1000.0
+            f.domain = rs.timestamp_domain.system_time
+        else:
+            f.timestamp = (readout_s + wall_minus_mono) * 1000.0
+            f.domain = rs.timestamp_domain.global_time
         f.frame_number = int(frame.frame_number)
         f.profile = self.profile
         sensor.on_video_frame(f)
