@@ -7,8 +7,9 @@ manual mode (drivers.base.ExposureControl), with one entry point:
     choice = search_exposure(camera, refresh_hz=projector.refresh_hz)
 
 Rules: the exposure is a whole number of the projector's refresh periods (a PWM / DLP projector
-flickers at its refresh rate: any other exposure catches a different share of the light on each row
-and bands the image); the gain stays as low as the brightness allows (gain amplifies noise); the lit
+flickers at its refresh rate: any other exposure catches a different share of the light in each frame,
+the D455's global shutter making the whole frame brighter or darker; where even one period saturates,
+the brightest of FLICKER_FRAMES frames is metered); the gain stays as low as the brightness allows (gain amplifies noise); the lit
 board (the `percentile` of the image: its brightest pixels) ends near `target_level` and below
 `max_level` (no saturation, so the projected pattern's edges keep their shape). Every change is followed by
 `wait_frames` frames exposed after it before the next measurement (the sensor applies a change a
@@ -62,6 +63,8 @@ class ExposureChoice:
     dim: bool = False
     #: how the search told frames taken with each setting from older ones (metadata or a measured lag)
     timing: ChangeTiming | None = None
+    #: off a whole number of periods: the spread of the levels over FLICKER_FRAMES frames / the highest
+    flicker: float = 0.0
 
     def camera_settings(self) -> dict:
         """The manifest's rig.camera_settings keys (docs/FORMATS.md)."""
@@ -71,6 +74,9 @@ class ExposureChoice:
 
 #: Frames exposed after a change that may still show the old settings before the wait gives up on them.
 SKIP_LIMIT = 12
+#: Frames metered at an exposure that is not a whole number of refresh periods (their brightest counts):
+#: such an exposure catches more or less of the projector's flickering light from frame to frame
+FLICKER_FRAMES = 8
 
 
 class ChangeEvidence(str, enum.Enum):
@@ -330,13 +336,32 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
     last = camera.get_frame(timeout_s).frame_number
     frames += 1
 
+    # a device sets exposure in steps (the D455: 100 us), so a whole number of periods is met to within
+    # half a step (16700 us for 16667 us): the residue is at most that share of one period
+    tolerance = max(1e-3, 0.5 * float(e_step or 0.0) / period_us + 1e-9)
+    flicker = 0.0
+
     def measure(exposure_us, gain):
-        nonlocal last, frames
+        nonlocal last, frames, flicker
         t_set = clock_of(camera).now()
         applied = camera.set_manual_exposure(exposure_us, gain)
         f, last, after = frames_after_change(camera, t_set, applied, last, wait_frames, timeout_s, timing=timing)
         frames += after
         lvl, sat = _level(f.image, percentile)
+        periods = float(applied["exposure_us"]) / period_us
+        flicker = 0.0
+        if round(periods) < 1 or abs(periods - round(periods)) > tolerance:
+            # the frames flicker (a global shutter: each catches the light at another phase): the brightest
+            # of several must not saturate
+            seen = [(lvl, sat)]
+            for _ in range(FLICKER_FRAMES - 1):
+                f = camera.get_frame(timeout_s, newer_than=last)
+                last = f.frame_number
+                frames += 1
+                seen.append(_level(f.image, percentile))
+            levels = [v for v, _ in seen]
+            lvl, sat = max(levels), max(x for _, x in seen)
+            flicker = (lvl - min(levels)) / max(lvl, 1.0)
         return float(applied["exposure_us"]), float(applied["gain"]), lvl, sat
 
     n_max = int(math.floor(e_hi / period_us + 1e-9))
@@ -366,15 +391,12 @@ def search_exposure(camera, refresh_hz: float, target_level: float = 200.0, max_
             break
         exp, gain, lvl, sat = measure(exp, gain)
     periods = exp / period_us
-    # a device sets exposure in steps (the D455: 100 us), so a whole number of periods is met to within
-    # half a step (16700 us for 16667 us): the residue is at most that share of one period
-    tolerance = max(1e-3, 0.5 * float(e_step or 0.0) / period_us + 1e-9)
     dim = lvl < 0.7 * target_level and gain >= g_hi
     if dim:
         _log.warning("the lit board reaches only level %.0f of %.0f at the longest exposure and the highest gain",
                      lvl, target_level)
     return ExposureChoice(exp, gain, periods, bool(whole and abs(periods - round(periods)) <= tolerance), lvl, sat,
-                          frames, dim, timing)
+                          frames, dim, timing, flicker)
 
 
 def camera_timing(frame, timing: ChangeTiming | None) -> tuple[dict, str]:

@@ -303,7 +303,8 @@ class Station:
                     detail = (f"{choice.exposure_us:g} us ({choice.periods:.2f} refresh periods), gain {choice.gain:g}, "
                               f"lit board at level {choice.level:.0f} ({choice.frames} frames)")
                     if not choice.whole_periods:
-                        detail += "; not a whole number of refresh periods: the image may band"
+                        detail += (f"; not a whole number of refresh periods: frames flicker by {choice.flicker:.0%} "
+                                   "(a dimmer projector or a neutral-density filter allows a whole period)")
                     if choice.dim:
                         checks.append(RigCheck("camera exposure", False, detail + ": too dim at the longest "
                                                "exposure and the highest gain; bring the projector closer to "

@@ -6,7 +6,7 @@ test (or an operator rehearsing) covers that case. FAULTS is the one registry: t
 its check and the emulation all read it.
 
 Where each applies: the hardware model (drivers/sim/hardware.py, so both `--rig sim` and
-`--rig sim-realsense`): apply-lag, latency-jitter. The librealsense software device
+`--rig sim-realsense`): apply-lag, latency-jitter, flicker. The librealsense software device
 (drivers/sim/realsense_bridge.py, `--rig sim-realsense` only): no-metadata, auto-white-balance.
 gain-range names what the software device always emulates (a D455's colour gain, 0..128 from 64);
 the plain simulated camera keeps its 1..8 gain. On `--rig sim` the software device's faults do nothing.
@@ -25,6 +25,8 @@ FAULTS = {
     "auto-white-balance": "auto white balance on at power-up, its colour gains drifting with the scene "
                           "(sim-realsense)",
     "latency-jitter": "the projector's latency jitters by one refresh period",
+    "flicker": "an exposure that is not a whole number of refresh periods flickers from frame to frame at "
+               "any phase (a global shutter; the camera's and the projector's clocks not locked)",
 }
 
 #: settings applied this many frames late under apply-lag (a D455: librealsense #11228)
@@ -51,6 +53,8 @@ def hardware_overrides(faults, refresh_hz: float = 60.0) -> dict:
         out["settings_lag_frames"] = APPLY_LAG_FRAMES
     if "latency-jitter" in faults:
         out["jitter_ms"] = 1000.0 / refresh_hz
+    if "flicker" in faults:
+        out["flicker_random"] = True
     return out
 
 
