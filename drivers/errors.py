@@ -13,3 +13,8 @@ class DeviceDisconnected(DeviceError):
 
 class DeviceTimeout(DeviceError):
     """No (new) frame arrived in time."""
+
+
+class StreamReset(DeviceTimeout):
+    """The stream had stalled (no frame for a while, the device still connected) and the driver reset the
+    device (hardware_reset); it streams again: ask for a frame again."""

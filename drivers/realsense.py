@@ -70,7 +70,7 @@ import numpy as np
 
 from calib.models.camera import CameraModel
 from drivers.base import Frame
-from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout, StreamReset
 
 #: Unit of the colour sensor's `exposure` option. librealsense passes the UVC control through: on the
 #: D400 RGB sensor it counts 100 microseconds (range 1..10000), unlike the depth sensor's microseconds.
@@ -419,6 +419,10 @@ class _Stats:
     duplicates: int = 0
     late: int = 0
     bad: int = 0
+    gaps: int = 0  # jumps in the device's frame numbers: frames lost between the device and the driver
+    missing: int = 0  # frames those jumps skipped
+    resets: int = 0  # stalled streams reset (hardware_reset)
+    held: int = 0  # frames dropped after a (re)start, until the re-applied exposure shows
 
 
 class RealSenseCamera:
@@ -434,7 +438,8 @@ class RealSenseCamera:
 
     def __init__(self, serial: str | None = None, width: int = 1280, height: int = 800, fps: int = 30, *,
                  context=None, queue_capacity: int = 2, stale_after_s: float | None = None,
-                 intrinsics_tolerance_px: float = 0.05, emitter_enabled: bool = False):
+                 intrinsics_tolerance_px: float = 0.05, emitter_enabled: bool = False,
+                 stall_reset_s: float | None = 2.0):
         self._rs = _rs()
         self.serial = serial
         self.width, self.height, self.fps = int(width), int(height), int(fps)
@@ -462,6 +467,11 @@ class RealSenseCamera:
         self._offsets: list[float] = []  # recent (arrival - device time), hardware clock domain
         self._info: dict = {}
         self._callback_registered = False
+        self.stall_reset_s = stall_reset_s  # no frame for this long, the device present: reset it (None: never)
+        self._last_arrival_s = time.monotonic()
+        self._waiting_since: float | None = None  # when callers began waiting without getting a frame
+        self._reset_failed_at: float | None = None  # the last arrival before a reset that failed
+        self._hold_until_s = -1e18  # frames exposed before this were taken before a re-applied exposure showed
 
     # ---- CameraDriver ------------------------------------------------------------------------------
     @property
@@ -504,6 +514,7 @@ class RealSenseCamera:
         self._depth_sensor = _depth_sensor(dev, sensor)
         self.set_emitter(self._emitter_wanted)
         self._fix_image_processing()
+        self._last_arrival_s = time.monotonic()
         if self._manual is not None:
             self.set_manual_exposure(self._manual["exposure_us"], self._manual["gain"])
 
@@ -546,6 +557,8 @@ class RealSenseCamera:
         larger number; with `not_before_s` (host time.monotonic() seconds), only a frame whose exposure
         started at or after it: an older frame is never handed out, the call waits for a later one."""
         deadline = time.monotonic() + timeout_s
+        if self._waiting_since is None:
+            self._waiting_since = time.monotonic()
         with self._cond:
             while True:
                 if self._disconnected:
@@ -560,8 +573,10 @@ class RealSenseCamera:
                     if newer_than is None:
                         if not_before_s is not None or \
                                 time.monotonic() - f.meta["host_time_s"] <= self._stale_after_s:
+                            self._waiting_since = None
                             return f
                     elif f.frame_number > newer_than:
+                        self._waiting_since = None
                         return f
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -571,6 +586,10 @@ class RealSenseCamera:
             with self._cond:
                 self._disconnected = True
             raise DeviceDisconnected(self._disconnect_message())
+        # no frame for that long while somebody waited (an idle driver of a lazy emulation is no stall)
+        stalled_s = time.monotonic() - max(self._last_arrival_s, self._waiting_since or 0.0)
+        if self.stall_reset_s is not None and self._running and stalled_s >= self.stall_reset_s:
+            self._reset_stalled(stalled_s)
         what = "no frame" if newer_than is None else f"no frame newer than #{newer_than}"
         if not_before_s is not None:
             what += f" exposed after t={not_before_s:.3f} s"
@@ -599,7 +618,8 @@ class RealSenseCamera:
             out["exposure_us_actual"] = f.meta["actual_exposure_us"]
         out["emitter_enabled"] = self.emitter_enabled()
         out["frames"] = {"accepted": self.stats.accepted, "dropped_duplicates": self.stats.duplicates,
-                         "dropped_late": self.stats.late}
+                         "dropped_late": self.stats.late, "gaps": self.stats.gaps, "missing": self.stats.missing,
+                         "resets": self.stats.resets, "held_after_start": self.stats.held}
         return out
 
     # ---- exposure (drivers.base.ExposureControl) ----------------------------------------------------
@@ -760,6 +780,34 @@ class RealSenseCamera:
         raise DeviceDisconnected(f"RealSense {self._label()} did not come back within {timeout_s:.1f} s "
                                  f"({last}); reconnect its USB cable and try again")
 
+    def _reset_stalled(self, stalled_s: float, timeout_s: float = 10.0) -> None:
+        """The stream stopped with the device still there (a USB or firmware hang: librealsense #7252,
+        #2412): reset the device (hardware_reset; it drops off the bus and enumerates again), reopen it
+        with its settings re-applied, and raise StreamReset so the caller asks again. DeviceTimeout when
+        the device refuses the reset (tried once per stall), DeviceDisconnected when it does not come back."""
+        dev = self._device
+        if self._reset_failed_at == self._last_arrival_s:  # tried for this stall already
+            return
+        try:
+            dev.hardware_reset()
+        except (RuntimeError, AttributeError) as e:
+            self._reset_failed_at = self._last_arrival_s
+            raise DeviceTimeout(f"RealSense {self._label()}: no frame for {stalled_s:.1f} s with the camera connected, "
+                                f"and resetting it failed ({e}): unplug the camera and plug it in again") from None
+        self.stats.resets += 1
+        deadline = time.monotonic() + 3.0  # until it has gone (or the callback said so)
+        while time.monotonic() < deadline and not self._disconnected and self._device_present():
+            time.sleep(0.05)
+        self.reconnect(timeout_s)
+        # the reopened device applies the exposure some frames late, and may report no metadata to tell
+        # which: the frames exposed within the longest lag allowed are not handed out
+        from drivers.exposure import SKIP_LIMIT
+
+        self._hold_until_s = time.monotonic() + SKIP_LIMIT / max(1, self.fps)
+        self._waiting_since = None
+        raise StreamReset(f"RealSense {self._label()}: no frame for {stalled_s:.1f} s with the camera connected: "
+                          f"it was reset (hardware_reset, {self.stats.resets} so far) and streams again")
+
     @property
     def disconnected(self) -> bool:
         return self._disconnected
@@ -911,7 +959,14 @@ class RealSenseCamera:
             if last is not None and key[0] <= last[0] and key[1] <= last[1]:
                 self.stats.late += 1
                 return
+            if last is not None and key[0] > last[0] + 1:  # frames the device numbered never reached us
+                self.stats.gaps += 1
+                self.stats.missing += key[0] - last[0] - 1
             self._last_key = key
+            self._last_arrival_s = host_t
+            if start_s < self._hold_until_s:
+                self.stats.held += 1
+                return
             self._counter += 1
             self.stats.accepted += 1
             self._latest = Frame(img, self._counter, key[1], meta, start_s)

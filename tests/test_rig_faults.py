@@ -265,3 +265,39 @@ def test_the_rig_check_says_and_records_how_the_camera_is_timed(tmp_path):
                 assert timing["lag_ms"] > 4 * 1000 * rig.sim.hardware.period_s
         finally:
             rig.close()
+
+
+# ---- defect 6: a stalled stream is reset, frame-number gaps are counted --------------------------------------
+def test_a_stalled_stream_is_reset_and_the_frames_lost_before_it_are_counted():
+    """The stall fault: the software D455 drops 3 frame numbers, then sends nothing until it is reset.
+    The driver, finding no frame for stall_reset_s with the device still listed, calls hardware_reset,
+    reopens it with its exposure re-applied and says so (StreamReset); frames come again, and the gap
+    is counted in settings()["frames"], which the rig check reports."""
+    from app.station.station import stream_findings
+    from drivers.errors import StreamReset
+
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=parse_faults("stall"))
+    try:
+        rig.device.stall_after_frames = 20
+        cam = rig.camera
+        cam.start()
+        cam.set_manual_exposure(16700, 16)
+        f = cam.get_frame(5.0)
+        got, resets = [f], []
+        while len(got) < 40:
+            try:
+                f = cam.get_frame(3.0, newer_than=f.frame_number)
+                got.append(f)
+            except StreamReset as e:
+                resets.append(str(e))
+                assert len(resets) == 1, resets  # once reset, the stream goes on
+        assert rig.device.resets == 1 and "was reset (hardware_reset" in resets[0]
+        frames = cam.settings()["frames"]
+        assert frames["resets"] == 1 and frames["gaps"] == 1 and frames["missing"] == 3, frames
+        # the exposure is set again on the reopened device, and no frame taken before it shows is handed out
+        assert rig.device.options()["exposure_us"] == 16700 and rig.device.options()["gain"] == 16
+        assert frames["held_after_start"] > 0
+        text = stream_findings(cam)
+        assert "3 lost in 1 gap of the frame numbers" in text and "stalled and was reset (1x)" in text
+    finally:
+        rig.close()

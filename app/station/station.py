@@ -48,7 +48,7 @@ from calib.errors import ProcamError, SessionError, SpecError
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
 from drivers.clock import clock_of
-from drivers.errors import DeviceDisconnected, DeviceError
+from drivers.errors import DeviceDisconnected, DeviceError, StreamReset
 
 
 _log = logging.getLogger("procam.station")
@@ -61,6 +61,27 @@ class LoopError:
     time_s: float  # time.monotonic()
     summary: str
     traceback: str
+
+
+def stream_findings(camera) -> str | None:
+    """What the rig check says of a camera's stream: frames lost on the way (gaps in the device's frame
+    numbers: USB drops) and stalled streams reset; None for a camera that does not count them."""
+    try:
+        frames = (camera.settings() or {}).get("frames")
+    except (DeviceError, ProcamError):
+        return None
+    if not isinstance(frames, dict) or "gaps" not in frames:
+        return None
+    text = f"{frames.get('accepted', 0)} frames"
+    if frames["gaps"]:
+        gaps = frames["gaps"]
+        text += (f", {frames.get('missing', 0)} lost in {gaps} gap{'s' if gaps != 1 else ''} of the frame numbers "
+                 "(USB drops: a shorter cable, a USB 3 port without a hub)")
+    else:
+        text += ", no frame lost"
+    if frames.get("resets"):
+        text += f", the stream stalled and was reset ({frames['resets']}x)"
+    return text
 
 
 def rate_of(times, window_s: float = 2.0, longest_s: float = 10.0) -> float:
@@ -234,6 +255,9 @@ class Station:
             checks.append(RigCheck("projector", False, str(e)))
         if all(c.ok for c in checks):
             checks.extend(self._check_timing())
+            stream = stream_findings(self.rig.camera)
+            if stream is not None:
+                checks.append(RigCheck("camera stream", True, stream))
         checks.append(RigCheck("projector board", True, str(man.projector_board)))
         if man.rig.view == VIEW_MIRROR:
             checks.append(RigCheck("mirror board", man.mirror_board is not None,
@@ -447,7 +471,11 @@ class Station:
         """A camera error: say so in the panel; a disconnected device is reopened when it comes back."""
         self.device_problem = f"camera: {e}; waiting for it to come back"
         reconnect = getattr(self.rig.camera, "reconnect", None)
-        if isinstance(e, DeviceDisconnected) and callable(reconnect):
+        if isinstance(e, StreamReset):  # the driver reset a stalled stream: frames come again
+            self.machine.log(f"camera: {e}")
+            self.device_problem = None
+            self._changed()
+        elif isinstance(e, DeviceDisconnected) and callable(reconnect):
             try:
                 reconnect(timeout_s=2.0)
                 self.device_problem = None

@@ -51,6 +51,25 @@ COLOUR_OPTIONS = {
 }
 
 
+def _resettable_device_class(rs, owner):
+    """A software device whose hardware_reset() does what a D455's does (SimRealSenseDevice.hardware_reset);
+    made on first use, pyrealsense2 being imported lazily."""
+
+    class ResettableSoftwareDevice(rs.software_device):
+        def hardware_reset(self):  # as a D455: it goes away and enumerates again, its controls at defaults
+            owner.hardware_reset()
+
+    return ResettableSoftwareDevice
+
+
+#: under the stall fault: frames streamed before the stream stalls (after the rig check, which takes
+#: about 150-250, during the captures), and device frame numbers lost just before it (a USB link in trouble drops frames first)
+STALL_AFTER_FRAMES = 300
+STALL_DROPPED_FRAMES = 3
+#: how long a reset D455 takes to enumerate again, in the emulation
+RESET_S = 0.5
+
+
 class _Removed:
     """What a devices-changed callback receives when the device goes away."""
 
@@ -83,6 +102,14 @@ class SimRealSenseDevice:
         self.forwarded: list[tuple[str, Any]] = []  # (what, value) handed to the simulated camera
         self.faults = frozenset(faults)  # drivers/sim/faults.py
         self._awb_gains = np.ones(3)  # auto white balance's colour gains (B, G, R) now
+        #: device frame numbers: one per frame pushed (the pusher skips the simulated frames nobody waits
+        #: for: a streaming D455 numbers every frame it sends), gaps only where a fault drops frames
+        self._device_number = 0
+        self.sim_numbers: dict[int, int] = {}  # device frame number -> the simulated camera's frame number
+        self.streamed = 0  # frames pushed since power-up or the last reset
+        self.stalled = False  # the stall fault: the stream has stopped until hardware_reset()
+        self.resets = 0
+        self.stall_after_frames = STALL_AFTER_FRAMES
         self._build()
 
     # ---- the software device ------------------------------------------------------------------------
@@ -90,7 +117,7 @@ class SimRealSenseDevice:
         rs = self.rs
         model = self.sim_camera.model
         w, h = model.size
-        dev = rs.software_device()
+        dev = _resettable_device_class(rs, self)()
         for key, value in (("name", "Intel RealSense D455 (simulated)"), ("serial_number", self.serial),
                            ("firmware_version", "5.16.0.1"), ("usb_type_descriptor", "3.2"),
                            ("product_line", "D400")):
@@ -144,7 +171,19 @@ class SimRealSenseDevice:
 
     def replug(self) -> None:
         """A camera with the same serial comes back, its controls at their power-up defaults."""
+        self._device_number = 0
+        self.streamed = 0
+        self.stalled = False
         self._build()
+
+    def hardware_reset(self) -> None:
+        """The device's hardware_reset(): it drops off the bus (the devices-changed callback fires) and
+        enumerates again RESET_S later, streaming again (a stalled stream too)."""
+        self.resets += 1
+        self.unplug()
+        timer = threading.Timer(RESET_S, self.replug)
+        timer.daemon = True
+        timer.start()
 
     # ---- options -> the simulated camera ----------------------------------------------------------------
     def options(self) -> dict:
@@ -207,11 +246,16 @@ class SimRealSenseDevice:
         self._awb_gains = 0.5 * self._awb_gains + 0.5 * np.clip(want, 0.6, 1.6)
         return out
 
-    def push(self, frame, exposure_us: float, exposure_start_s: float) -> None:
+    def push(self, frame, exposure_us: float, exposure_start_s: float) -> bool:
         """Deliver a simulated frame through librealsense: global-time stamp at the start of readout,
         metadata placing the exposure so that the driver's estimate comes out at `exposure_start_s`
-        (never later)."""
+        (never later). False (nothing delivered) while the stream is stalled (the stall fault: after
+        `stall_after_frames` frames, the first time only, until hardware_reset())."""
         rs = self.rs
+        if "stall" in self.faults and self.resets == 0 and self.streamed >= self.stall_after_frames:
+            self.stalled = True
+        if self.stalled:
+            return False
         units = max(1, int(round(exposure_us / COLOUR_EXPOSURE_UNIT_US)))
         exp_dev_s = units * COLOUR_EXPOSURE_UNIT_US * 1e-6
         readout_s = exposure_start_s + exposure_us * 1e-6
@@ -246,9 +290,15 @@ class SimRealSenseDevice:
         else:
             f.timestamp = (readout_s + wall_minus_mono) * 1000.0
             f.domain = rs.timestamp_domain.global_time
-        f.frame_number = int(frame.frame_number)
+        if "stall" in self.faults and self.resets == 0 and self.streamed == self.stall_after_frames - 1:
+            self._device_number += STALL_DROPPED_FRAMES  # dropped on the link, then the stream stops
+        self._device_number += 1
+        self.streamed += 1
+        self.sim_numbers[self._device_number] = int(frame.frame_number)
+        f.frame_number = self._device_number
         f.profile = self.profile
         sensor.on_video_frame(f)
+        return True
 
 
 class SimRealSenseCamera(RealSenseCamera):
@@ -294,7 +344,7 @@ class SimRealSenseCamera(RealSenseCamera):
             self._want.notify_all()
         try:
             f = super().get_frame(timeout_s, newer_than=newer_than, not_before_s=not_before_s)
-            self.device_numbers[f.frame_number] = int(f.meta["device_frame_number"])
+            self.device_numbers[f.frame_number] = self.sim_device.sim_numbers[int(f.meta["device_frame_number"])]
             return f
         finally:
             with self._want:
@@ -331,7 +381,10 @@ class SimRealSenseCamera(RealSenseCamera):
                 exposure_us = float(f.meta.get("exposure_us") or settings["exposure_us"])
                 start_s = f.exposure_start_s if f.exposure_start_s is not None else t_request
                 before = self.stats.accepted
-                dev.push(f, exposure_us, start_s)
+                if not dev.push(f, exposure_us, start_s):  # stalled: nothing reaches the driver
+                    last_number = f.frame_number
+                    time.sleep(period)
+                    continue
             except Exception as e:  # noqa: BLE001 - the driver reports a stalled stream as a timeout
                 self.push_error = e
                 time.sleep(0.05)
