@@ -439,7 +439,7 @@ class RealSenseCamera:
     def __init__(self, serial: str | None = None, width: int = 1280, height: int = 800, fps: int = 30, *,
                  context=None, queue_capacity: int = 2, stale_after_s: float | None = None,
                  intrinsics_tolerance_px: float = 0.05, emitter_enabled: bool = False,
-                 stall_reset_s: float | None = 2.0):
+                 stall_reset_s: float | None = 2.0, exact_mode: bool = False):
         self._rs = _rs()
         self.serial = serial
         self.width, self.height, self.fps = int(width), int(height), int(fps)
@@ -467,6 +467,9 @@ class RealSenseCamera:
         self._offsets: list[float] = []  # recent (arrival - device time), hardware clock domain
         self._info: dict = {}
         self._callback_registered = False
+        self.exact_mode = bool(exact_mode)  # a mode asked for by name: never another one
+        self.requested_mode = (self.width, self.height, self.fps)
+        self.mode_note: str | None = None  # why the stream runs another mode than the one asked for
         self.stall_reset_s = stall_reset_s  # no frame for this long, the device present: reset it (None: never)
         self._last_arrival_s = time.monotonic()
         self._waiting_since: float | None = None  # when callers began waiting without getting a frame
@@ -483,7 +486,7 @@ class RealSenseCamera:
         if self._running:
             return
         dev, sensor = self._find_device()
-        profile = self._select_profile(sensor)
+        profile = self._select_profile(sensor, dev)
         queue = self._rs.frame_queue(self._queue_capacity, keep_frames=True)
         try:
             sensor.open(profile)
@@ -848,24 +851,44 @@ class RealSenseCamera:
         raise DeviceDisconnected("no RealSense device is connected; plug in the camera (procam devices lists "
                                  "what is found) or use the simulated rig (--rig sim)")
 
-    def _select_profile(self, sensor):
+    def link_note(self) -> str | None:
+        """The USB link when it is not USB 3 (fewer and slower modes), and the mode the stream fell back
+        to; None on a USB 3 link with the mode asked for."""
+        usb = str(self._info.get("usb_type") or "")
+        parts = []
+        if usb.startswith("2"):
+            parts.append(f"the camera is on a USB {usb} link (fewer, slower colour modes): a USB 3 port and "
+                         "cable give the full rate")
+        if self.mode_note:
+            parts.append(self.mode_note)
+        return "; ".join(parts) or None
+
+    def _select_profile(self, sensor, dev=None):
         rs = self._rs
-        profiles = _colour_profiles(sensor)
-        for fmt in (rs.format.bgr8, rs.format.rgb8):
-            for p in profiles:
-                if (p.format() == fmt and p.width() == self.width and p.height() == self.height
-                        and p.fps() == self.fps):
-                    return p
-        modes = sorted({(p.width(), p.height(), p.fps()) for p in profiles
-                        if p.format() in (rs.format.bgr8, rs.format.rgb8)}, reverse=True)
+        profiles = [p for p in _colour_profiles(sensor) if p.format() in (rs.format.bgr8, rs.format.rgb8)]
+        profiles.sort(key=lambda p: p.format() != rs.format.bgr8)
+        for p in profiles:
+            if p.width() == self.width and p.height() == self.height and p.fps() == self.fps:
+                return p
+        modes = sorted({(p.width(), p.height(), p.fps()) for p in profiles}, reverse=True)
         listed = ", ".join(f"{w}x{h}@{f}" for w, h, f in modes) or "none"
+        usb = str(_info(dev, "usb_type_descriptor") or "") if dev is not None else ""
+        same = [p for p in profiles if p.width() == self.width and p.height() == self.height]
+        if same and not self.exact_mode:  # the default mode on a slower link: the fastest of its size
+            p = max(same, key=lambda q: q.fps())
+            self.mode_note = (f"{self.width}x{self.height}@{self.fps} is not offered: streaming "
+                              f"{self.width}x{self.height}@{p.fps()} (--camera-mode chooses; offered: {listed})")
+            self.fps = int(p.fps())
+            return p
         raise DeviceError(f"RealSense colour stream {self.width}x{self.height}@{self.fps} (BGR8) is not "
-                          f"offered by this device; available: {listed}")
+                          f"offered by this device; available: {listed}; choose one with --camera-mode"
+                          + (f" (the camera is on a USB {usb} link: a USB 3 port offers more)" if usb.startswith("2")
+                             else ""))
 
     def _current_profile(self):
         if self._profile is None:
-            _, sensor = self._find_device()
-            self._profile = self._select_profile(sensor)
+            dev, sensor = self._find_device()
+            self._profile = self._select_profile(sensor, dev)
         return self._profile
 
     def _device_present(self) -> bool:
@@ -952,6 +975,10 @@ class RealSenseCamera:
                     meta[name] = float(vf.get_frame_metadata(value)) * scale
             except RuntimeError:
                 pass
+        if "actual_exposure_us" not in meta and self._manual is not None:
+            # no metadata: the manual exposure last set (the rig check confirms it shows before timing
+            # anything by it), so a frame that caught a change part-way can still be timed
+            meta["exposure_us_set"] = float(self._manual["exposure_us"])
         start_s, source = self._exposure_start(key[1], meta, host_t, time.time() - time.monotonic())
         meta["exposure_start_source"] = source
         with self._cond:

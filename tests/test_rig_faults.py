@@ -301,3 +301,70 @@ def test_a_stalled_stream_is_reset_and_the_frames_lost_before_it_are_counted():
         assert "3 lost in 1 gap of the frame numbers" in text and "stalled and was reset (1x)" in text
     finally:
         rig.close()
+
+
+# ---- defect 7: the camera's modes, a USB 2 link -----------------------------------------------------------
+def test_on_a_usb2_link_the_camera_falls_back_to_a_listed_mode_and_the_rig_check_says_so(tmp_path):
+    """Under the usb2 fault the software D455 lists its size at 15 and 5 fps only and reports a USB 2.1
+    link: the default 1280x800@30 falls back to the fastest listed mode (no session could start before),
+    --camera-mode picks a listed one and refuses another with the list, and the rig check's camera line
+    names the link."""
+    from app.station.machine import Plan
+    from app.station.setup import RigRequest, create_session, make_machine, open_rig as open_station_rig
+    from app.station.station import Station
+    from drivers.errors import DeviceError
+
+    usb2 = parse_faults("usb2")
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=usb2)
+    try:
+        rig.camera.start()
+        assert rig.camera.fps == 15 and rig.sim.hardware.fps == 15.0
+        assert "USB 2.1 link" in rig.camera.link_note() and "1280x800@30 is not offered" in rig.camera.link_note()
+        f = rig.camera.get_frame(5.0)
+        g = rig.camera.get_frame(5.0, newer_than=f.frame_number)
+        n = rig.camera.device_numbers  # the simulated camera's frames run at the stream's rate
+        per_frame = (g.exposure_start_s - f.exposure_start_s) / (n[g.frame_number] - n[f.frame_number])
+        assert per_frame == pytest.approx(1 / 15, abs=0.005)
+        plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
+        req = RigRequest("sim-realsense", SCENE, 0)
+        store = create_session(tmp_path / "s", rig, req, plan)
+        checks = {c.name: c for c in Station(rig, make_machine(store, rig, plan)).check_rig()}
+        assert all(c.ok for c in checks.values()), checks
+        assert "USB 2.1 link" in checks["camera"].detail
+        assert checks["camera exposure"].detail.startswith(("16700 us", "33300 us", "50000 us", "66700 us"))
+    finally:
+        rig.close()
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=usb2, camera_mode=(1280, 800, 5))
+    try:
+        rig.camera.start()
+        assert rig.camera.fps == 5 and rig.camera.link_note().startswith("the camera is on a USB 2.1 link")
+    finally:
+        rig.close()
+    with pytest.raises(DeviceError, match=r"1280x800@30 .*not offered.*available: 1280x800@15, 1280x800@5"):
+        open_rig("sim-realsense", scenario=SCENE, seed=0, faults=usb2, camera_mode=(1280, 800, 30))
+
+
+def test_camera_mode_option_is_checked_while_parsed(tmp_path):
+    r = run_procam("session", "--rig", "sim-realsense", "--camera-mode", "1280x800", "--auto",
+                   "--out", str(tmp_path / "s"))
+    assert r.returncode == 2 and "--camera-mode" in r.stderr and "WIDTHxHEIGHT@FPS" in r.stderr
+    assert not (tmp_path / "s").exists()
+
+
+def test_without_metadata_frames_still_carry_the_exposure_the_settle_measurement_times_by():
+    """No metadata: the driver marks each frame with the manual exposure it set (`exposure_us_set`), which
+    the settle measurement reads to time a frame that caught the projector's change part-way (its
+    jitter estimate needs it; without it the latency is timed by whole frames only)."""
+    from drivers.settle import _exposure_s
+
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=parse_faults("no-metadata"))
+    try:
+        rig.camera.start()
+        f = rig.camera.get_frame(5.0)
+        assert "exposure_us_set" not in f.meta and _exposure_s(f) is None  # auto exposure: nothing known
+        applied = rig.camera.set_manual_exposure(16700, 16)
+        f = rig.camera.get_frame(5.0, newer_than=f.frame_number)
+        assert "actual_exposure_us" not in f.meta and f.meta["exposure_us_set"] == applied["exposure_us"]
+        assert _exposure_s(f) == pytest.approx(applied["exposure_us"] * 1e-6)
+    finally:
+        rig.close()

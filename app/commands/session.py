@@ -59,9 +59,14 @@ def rig_options(args, kind: str) -> dict:
         out = sim_hardware_options(args)
         if getattr(args, "sim_bump", None):
             out["bump"] = args.sim_bump
+        if kind == "sim-realsense" and getattr(args, "camera_mode", None):
+            out["camera_mode"] = args.camera_mode
         return out
     opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
-    return {k: v for k, v in opts.items() if v is not None}
+    out = {k: v for k, v in opts.items() if v is not None}
+    if getattr(args, "camera_mode", None):
+        out.update(dict(zip(("width", "height", "fps"), args.camera_mode)), exact_mode=True)
+    return out
 
 
 def refuse_recalibration_folder(folder: Path) -> None:

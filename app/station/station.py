@@ -237,8 +237,10 @@ class Station:
             f = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s)
             h, w = f.image.shape[:2]
             ok = (w, h) == tuple(man.rig.camera_size)
-            checks.append(RigCheck("camera", ok, f"{w}x{h} frames streaming" if ok else
-                                   f"frames are {w}x{h}, the session expects {man.rig.camera_size[0]}x"
+            note = getattr(self.rig.camera, "link_note", None)  # a RealSense on USB 2, or another mode
+            note = note() if callable(note) else None
+            checks.append(RigCheck("camera", ok, (f"{w}x{h} frames streaming" + (f"; {note}" if note else "")) if ok
+                                   else f"frames are {w}x{h}, the session expects {man.rig.camera_size[0]}x"
                                    f"{man.rig.camera_size[1]}"))
             self._last_frame = max(self._last_frame, f.frame_number)
         except DeviceError as e:

@@ -7,7 +7,7 @@ its check and the emulation all read it.
 
 Where each applies: the hardware model (drivers/sim/hardware.py, so both `--rig sim` and
 `--rig sim-realsense`): apply-lag, latency-jitter, flicker. The librealsense software device
-(drivers/sim/realsense_bridge.py, `--rig sim-realsense` only): no-metadata, auto-white-balance, stall.
+(drivers/sim/realsense_bridge.py, `--rig sim-realsense` only): no-metadata, auto-white-balance, stall, usb2.
 gain-range names what the software device always emulates (a D455's colour gain, 0..128 from 64);
 the plain simulated camera keeps its 1..8 gain. On `--rig sim` the software device's faults do nothing.
 """
@@ -25,6 +25,7 @@ FAULTS = {
     "auto-white-balance": "auto white balance on at power-up, its colour gains drifting with the scene "
                           "(sim-realsense)",
     "latency-jitter": "the projector's latency jitters by one refresh period",
+    "usb2": "the camera on a USB 2 link: fewer, slower colour modes (sim-realsense: 15 and 5 fps only)",
     "stall": "the colour stream drops a few frames, then stops until the camera is reset (hardware_reset) "
              "(sim-realsense)",
     "flicker": "an exposure that is not a whole number of refresh periods flickers from frame to frame at "

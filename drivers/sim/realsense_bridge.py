@@ -68,6 +68,15 @@ STALL_AFTER_FRAMES = 300
 STALL_DROPPED_FRAMES = 3
 #: how long a reset D455 takes to enumerate again, in the emulation
 RESET_S = 0.5
+#: the colour rates the software device lists at the simulated camera's size, on a USB 3 link and under
+#: the usb2 fault (a USB 2 link carries fewer and slower modes; the D455's exact USB 2 list is not
+#: emulated: its size stays the simulated camera's)
+USB3_RATES = (30, 15, 5)
+USB2_RATES = (15, 5)
+
+
+def offered_rates(faults) -> tuple[int, ...]:
+    return USB2_RATES if "usb2" in faults else USB3_RATES
 
 
 class _Removed:
@@ -110,6 +119,7 @@ class SimRealSenseDevice:
         self.stalled = False  # the stall fault: the stream has stopped until hardware_reset()
         self.resets = 0
         self.stall_after_frames = STALL_AFTER_FRAMES
+        self.stream_fps = self.fps  # the rate the driver streams (its mode)
         self._build()
 
     # ---- the software device ------------------------------------------------------------------------
@@ -119,7 +129,8 @@ class SimRealSenseDevice:
         w, h = model.size
         dev = _resettable_device_class(rs, self)()
         for key, value in (("name", "Intel RealSense D455 (simulated)"), ("serial_number", self.serial),
-                           ("firmware_version", "5.16.0.1"), ("usb_type_descriptor", "3.2"),
+                           ("firmware_version", "5.16.0.1"),
+                           ("usb_type_descriptor", "2.1" if "usb2" in self.faults else "3.2"),
                            ("product_line", "D400")):
             dev.register_info(getattr(rs.camera_info, key), value)
         colour = dev.add_sensor("RGB Camera")
@@ -134,17 +145,21 @@ class SimRealSenseDevice:
         d[: min(5, dist.size)] = dist[:5]
         intr.model = rs.distortion.brown_conrady
         intr.coeffs = [float(c) for c in d]
-        vs = rs.video_stream()
-        vs.type, vs.index, vs.uid = rs.stream.color, 0, 0
-        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = w, h, self.fps, 3, rs.format.bgr8
-        vs.intrinsics = intr
-        profile = colour.add_video_stream(vs).as_video_stream_profile()
+        profiles = {}
+        for uid, rate in enumerate(offered_rates(self.faults)):
+            vs = rs.video_stream()
+            vs.type, vs.index, vs.uid = rs.stream.color, 0, uid
+            vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = w, h, rate, 3, rs.format.bgr8
+            vs.intrinsics = intr
+            profiles[rate] = colour.add_video_stream(vs).as_video_stream_profile()
+        profile = profiles.get(self.fps, next(iter(profiles.values())))
         for name, (lo, hi, step, default) in COLOUR_OPTIONS.items():
             self._option(colour, getattr(rs.option, name), lo, hi, step, default)
         depth = dev.add_sensor("Stereo Module")
         self._option(depth, rs.option.emitter_enabled, 0, 2, 1, 1)
         with self._lock:
             self.device, self.colour, self.depth, self.profile = dev, colour, depth, profile
+            self.profiles = profiles
             self.present = True
             self._applied = {}
 
@@ -296,7 +311,7 @@ class SimRealSenseDevice:
         self.streamed += 1
         self.sim_numbers[self._device_number] = int(frame.frame_number)
         f.frame_number = self._device_number
-        f.profile = self.profile
+        f.profile = self.profiles.get(self.stream_fps, self.profile)  # the mode the driver opened
         sensor.on_video_frame(f)
         return True
 
@@ -305,9 +320,9 @@ class SimRealSenseCamera(RealSenseCamera):
     """The real driver, unchanged, plus one thing the emulation needs: while a caller waits in
     get_frame the pusher is told to deliver frames (the simulated camera renders only on demand)."""
 
-    def __init__(self, device: SimRealSenseDevice, **kw):
+    def __init__(self, device: SimRealSenseDevice, fps: int | None = None, **kw):
         w, h = device.sim_camera.size
-        super().__init__(device.serial, w, h, device.fps, context=device, **kw)
+        super().__init__(device.serial, w, h, device.fps if fps is None else fps, context=device, **kw)
         self.sim_device = device
         self._waiting = 0
         self._want = threading.Condition()
@@ -320,6 +335,7 @@ class SimRealSenseCamera(RealSenseCamera):
 
     def start(self) -> None:
         super().start()
+        self.sim_device.stream_fps = self.fps
         if self._pusher is None or not self._pusher.is_alive():
             self._pusher_stop = threading.Event()
             self._pusher = threading.Thread(target=self._push_loop, args=(self._pusher_stop,),
@@ -353,7 +369,7 @@ class SimRealSenseCamera(RealSenseCamera):
     def _push_loop(self, stop: threading.Event) -> None:
         dev = self.sim_device
         sim = dev.sim_camera
-        period = 1.0 / max(1, dev.fps)
+        period = 1.0 / max(1, self.fps)
         last_number: int | None = None
         next_at = 0.0
         while not stop.is_set():
@@ -403,10 +419,13 @@ class SimRealSenseRig:
 
     kind = "sim-realsense"
 
-    def __init__(self, sim_rig, fps: int = 30, faults=()):
+    def __init__(self, sim_rig, fps: int = 30, faults=(), camera_mode=None):
         self.sim = sim_rig
         self.device = SimRealSenseDevice(sim_rig.camera, fps, faults=faults)
-        self.camera = SimRealSenseCamera(self.device)
+        # the driver asks for a mode by name (--camera-mode, refused unless listed) or for 30 fps (falling
+        # back to the fastest listed, as on a real USB 2 link)
+        self.camera = SimRealSenseCamera(self.device, 30 if camera_mode is None else int(camera_mode[2]),
+                                         exact_mode=camera_mode is not None)
 
     def __getattr__(self, name):  # scenario, projector, operator, ground_truth, renderer, ...
         return getattr(self.sim, name)
@@ -424,17 +443,30 @@ class SimRealSenseRig:
         self.close()
 
 
-def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int = 30,
-                           faults=(), **settings) -> SimRealSenseRig:
+def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int | None = None,
+                           faults=(), camera_mode=None, **settings) -> SimRealSenseRig:
     """The simulated rig of `scenario` (drivers.sim.rig.open_sim_rig options) with its camera delivered
-    through librealsense and drivers/realsense.py; `faults` (drivers.sim.faults) apply to both."""
+    through librealsense and drivers/realsense.py; `faults` (drivers.sim.faults) apply to both.
+    camera_mode: (width, height, fps) the driver asks for (the simulated camera's size at a listed rate);
+    the simulated camera then runs at that rate (default: 30 fps, or the fastest rate listed)."""
     from drivers.sim.rig import open_sim_rig
+    from drivers.sim.scenarios import DEFAULT_SCENARIO, get_scenario
 
     args = () if scenario is None else (scenario,)
     from drivers.clock import MONOTONIC
 
     # librealsense stamps frames on the host's clock: the simulated hardware behind it must keep the same
     settings.setdefault("clock", MONOTONIC)
-    sim = open_sim_rig(*args, seed=seed, quality=quality, faults=faults, **settings)
+    rates = offered_rates(faults)
+    if camera_mode is not None:
+        w, h = get_scenario(scenario or DEFAULT_SCENARIO, seed).rig.camera.size
+        modes = ", ".join(f"{w}x{h}@{r}" for r in rates)
+        if tuple(camera_mode[:2]) != (w, h) or int(camera_mode[2]) not in rates:
+            raise DeviceError(f"RealSense colour stream {camera_mode[0]}x{camera_mode[1]}@{camera_mode[2]} (BGR8) is not "
+                              f"offered by this device; available: {modes}; choose one with --camera-mode")
+        fps = int(camera_mode[2])
+    elif fps is None:
+        fps = 30 if 30 in rates else max(rates)
+    sim = open_sim_rig(*args, seed=seed, quality=quality, faults=faults, fps=fps, **settings)
     sim.camera.start()
-    return SimRealSenseRig(sim, fps, faults)
+    return SimRealSenseRig(sim, fps, faults, camera_mode)

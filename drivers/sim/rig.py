@@ -366,7 +366,8 @@ class SimRig:
     def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
                  latency_ms: float | None = None, hardware: HardwareModel | None = None,
-                 clock: Clock | None = None, realtime: bool = True, faults=(), **settings):
+                 clock: Clock | None = None, realtime: bool = True, faults=(), fps: float | None = None,
+                 **settings):
         if quality not in QUALITIES:
             raise SpecError(f"unknown quality '{quality}' (one of {', '.join(QUALITIES)})")
         self.scenario = scenario
@@ -387,8 +388,10 @@ class SimRig:
             from drivers.sim.faults import hardware_overrides
 
             self.faults = frozenset(faults)  # drivers/sim/faults.py
-            self.hardware = hardware or HardwareModel.for_seed(scenario.seed, latency_ms, ideal=ideal,
-                                                               **({} if ideal else hardware_overrides(self.faults)))
+            overrides = {} if ideal else hardware_overrides(self.faults)
+            if fps is not None:  # the camera's frame rate (a RealSense mode's, sim-realsense)
+                overrides["fps"] = float(fps)
+            self.hardware = hardware or HardwareModel.for_seed(scenario.seed, latency_ms, ideal=ideal, **overrides)
         except ValueError as e:
             raise SpecError(str(e)) from None
         #: frame number -> ((projector ticket, fraction of the exposure it was visible), ...)
