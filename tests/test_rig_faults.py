@@ -263,6 +263,19 @@ def test_the_rig_check_says_and_records_how_the_camera_is_timed(tmp_path):
             assert gamma == pytest.approx(rig.sim.settings.camera_gamma, abs=0.1)
             if confirmed == "measured lag":
                 assert timing["lag_ms"] > 4 * 1000 * rig.sim.hardware.period_s
+            # the raw evidence: every frame the check used, at 1/8 size, with its metadata
+            import json
+
+            import cv2
+
+            doc = json.loads((store.folder / "rig_check" / "frames.json").read_text())
+            assert len(doc["frames"]) > 30 and doc["shrink"] == 8
+            last = doc["frames"][-1]
+            img = cv2.imread(str(store.folder / "rig_check" / last["image"]))
+            assert img.shape[:2] == (100, 160) and last["exposure_start_s"] is not None
+            has_meta = "actual_exposure_us" in last["meta"]
+            assert has_meta is (confirmed == "frame metadata")
+            assert last["meta"]["exposure_start_source"] == ("global_time" if has_meta else "system_time")
         finally:
             rig.close()
 
@@ -308,7 +321,7 @@ def test_on_a_usb2_link_the_camera_falls_back_to_a_listed_mode_and_the_rig_check
     """Under the usb2 fault the software D455 lists its size at 15 and 5 fps only and reports a USB 2.1
     link: the default 1280x800@30 falls back to the fastest listed mode (no session could start before),
     --camera-mode picks a listed one and refuses another with the list, and the rig check's camera line
-    names the link."""
+    names the link (its own line, among the findings)."""
     from app.station.machine import Plan
     from app.station.setup import RigRequest, create_session, make_machine, open_rig as open_station_rig
     from app.station.station import Station
@@ -330,7 +343,7 @@ def test_on_a_usb2_link_the_camera_falls_back_to_a_listed_mode_and_the_rig_check
         store = create_session(tmp_path / "s", rig, req, plan)
         checks = {c.name: c for c in Station(rig, make_machine(store, rig, plan)).check_rig()}
         assert all(c.ok for c in checks.values()), checks
-        assert "USB 2.1 link" in checks["camera"].detail
+        assert "USB 2.1 link" in checks["camera link"].detail
         assert checks["camera exposure"].detail.startswith(("16700 us", "33300 us", "50000 us", "66700 us"))
     finally:
         rig.close()

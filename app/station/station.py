@@ -63,6 +63,10 @@ class LoopError:
     traceback: str
 
 
+#: where the rig check keeps the frames it used, at reduced size, with their metadata (drivers/evidence.py)
+RIG_CHECK_FOLDER = "rig_check"
+
+
 def stream_findings(camera) -> str | None:
     """What the rig check says of a camera's stream: frames lost on the way (gaps in the device's frame
     numbers: USB drops) and stalled streams reset; None for a camera that does not count them."""
@@ -237,11 +241,13 @@ class Station:
             f = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s)
             h, w = f.image.shape[:2]
             ok = (w, h) == tuple(man.rig.camera_size)
+            checks.append(RigCheck("camera", ok, f"{w}x{h} frames streaming" if ok else
+                                   f"frames are {w}x{h}, the session expects {man.rig.camera_size[0]}x"
+                                   f"{man.rig.camera_size[1]}"))
             note = getattr(self.rig.camera, "link_note", None)  # a RealSense on USB 2, or another mode
             note = note() if callable(note) else None
-            checks.append(RigCheck("camera", ok, (f"{w}x{h} frames streaming" + (f"; {note}" if note else "")) if ok
-                                   else f"frames are {w}x{h}, the session expects {man.rig.camera_size[0]}x"
-                                   f"{man.rig.camera_size[1]}"))
+            if note:
+                checks.append(RigCheck("camera link", True, note))
             self._last_frame = max(self._last_frame, f.frame_number)
         except DeviceError as e:
             checks.append(RigCheck("camera", False, str(e)))
@@ -280,8 +286,10 @@ class Station:
         already (a resumed session), re-applied instead of measured again."""
         from dataclasses import replace as _replace
 
+        from drivers.evidence import FrameRecorder
+
         man = self.machine.manifest
-        cam, proj = self.rig.camera, self.rig.projector
+        cam, proj = FrameRecorder(self.rig.camera), self.rig.projector  # the check's frames, kept (rig_check/)
         recorded = dict(man.rig.camera_settings or {})
         timing = dict(recorded.get("projector") or {})
         checks = []
@@ -298,6 +306,10 @@ class Station:
             self._changed()
             if settings != recorded:
                 self.machine.store.update(rig=_replace(man.rig, camera_settings=settings))
+            try:
+                cam.write(self.machine.store.folder / RIG_CHECK_FOLDER)
+            except OSError as e:  # the evidence is for diagnosis: its loss stops nothing
+                _log.warning("the rig check's frames were not kept: %s", e)
 
     def _timing_checks(self, cam, proj, man, recorded, timing, settings, checks) -> list[RigCheck]:
         from drivers.base import ExposureControl
