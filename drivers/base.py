@@ -6,6 +6,7 @@ Images are numpy arrays in OpenCV layout: (H, W, 3) uint8 BGR, row 0 at the top.
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -32,6 +33,30 @@ class Frame:
     timestamp_ms: float
     meta: dict = field(default_factory=dict)
     exposure_start_s: float | None = None
+
+
+class TimeSource(str, enum.Enum):
+    """Which clock a frame's exposure_start_s comes from. DEVICE: the camera's own clock (a RealSense's
+    hardware timestamps in its frame metadata, mapped onto the host's; the simulated camera's clock):
+    exact to a millisecond or so. HOST: the host's clock when the frame arrived (no device time: a
+    RealSense without frame metadata), earlier than the true start by up to an exposure and a transfer."""
+
+    DEVICE = "device clock"
+    HOST = "host clock"
+
+
+#: Frame.meta["exposure_start_source"] values -> the clock they read (librealsense's timestamp domains,
+#: and "arrival" for a frame timed by its arrival alone); a frame without the key is on the device's clock
+_SOURCE_CLOCK = {"global_time": TimeSource.DEVICE, "hardware_clock": TimeSource.DEVICE,
+                 "system_time": TimeSource.HOST, "arrival": TimeSource.HOST}
+
+
+def frame_time_source(frame: Frame) -> TimeSource | None:
+    """The clock `frame.exposure_start_s` was read from (TimeSource); None when the frame has no time."""
+    if frame.exposure_start_s is None:
+        return None
+    meta = frame.meta if isinstance(frame.meta, dict) else {}
+    return _SOURCE_CLOCK.get(meta.get("exposure_start_source"), TimeSource.DEVICE)
 
 
 @runtime_checkable

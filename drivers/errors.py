@@ -17,3 +17,8 @@ class DeviceTimeout(DeviceError):
 
 class ExposureUnsupported(DeviceError):
     """The camera ignores manual exposure or gain (a webcam, a stream): its own auto exposure stays on."""
+
+
+class StreamReset(DeviceTimeout):
+    """The stream had stalled (no frame for a while, the device still connected) and the driver reset the
+    device (hardware_reset); it streams again: ask for a frame again."""

@@ -99,13 +99,15 @@ class HardwareRig:
 def open_rig(kind: str, **options):
     """The rig `kind` names.
 
-    realsense: serial, width (1280), height (800), fps (30), projector_screen (None: the non-primary screen of two),
+    realsense: serial, width (1280), height (800), fps (30), exact_mode (False: a mode the device does not
+      list falls back to the fastest one of that size; True: refused with the list), projector_screen (None: the non-primary screen of two),
       projector_size (None: the screen's), fullscreen (True), settle_s (0.0), pattern_positions,
       context (librealsense context or a software device, for tests). The projector window is created
       here, so call open_rig on the main thread (pyglet's) and run the station's logic in a worker
       (drivers.projector_window.run_projector_loop).
     sim: scenario, seed, quality and the simulator's own options (drivers.sim.rig.open_sim_rig).
-    sim-realsense: the same, plus fps (30); its camera is drivers.realsense.RealSenseCamera on a
+    sim-realsense: the same, plus camera_mode ((width, height, fps): the simulated camera's size, a listed
+      rate); its camera is drivers.realsense.RealSenseCamera on a
       librealsense software device (drivers.sim.realsense_bridge).
     uvc: camera (an index, default 0, or a URL / file), width, height, fps (None: the camera's), intrinsics
       (a pre-calibrated CameraModel), and the projector window's options as for realsense.
@@ -140,13 +142,14 @@ def open_rig(kind: str, **options):
     from drivers.projector_window import ProjectorWindow
     from drivers.realsense import RealSenseCamera
 
-    known = {"serial", "width", "height", "fps", "projector_screen", "projector_size", "fullscreen", "settle_s",
-             "pattern_positions", "context"}
+    known = {"serial", "width", "height", "fps", "exact_mode", "projector_screen", "projector_size", "fullscreen",
+             "settle_s", "pattern_positions", "context"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise SpecError(f"unknown option(s) for the realsense rig: {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     camera = RealSenseCamera(options.get("serial"), options.get("width", 1280), options.get("height", 800),
-                             options.get("fps", 30), context=options.get("context"))
+                             options.get("fps", 30), context=options.get("context"),
+                             exact_mode=bool(options.get("exact_mode", False)))
     projector = ProjectorWindow(options.get("projector_screen"), size=options.get("projector_size"),
                                 fullscreen=options.get("fullscreen", True), settle_s=options.get("settle_s", 0.0),
                                 quit_keys=())

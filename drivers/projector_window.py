@@ -46,6 +46,7 @@ only when a window is created or the screens are listed.
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import sys
 import threading
@@ -57,6 +58,8 @@ import numpy as np
 
 from drivers.errors import DeviceError, DeviceTimeout
 from drivers.settle import SettleMeasurement, measure_settle, measure_settle_time  # noqa: F401 (re-exported)
+
+_log = logging.getLogger(__name__)
 
 QUIT_KEYS = ("escape", "q")
 
@@ -236,6 +239,12 @@ class ProjectorWindow:
         if window is None:
             raise DeviceError(f"cannot open the projector window on screen {idx}: {'; '.join(errors)}")
         self._window = window
+        from drivers.screen_blanking import ScreenBlankingInhibitor
+
+        # a screen saver or DPMS would turn the projector's image off mid-session: off while the window is open
+        self.blanking = ScreenBlankingInhibitor.start()
+        if not self.blanking.active:
+            _log.warning("%s", self.blanking.reason)
         self._owner = threading.current_thread()
         self._cond = threading.Condition()
         self._pending: deque[tuple[int, bytes]] = deque()
@@ -515,6 +524,7 @@ class ProjectorWindow:
             self._window.close()
         except Exception:  # noqa: BLE001 - closing twice or after the display went away
             pass
+        self.blanking.restore()
 
 
 def run_projector_loop(window: ProjectorWindow, worker: Callable[[], Any], close: bool = True,

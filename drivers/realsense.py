@@ -21,12 +21,16 @@ time.monotonic() when the frame arrived.
 
 Frame times: `Frame.exposure_start_s` is the host `time.monotonic()` second at which the frame's
 exposure began, estimated from what the frame carries (see `_exposure_start`):
-- global_time / system_time domain (librealsense maps the device clock onto the host's system clock;
-  the default on the D4xx): the frame time minus the part of the frame that precedes it, converted
-  to the monotonic clock with the offset time.time() - time.monotonic() measured when the frame
-  arrives. When the frame carries both `frame_timestamp` (start of readout) and `sensor_timestamp`
+- global_time domain (librealsense maps the device clock onto the host's system clock; the default on
+  the D4xx when frame metadata is available): the frame time minus the part of the frame that precedes
+  it, converted to the monotonic clock with the offset time.time() - time.monotonic() measured when the
+  frame arrives. When the frame carries both `frame_timestamp` (start of readout) and `sensor_timestamp`
   (middle of exposure) metadata, the exposure start is the middle of exposure minus half the exposure;
   otherwise the frame time is taken as the start of readout, i.e. the end of the exposure.
+- system_time domain (no frame metadata: the V4L2 backend without librealsense's kernel patch, Windows
+  without its registry switch; librealsense #13241): the host's clock at the frame's arrival, so the
+  exposure began one frame interval (readout and transfer) and the exposure before it. These times are
+  the host's, with its transfer jitter: drivers.base.TimeSource.HOST (the rig check says so).
 - hardware_clock domain: the device clock mapped to the host clock by the smallest (arrival - device
   time) of the last frames (transfer delays are never negative, so the smallest one has the least
   jitter), minus one frame interval for the readout and transfer that smallest delay still contains.
@@ -66,7 +70,7 @@ import numpy as np
 
 from calib.models.camera import CameraModel
 from drivers.base import Frame
-from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout, StreamReset
 
 #: Unit of the colour sensor's `exposure` option. librealsense passes the UVC control through: on the
 #: D400 RGB sensor it counts 100 microseconds (range 1..10000), unlike the depth sensor's microseconds.
@@ -415,6 +419,10 @@ class _Stats:
     duplicates: int = 0
     late: int = 0
     bad: int = 0
+    gaps: int = 0  # jumps in the device's frame numbers: frames lost between the device and the driver
+    missing: int = 0  # frames those jumps skipped
+    resets: int = 0  # stalled streams reset (hardware_reset)
+    held: int = 0  # frames dropped after a (re)start, until the re-applied exposure shows
 
 
 class RealSenseCamera:
@@ -430,7 +438,8 @@ class RealSenseCamera:
 
     def __init__(self, serial: str | None = None, width: int = 1280, height: int = 800, fps: int = 30, *,
                  context=None, queue_capacity: int = 2, stale_after_s: float | None = None,
-                 intrinsics_tolerance_px: float = 0.05, emitter_enabled: bool = False):
+                 intrinsics_tolerance_px: float = 0.05, emitter_enabled: bool = False,
+                 stall_reset_s: float | None = 2.0, exact_mode: bool = False):
         self._rs = _rs()
         self.serial = serial
         self.width, self.height, self.fps = int(width), int(height), int(fps)
@@ -458,6 +467,14 @@ class RealSenseCamera:
         self._offsets: list[float] = []  # recent (arrival - device time), hardware clock domain
         self._info: dict = {}
         self._callback_registered = False
+        self.exact_mode = bool(exact_mode)  # a mode asked for by name: never another one
+        self.requested_mode = (self.width, self.height, self.fps)
+        self.mode_note: str | None = None  # why the stream runs another mode than the one asked for
+        self.stall_reset_s = stall_reset_s  # no frame for this long, the device present: reset it (None: never)
+        self._last_arrival_s = time.monotonic()
+        self._waiting_since: float | None = None  # when callers began waiting without getting a frame
+        self._reset_failed_at: float | None = None  # the last arrival before a reset that failed
+        self._hold_until_s = -1e18  # frames exposed before this were taken before a re-applied exposure showed
 
     # ---- CameraDriver ------------------------------------------------------------------------------
     @property
@@ -469,7 +486,7 @@ class RealSenseCamera:
         if self._running:
             return
         dev, sensor = self._find_device()
-        profile = self._select_profile(sensor)
+        profile = self._select_profile(sensor, dev)
         queue = self._rs.frame_queue(self._queue_capacity, keep_frames=True)
         try:
             sensor.open(profile)
@@ -500,6 +517,7 @@ class RealSenseCamera:
         self._depth_sensor = _depth_sensor(dev, sensor)
         self.set_emitter(self._emitter_wanted)
         self._fix_image_processing()
+        self._last_arrival_s = time.monotonic()
         if self._manual is not None:
             self.set_manual_exposure(self._manual["exposure_us"], self._manual["gain"])
 
@@ -542,6 +560,8 @@ class RealSenseCamera:
         larger number; with `not_before_s` (host time.monotonic() seconds), only a frame whose exposure
         started at or after it: an older frame is never handed out, the call waits for a later one."""
         deadline = time.monotonic() + timeout_s
+        if self._waiting_since is None:
+            self._waiting_since = time.monotonic()
         with self._cond:
             while True:
                 if self._disconnected:
@@ -556,8 +576,10 @@ class RealSenseCamera:
                     if newer_than is None:
                         if not_before_s is not None or \
                                 time.monotonic() - f.meta["host_time_s"] <= self._stale_after_s:
+                            self._waiting_since = None
                             return f
                     elif f.frame_number > newer_than:
+                        self._waiting_since = None
                         return f
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -567,6 +589,10 @@ class RealSenseCamera:
             with self._cond:
                 self._disconnected = True
             raise DeviceDisconnected(self._disconnect_message())
+        # no frame for that long while somebody waited (an idle driver of a lazy emulation is no stall)
+        stalled_s = time.monotonic() - max(self._last_arrival_s, self._waiting_since or 0.0)
+        if self.stall_reset_s is not None and self._running and stalled_s >= self.stall_reset_s:
+            self._reset_stalled(stalled_s)
         what = "no frame" if newer_than is None else f"no frame newer than #{newer_than}"
         if not_before_s is not None:
             what += f" exposed after t={not_before_s:.3f} s"
@@ -595,7 +621,8 @@ class RealSenseCamera:
             out["exposure_us_actual"] = f.meta["actual_exposure_us"]
         out["emitter_enabled"] = self.emitter_enabled()
         out["frames"] = {"accepted": self.stats.accepted, "dropped_duplicates": self.stats.duplicates,
-                         "dropped_late": self.stats.late}
+                         "dropped_late": self.stats.late, "gaps": self.stats.gaps, "missing": self.stats.missing,
+                         "resets": self.stats.resets, "held_after_start": self.stats.held}
         return out
 
     # ---- exposure (drivers.base.ExposureControl) ----------------------------------------------------
@@ -756,6 +783,34 @@ class RealSenseCamera:
         raise DeviceDisconnected(f"RealSense {self._label()} did not come back within {timeout_s:.1f} s "
                                  f"({last}); reconnect its USB cable and try again")
 
+    def _reset_stalled(self, stalled_s: float, timeout_s: float = 10.0) -> None:
+        """The stream stopped with the device still there (a USB or firmware hang: librealsense #7252,
+        #2412): reset the device (hardware_reset; it drops off the bus and enumerates again), reopen it
+        with its settings re-applied, and raise StreamReset so the caller asks again. DeviceTimeout when
+        the device refuses the reset (tried once per stall), DeviceDisconnected when it does not come back."""
+        dev = self._device
+        if self._reset_failed_at == self._last_arrival_s:  # tried for this stall already
+            return
+        try:
+            dev.hardware_reset()
+        except (RuntimeError, AttributeError) as e:
+            self._reset_failed_at = self._last_arrival_s
+            raise DeviceTimeout(f"RealSense {self._label()}: no frame for {stalled_s:.1f} s with the camera connected, "
+                                f"and resetting it failed ({e}): unplug the camera and plug it in again") from None
+        self.stats.resets += 1
+        deadline = time.monotonic() + 3.0  # until it has gone (or the callback said so)
+        while time.monotonic() < deadline and not self._disconnected and self._device_present():
+            time.sleep(0.05)
+        self.reconnect(timeout_s)
+        # the reopened device applies the exposure some frames late, and may report no metadata to tell
+        # which: the frames exposed within the longest lag allowed are not handed out
+        from drivers.exposure import SKIP_LIMIT
+
+        self._hold_until_s = time.monotonic() + SKIP_LIMIT / max(1, self.fps)
+        self._waiting_since = None
+        raise StreamReset(f"RealSense {self._label()}: no frame for {stalled_s:.1f} s with the camera connected: "
+                          f"it was reset (hardware_reset, {self.stats.resets} so far) and streams again")
+
     @property
     def disconnected(self) -> bool:
         return self._disconnected
@@ -796,24 +851,44 @@ class RealSenseCamera:
         raise DeviceDisconnected("no RealSense device is connected; plug in the camera (procam devices lists "
                                  "what is found) or use the simulated rig (--rig sim)")
 
-    def _select_profile(self, sensor):
+    def link_note(self) -> str | None:
+        """The USB link when it is not USB 3 (fewer and slower modes), and the mode the stream fell back
+        to; None on a USB 3 link with the mode asked for."""
+        usb = str(self._info.get("usb_type") or "")
+        parts = []
+        if usb.startswith("2"):
+            parts.append(f"the camera is on a USB {usb} link (fewer, slower colour modes): a USB 3 port and "
+                         "cable give the full rate")
+        if self.mode_note:
+            parts.append(self.mode_note)
+        return "; ".join(parts) or None
+
+    def _select_profile(self, sensor, dev=None):
         rs = self._rs
-        profiles = _colour_profiles(sensor)
-        for fmt in (rs.format.bgr8, rs.format.rgb8):
-            for p in profiles:
-                if (p.format() == fmt and p.width() == self.width and p.height() == self.height
-                        and p.fps() == self.fps):
-                    return p
-        modes = sorted({(p.width(), p.height(), p.fps()) for p in profiles
-                        if p.format() in (rs.format.bgr8, rs.format.rgb8)}, reverse=True)
+        profiles = [p for p in _colour_profiles(sensor) if p.format() in (rs.format.bgr8, rs.format.rgb8)]
+        profiles.sort(key=lambda p: p.format() != rs.format.bgr8)
+        for p in profiles:
+            if p.width() == self.width and p.height() == self.height and p.fps() == self.fps:
+                return p
+        modes = sorted({(p.width(), p.height(), p.fps()) for p in profiles}, reverse=True)
         listed = ", ".join(f"{w}x{h}@{f}" for w, h, f in modes) or "none"
+        usb = str(_info(dev, "usb_type_descriptor") or "") if dev is not None else ""
+        same = [p for p in profiles if p.width() == self.width and p.height() == self.height]
+        if same and not self.exact_mode:  # the default mode on a slower link: the fastest of its size
+            p = max(same, key=lambda q: q.fps())
+            self.mode_note = (f"{self.width}x{self.height}@{self.fps} is not offered: streaming "
+                              f"{self.width}x{self.height}@{p.fps()} (--camera-mode chooses; offered: {listed})")
+            self.fps = int(p.fps())
+            return p
         raise DeviceError(f"RealSense colour stream {self.width}x{self.height}@{self.fps} (BGR8) is not "
-                          f"offered by this device; available: {listed}")
+                          f"offered by this device; available: {listed}; choose one with --camera-mode"
+                          + (f" (the camera is on a USB {usb} link: a USB 3 port offers more)" if usb.startswith("2")
+                             else ""))
 
     def _current_profile(self):
         if self._profile is None:
-            _, sensor = self._find_device()
-            self._profile = self._select_profile(sensor)
+            dev, sensor = self._find_device()
+            self._profile = self._select_profile(sensor, dev)
         return self._profile
 
     def _device_present(self) -> bool:
@@ -900,6 +975,10 @@ class RealSenseCamera:
                     meta[name] = float(vf.get_frame_metadata(value)) * scale
             except RuntimeError:
                 pass
+        if "actual_exposure_us" not in meta and self._manual is not None:
+            # no metadata: the manual exposure last set (the rig check confirms it shows before timing
+            # anything by it), so a frame that caught a change part-way can still be timed
+            meta["exposure_us_set"] = float(self._manual["exposure_us"])
         start_s, source = self._exposure_start(key[1], meta, host_t, time.time() - time.monotonic())
         meta["exposure_start_source"] = source
         with self._cond:
@@ -907,7 +986,14 @@ class RealSenseCamera:
             if last is not None and key[0] <= last[0] and key[1] <= last[1]:
                 self.stats.late += 1
                 return
+            if last is not None and key[0] > last[0] + 1:  # frames the device numbered never reached us
+                self.stats.gaps += 1
+                self.stats.missing += key[0] - last[0] - 1
             self._last_key = key
+            self._last_arrival_s = host_t
+            if start_s < self._hold_until_s:
+                self.stats.held += 1
+                return
             self._counter += 1
             self.stats.accepted += 1
             self._latest = Frame(img, self._counter, key[1], meta, start_s)
@@ -927,8 +1013,12 @@ class RealSenseCamera:
         else:
             before_ref_s = exposure_s  # the timestamp marks the start of readout = the end of the exposure
         domain = meta.get("timestamp_domain")
-        if domain in ("global_time", "system_time"):
+        if domain == "global_time":
             return timestamp_ms * 1e-3 - wall_minus_mono_s - before_ref_s, domain
+        if domain == "system_time":
+            # no hardware timestamp (no frame metadata, librealsense #13241): librealsense stamped the
+            # frame with the host's clock when it arrived, after the exposure, the readout and the transfer
+            return timestamp_ms * 1e-3 - wall_minus_mono_s - period_s - exposure_s, domain
         if domain == "hardware_clock":
             self._offsets.append(arrival_s - timestamp_ms * 1e-3)
             del self._offsets[:-max(8, 2 * self.fps)]

@@ -22,7 +22,8 @@ the projector's frame conversion can add a whole refresh period), so the recomme
 the longest delay seen (the tightest bound plus that spread) plus a margin for a delay longer than
 any of the few trials showed: max(10 ms, spread / (timed trials - 1)).
 The exposure is the frame's own metadata: `actual_exposure_us` (the RealSense driver) or
-`exposure_us` (the simulated camera); a camera that reports neither is timed by whole frames only.
+`exposure_us` (the simulated camera), else the manual exposure the RealSense driver last set
+(`exposure_us_set`, on frames without metadata); a camera that reports none is timed by whole frames only.
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def _arrival(frame, clock) -> float:
 
 def _exposure_s(frame) -> float | None:
     meta = frame.meta if isinstance(frame.meta, dict) else {}
-    e = meta.get("actual_exposure_us", meta.get("exposure_us"))
+    e = meta.get("actual_exposure_us", meta.get("exposure_us", meta.get("exposure_us_set")))
     return float(e) * 1e-6 if isinstance(e, (int, float)) and e > 0 else None
 
 

@@ -263,3 +263,42 @@ def test_settle_time_measured_with_a_camera_filming_the_screen():
     # settle time is that bound plus at least the 10 ms jitter margin (drivers/settle.py)
     assert m["settle_s"] >= min(m["samples_s"]) + 0.010 - 1e-9
     assert m["settle_s"] <= min(m["samples_s"]) + max(0.010, max(m["samples_s"]) - min(m["samples_s"])) + 1e-9
+
+
+BLANKING_SCRIPT = r"""
+import ctypes, ctypes.util, json
+from drivers.projector_window import ProjectorWindow
+
+x11 = ctypes.CDLL(ctypes.util.find_library("X11"))
+x11.XOpenDisplay.restype = ctypes.c_void_p
+x11.XOpenDisplay.argtypes = [ctypes.c_char_p]
+x11.XGetScreenSaver.argtypes = [ctypes.c_void_p] + [ctypes.POINTER(ctypes.c_int)] * 4
+x11.XSetScreenSaver.argtypes = [ctypes.c_void_p] + [ctypes.c_int] * 4
+x11.XFlush.argtypes = [ctypes.c_void_p]
+d = x11.XOpenDisplay(None)
+
+def timeout():  # as another X client sees it
+    v = [ctypes.c_int() for _ in range(4)]
+    x11.XGetScreenSaver(d, *[ctypes.byref(x) for x in v])
+    return v[0].value
+
+x11.XSetScreenSaver(d, 600, 60, 1, 1)  # a desktop's screen saver: blank after 10 minutes
+x11.XFlush(d)
+out = {"before": timeout()}
+win = ProjectorWindow(0)
+out["open"] = timeout()
+out["active"] = win.blanking.active
+win.close()
+out["after"] = timeout()
+print(json.dumps(out))
+"""
+
+
+def test_the_window_keeps_the_screen_saver_off_while_open_and_restores_it():
+    """A screen saver (or DPMS) would blank the projector mid-session: the window sets the X server's
+    screen saver timeout to 0 while it is open and puts the old one back when it closes."""
+    with xvfb((1280, 720)) as display:
+        r = run_python(BLANKING_SCRIPT, display)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out == {"before": 600, "open": 0, "active": True, "after": 600}, out

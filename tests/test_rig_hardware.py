@@ -207,6 +207,9 @@ def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
                    "--mirror-captures", "6", "--out", str(out), timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "camera through the RealSense driver" in r.stdout and "verification PASSED" in r.stdout
+    # before the rig check, the person is told what to do during it
+    hint = r.stdout.index("Rig check (the simulated operator does it here): hold the board in the mirror")
+    assert hint < r.stdout.index("Check rig: projector")
     man = json.loads((out / "session.json").read_text())
     assert man["state"]["rig_request"]["kind"] == "sim-realsense"
     settings = man["rig"]["camera_settings"]

@@ -1,5 +1,5 @@
 """The simulated rig behaves like the hardware (projector latency, the camera's own frame clock, blended
-frames, auto exposure, banding, the IR emitter), and the station and the verification only use frames
+frames, auto exposure, flicker, the IR emitter), and the station and the verification only use frames
 that show what they asked for: checked against the simulator's own record of what was on the
 projector during each frame's exposure (SimRig.frame_truth)."""
 
@@ -123,40 +123,74 @@ def test_auto_exposure_drifts_until_locked():
     assert all(np.array_equal(locked[0].image, f.image) for f in locked[1:])  # no drift any more
 
 
-def test_banding_for_an_exposure_off_the_refresh_period_only():
-    rig = open_sim_rig("nonoverlap-136", seed=0, latency_ms=0.0, ambient=0.2, projector_gain=0.2, **QUIET)
+@pytest.mark.parametrize("faults", [(), ("flicker",)])
+def test_global_shutter_flicker_for_an_exposure_off_the_refresh_period_only(faults):
+    """The D455's colour sensor has a global shutter: an exposure off a whole number of refresh periods
+    makes the whole frame's projector light brighter or darker, from frame to frame (the flicker's phase
+    drifts slowly; under the flicker fault any phase at any frame), never bands across the image."""
+    rig = open_sim_rig("nonoverlap-136", seed=0, latency_ms=0.0, ambient=0.2, projector_gain=0.2, faults=faults,
+                       **QUIET)
     cam = rig.camera
     cam.start()
     cam.set_emitter(False)
     rig.operator.request_pose("verification", None, 0)
-    rig.projector.show(_white(rig))
 
-    def rows(exposure_us):
+    def frames_at(exposure_us, image, n=6):
+        rig.projector.show(image)
         t = rig.clock.now()
         cam.set_manual_exposure(exposure_us, 1.0)
-        f = [f for f in _frames(rig, 8) if f.exposure_start_s >= t + _lag_s(rig)][-1]
-        # the ratios below are ratios of light: undo the camera's tone curve (docs/SIMULATOR.md)
-        lin = 255.0 * decode_gamma(f.image[:, :, 0].astype(np.float32) / 255.0, rig.settings.camera_gamma)
-        return lin.astype(float), f.meta["banding_amplitude"]
+        fs = [f for f in _frames(rig, n + 6) if f.exposure_start_s >= t + _lag_s(rig)][-n:]
+        # ratios of light: undo the camera's tone curve (docs/SIMULATOR.md)
+        return [255.0 * decode_gamma(f.image[:, :, 0].astype(np.float64) / 255.0, rig.settings.camera_gamma)
+                for f in fs], fs
 
-    ref, amp_ref = rows(PERIOD_US)
-    lit = ref > 0.6 * ref.max()  # the board where the projector lights it
-    assert lit.sum() > 2000 and amp_ref == 0.0
+    W, H = rig.projector.size
+    dark = frames_at(PERIOD_US, np.zeros((H, W), np.uint8))[0][-1]  # the room's light alone
+    lit_ref = frames_at(PERIOD_US, _white(rig))[0][-1]
+    proj = lit_ref - dark  # the projector's light at one period
+    lit = proj > 0.3 * proj.max()
+    rows = lit.sum(axis=1) > 20
+    assert lit.sum() > 2000
 
-    def row_ratio_spread(img):
-        # not saturated (below level 254): the ratio is the exposure's
-        assert img[lit].max() < 255.0 * decode_gamma(np.float32(254 / 255), rig.settings.camera_gamma)
-        r = np.where(lit, img / np.maximum(ref, 1), np.nan)
-        ok = lit.sum(axis=1) > 20
-        per_row = np.nanmean(r[ok], axis=1)
-        return float(per_row.max() - per_row.min())
+    def row_factors(img, periods):
+        """Per row: the share of the projector's light the frame caught, relative to one period's."""
+        k = np.where(lit, (img - periods * dark) / (periods * np.maximum(proj, 1e-6)), np.nan)
+        return np.nanmean(k[rows], axis=1)
 
-    whole, amp_whole = rows(2 * PERIOD_US)
-    off, amp_off = rows(1.5 * PERIOD_US)
-    assert amp_whole == 0.0 and amp_off > 0.05
-    # every row gets the same light at a whole number of periods; off it, rows are darker and brighter
-    assert row_ratio_spread(whole) < 0.03
-    assert row_ratio_spread(off) > 0.1
+    whole, whole_frames = frames_at(2 * PERIOD_US, _white(rig))
+    off, off_frames = frames_at(1.5 * PERIOD_US, _white(rig))
+    assert whole_frames[0].meta["flicker_amplitude"] == 0.0 and off_frames[0].meta["flicker_amplitude"] > 0.05
+    # every row of a frame catches the same share (no bands), at any exposure
+    for img, periods in [(i, 2.0) for i in whole] + [(i, 1.5) for i in off]:
+        assert np.ptp(row_factors(img, periods)) < 0.03
+    # a whole number of periods: the same light in every frame
+    assert all(np.array_equal(whole_frames[0].image, f.image) for f in whole_frames[1:])
+    caught = [float(np.median(row_factors(img, 1.5))) for img in off]
+    assert caught == pytest.approx([f.meta["flicker_factor"] for f in off_frames], abs=0.02)
+    if faults:  # off a whole number: frame to frame the frame catches another share
+        assert max(caught) - min(caught) > 0.1
+    else:  # a slow drift (the clocks beat by 0.06 Hz): a steady offset over a few frames
+        assert max(caught) - min(caught) < 0.02
+
+
+def test_the_exposure_search_meters_the_brightest_of_flickering_frames():
+    """A projector so bright that even one refresh period saturates at the lowest gain: the search must
+    go below a period, where the frames flicker at any phase; the frames after it must not saturate."""
+    rig = open_sim_rig("nonoverlap-136", seed=0, latency_ms=0.0, ambient=0.05, projector_gain=6.0,
+                       faults=("flicker",))
+    cam = rig.camera
+    cam.start()
+    cam.set_emitter(False)
+    rig.operator.request_pose("projector", 6, 0)
+    W, H = rig.projector.size
+    rig.projector.show(rig.scenario.pattern.render(W, H, 6)[0])
+    rig.clock.sleep(0.3)
+    c = search_exposure(cam, rig.projector.refresh_hz)
+    assert not c.whole_periods and c.periods < 1 and c.flicker > 0.03, c
+    fs = _frames(rig, 30)
+    assert len({round(f.meta["flicker_factor"], 3) for f in fs}) > 10  # they do flicker
+    tops = [float(np.percentile(f.image.max(axis=2), 99.99)) for f in fs]
+    assert max(tops) <= 250 and min(tops) >= 100, (min(tops), max(tops))
 
 
 def test_the_emitter_adds_dots_until_turned_off():

@@ -50,6 +50,9 @@ def add_rig_options(p) -> None:
     p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
     p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
+    p.add_argument("--camera-mode", type=_types.camera_mode, default=None, metavar="WxH@FPS",
+                   help="RealSense rigs: the colour mode, one the camera lists (an unlisted one is refused with the "
+                        "list; default 1280x800@30, or the fastest mode of that size the USB link offers)")
     p.add_argument("--projector-screen", type=_types.screen, default=None,
                    help="real rig: screen the projector is connected to, from `procam devices` (default: the non-primary one of two screens; required with more)")
     p.add_argument("--settle-s", type=_types.seconds, default=None,

@@ -54,6 +54,24 @@ def int_range(lo: int, hi: int | None = None):
     return parse
 
 
+_MODE = re.compile(r"(\d{1,5})x(\d{1,5})@(\d{1,3})")
+
+
+def camera_mode(text: str) -> tuple[int, int, int]:
+    """A colour stream mode WxH@FPS (16-8192 pixels, 1-300 fps): (width, height, fps)."""
+    allowed = "WIDTHxHEIGHT@FPS, e.g. 1280x800@30 (16-8192 pixels, 1-300 fps)"
+    m = _MODE.fullmatch(str(text).strip())
+    if not m:
+        raise _bad(text, allowed)
+    w, h, fps = (int(g) for g in m.groups())
+    if not (16 <= w <= 8192 and 16 <= h <= 8192 and 1 <= fps <= 300):
+        raise _bad(text, allowed)
+    return w, h, fps
+
+
+camera_mode.__name__ = "camera mode"
+
+
 def float_range(lo: float, hi: float, *, lo_open: bool = False):
     """A finite number in [lo, hi] ((lo, hi] with lo_open): never NaN or an infinity."""
     allowed = f"a number above {lo:g}, at most {hi:g}" if lo_open else f"a number between {lo:g} and {hi:g}"

@@ -59,6 +59,8 @@ def rig_options(args, kind: str) -> dict:
         out = sim_hardware_options(args)
         if getattr(args, "sim_bump", None):
             out["bump"] = args.sim_bump
+        if kind == "sim-realsense" and getattr(args, "camera_mode", None):
+            out["camera_mode"] = args.camera_mode
         return out
     if kind == "uvc":
         camera = getattr(args, "camera", None)
@@ -73,7 +75,10 @@ def rig_options(args, kind: str) -> dict:
             opts.update(intrinsics=model, width=model.width, height=model.height)
         return {k: v for k, v in opts.items() if v is not None}
     opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
-    return {k: v for k, v in opts.items() if v is not None}
+    out = {k: v for k, v in opts.items() if v is not None}
+    if getattr(args, "camera_mode", None):
+        out.update(dict(zip(("width", "height", "fps"), args.camera_mode)), exact_mode=True)
+    return out
 
 
 def refuse_recalibration_folder(folder: Path) -> None:
@@ -189,6 +194,20 @@ def summary(machine, folder, elapsed_s: float) -> str:
     return "\n".join(lines)
 
 
+def rig_check_hint(kind: str, view: str) -> str | None:
+    """What the person at a RealSense rig does during the rig check (said before it starts): the check
+    measures the exposure and the projector's latency on the board the projector lights."""
+    from drivers.factory import is_simulated
+    from calib.models.observations import VIEW_MIRROR
+
+    if kind == "sim":
+        return None
+    where = "in the mirror, where the camera sees it" if view == VIEW_MIRROR else "where the camera sees it"
+    who = " (the simulated operator does it here)" if is_simulated(kind) else ""
+    return (f"Rig check{who}: hold the board {where}, lit by the projector, and keep it still until the check "
+            "ends (about 20 s): the camera's exposure and the projector's latency are measured on it.")
+
+
 def STATE(machine) -> str:
     from app.station.machine import STATE_TITLES
 
@@ -235,8 +254,14 @@ def run(args) -> int:
     machine.on_event = lambda text: None if text.startswith("captured") else log(text)  # the station logs captures
     last_hint = ""
 
+    check_hint = rig_check_hint(req.kind, machine.manifest.rig.view)
+
     def work():
         nonlocal last_hint
+        if check_hint:
+            print(check_hint, flush=True)
+            if not is_simulated(req.kind) and sys.stdin.isatty():
+                input("Press Enter when the board is in place: ")
         if machine.state != CHECK_RIG:  # resumed: the rig is checked again, the session stays where it is
             bad = [c for c in station.check_rig() if not c.ok]
             if bad:

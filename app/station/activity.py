@@ -141,7 +141,7 @@ ACTIVITY_NAMES = {"calibrate": "Calibrate", "verify": "Verify", "check pixel": "
 CHECK_RIG_NAME = "Check rig"
 DOWNLOAD_NAME = "Download results (zip)"
 #: the rig check's findings worth reading when they are fine (the others only say "ok")
-RIG_FINDINGS = ("camera exposure", "camera response", "projector latency")
+RIG_FINDINGS = ("camera link", "camera exposure", "camera timing", "camera response", "projector latency", "camera stream")
 
 
 def activity_name(name: str) -> str:

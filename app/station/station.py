@@ -48,7 +48,7 @@ from calib.errors import ProcamError, SessionError, SpecError
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from drivers.base import Frame
 from drivers.clock import clock_of
-from drivers.errors import DeviceDisconnected, DeviceError, ExposureUnsupported
+from drivers.errors import DeviceDisconnected, DeviceError, ExposureUnsupported, StreamReset
 
 
 _log = logging.getLogger("procam.station")
@@ -61,6 +61,31 @@ class LoopError:
     time_s: float  # time.monotonic()
     summary: str
     traceback: str
+
+
+#: where the rig check keeps the frames it used, at reduced size, with their metadata (drivers/evidence.py)
+RIG_CHECK_FOLDER = "rig_check"
+
+
+def stream_findings(camera) -> str | None:
+    """What the rig check says of a camera's stream: frames lost on the way (gaps in the device's frame
+    numbers: USB drops) and stalled streams reset; None for a camera that does not count them."""
+    try:
+        frames = (camera.settings() or {}).get("frames")
+    except (DeviceError, ProcamError):
+        return None
+    if not isinstance(frames, dict) or "gaps" not in frames:
+        return None
+    text = f"{frames.get('accepted', 0)} frames"
+    if frames["gaps"]:
+        gaps = frames["gaps"]
+        text += (f", {frames.get('missing', 0)} lost in {gaps} gap{'s' if gaps != 1 else ''} of the frame numbers "
+                 "(USB drops: a shorter cable, a USB 3 port without a hub)")
+    else:
+        text += ", no frame lost"
+    if frames.get("resets"):
+        text += f", the stream stalled and was reset ({frames['resets']}x)"
+    return text
 
 
 def rate_of(times, window_s: float = 2.0, longest_s: float = 10.0) -> float:
@@ -160,6 +185,7 @@ class Station:
         self._detector = ThreadPoolExecutor(max_workers=1, thread_name_prefix="station-detect")
         self._detecting: list[Future] = []
         self.pixel_check = None  # the last live epipolar check (app.verification.PixelCheck)
+        self._change_timing = None  # how the camera confirms a changed setting (drivers.exposure.ChangeTiming)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
 
@@ -218,6 +244,10 @@ class Station:
             checks.append(RigCheck("camera", ok, f"{w}x{h} frames streaming" if ok else
                                    f"frames are {w}x{h}, the session expects {man.rig.camera_size[0]}x"
                                    f"{man.rig.camera_size[1]}"))
+            note = getattr(self.rig.camera, "link_note", None)  # a RealSense on USB 2, or another mode
+            note = note() if callable(note) else None
+            if note:
+                checks.append(RigCheck("camera link", True, note))
             self._last_frame = max(self._last_frame, f.frame_number)
         except DeviceError as e:
             checks.append(RigCheck("camera", False, str(e)))
@@ -233,6 +263,9 @@ class Station:
             checks.append(RigCheck("projector", False, str(e)))
         if all(c.ok for c in checks):
             checks.extend(self._check_timing())
+            stream = stream_findings(self.rig.camera)
+            if stream is not None:
+                checks.append(RigCheck("camera stream", True, stream))
         checks.append(RigCheck("projector board", True, str(man.projector_board)))
         if man.rig.view == VIEW_MIRROR:
             checks.append(RigCheck("mirror board", man.mirror_board is not None,
@@ -253,8 +286,10 @@ class Station:
         already (a resumed session), re-applied instead of measured again."""
         from dataclasses import replace as _replace
 
+        from drivers.evidence import FrameRecorder
+
         man = self.machine.manifest
-        cam, proj = self.rig.camera, self.rig.projector
+        cam, proj = FrameRecorder(self.rig.camera), self.rig.projector  # the check's frames, kept (rig_check/)
         recorded = dict(man.rig.camera_settings or {})
         timing = dict(recorded.get("projector") or {})
         checks = []
@@ -271,6 +306,10 @@ class Station:
             self._changed()
             if settings != recorded:
                 self.machine.store.update(rig=_replace(man.rig, camera_settings=settings))
+            try:
+                cam.write(self.machine.store.folder / RIG_CHECK_FOLDER)
+            except OSError as e:  # the evidence is for diagnosis: its loss stops nothing
+                _log.warning("the rig check's frames were not kept: %s", e)
 
     def _timing_checks(self, cam, proj, man, recorded, timing, settings, checks) -> list[RigCheck]:
         from drivers.base import ExposureControl
@@ -282,9 +321,13 @@ class Station:
             try:
                 cam.set_emitter(False)
                 if recorded_exposure(recorded) is not None:
-                    from drivers.exposure import apply_exposure
+                    from drivers.exposure import ASSUMED_TIMING, METADATA_TIMING, apply_exposure, has_settings_metadata
 
-                    applied, f = apply_exposure(cam, *recorded_exposure(recorded), self.options.frame_timeout_s)
+                    # nothing is measured on a resume: without metadata, the longest lag allowed
+                    self._change_timing = METADATA_TIMING if has_settings_metadata(
+                        cam.get_frame(timeout_s=self.options.frame_timeout_s)) else ASSUMED_TIMING
+                    applied, f = apply_exposure(cam, *recorded_exposure(recorded), self.options.frame_timeout_s,
+                                                timing=self._change_timing)
                     self._last_frame = max(self._last_frame, f.frame_number)
                     detail = f"recorded {applied['exposure_us']:g} us, gain {applied['gain']:g} re-applied"
                 else:
@@ -294,11 +337,13 @@ class Station:
                     self._show(self.pattern_image(man.pattern.positions // 2))
                     time.sleep(0.5)  # any projector's latency: the pattern lights the board now
                     choice = search_exposure(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
+                    self._change_timing = choice.timing
                     applied = {"exposure_us": choice.exposure_us, "gain": choice.gain}
                     detail = (f"{choice.exposure_us:g} us ({choice.periods:.2f} refresh periods), gain {choice.gain:g}, "
                               f"lit board at level {choice.level:.0f} ({choice.frames} frames)")
                     if not choice.whole_periods:
-                        detail += "; not a whole number of refresh periods: the image may band"
+                        detail += (f"; not a whole number of refresh periods: frames flicker by {choice.flicker:.0%} "
+                                   "(a dimmer projector or a neutral-density filter allows a whole period)")
                     if choice.dim:
                         checks.append(RigCheck("camera exposure", False, detail + ": too dim at the longest "
                                                "exposure and the highest gain; bring the projector closer to "
@@ -307,6 +352,11 @@ class Station:
                 settings.update({"auto_exposure": False, "exposure_us": float(applied["exposure_us"]),
                                  "gain": float(applied["gain"]), "emitter_enabled": False})
                 checks.append(RigCheck("camera exposure", True, detail + "; IR emitter off"))
+                from drivers.exposure import camera_timing
+
+                settings["timing"], text = camera_timing(cam.get_frame(timeout_s=self.options.frame_timeout_s),
+                                                         self._change_timing)
+                checks.append(RigCheck("camera timing", True, text))
             except ExposureUnsupported as e:
                 # a webcam without manual exposure still calibrates: frames are gated by their times, and
                 # the levels may drift with the pattern
@@ -387,7 +437,7 @@ class Station:
             self._rig_stage("camera response: measuring a bracket of gains under the projector's white")
             self._show(white(self.projector_size))
             time.sleep(0.5)  # any projector's latency: the white lights the board now
-            fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
+            fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0), timing=self._change_timing)
         except (DeviceError, ProcamError) as e:
             text = f"camera response not measured ({e}): centroids use the camera's levels uncorrected"
             _log.warning(text)
@@ -408,7 +458,8 @@ class Station:
         from drivers.exposure import apply_exposure
 
         try:
-            _, f = apply_exposure(cam, settings["exposure_us"], settings["gain"], self.options.frame_timeout_s)
+            _, f = apply_exposure(cam, settings["exposure_us"], settings["gain"], self.options.frame_timeout_s,
+                                  timing=self._change_timing)
             self._last_frame = max(self._last_frame, f.frame_number)
         except (DeviceError, ProcamError, KeyError) as e:
             _log.warning("could not restore the exposure after measuring the response: %s", e)
@@ -459,7 +510,11 @@ class Station:
         """A camera error: say so in the panel; a disconnected device is reopened when it comes back."""
         self.device_problem = f"camera: {e}; waiting for it to come back"
         reconnect = getattr(self.rig.camera, "reconnect", None)
-        if isinstance(e, DeviceDisconnected) and callable(reconnect):
+        if isinstance(e, StreamReset):  # the driver reset a stalled stream: frames come again
+            self.machine.log(f"camera: {e}")
+            self.device_problem = None
+            self._changed()
+        elif isinstance(e, DeviceDisconnected) and callable(reconnect):
             try:
                 reconnect(timeout_s=2.0)
                 self.device_problem = None

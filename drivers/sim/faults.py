@@ -6,8 +6,8 @@ test (or an operator rehearsing) covers that case. FAULTS is the one registry: t
 its check and the emulation all read it.
 
 Where each applies: the hardware model (drivers/sim/hardware.py, so both `--rig sim` and
-`--rig sim-realsense`): apply-lag, latency-jitter. The librealsense software device
-(drivers/sim/realsense_bridge.py, `--rig sim-realsense` only): no-metadata, auto-white-balance.
+`--rig sim-realsense`): apply-lag, latency-jitter, flicker. The librealsense software device
+(drivers/sim/realsense_bridge.py, `--rig sim-realsense` only): no-metadata, auto-white-balance, stall, usb2.
 gain-range names what the software device always emulates (a D455's colour gain, 0..128 from 64);
 the plain simulated camera keeps its 1..8 gain. On `--rig sim` the software device's faults do nothing. The simulated stream's controls
 (drivers/sim/stream.py, `--rig sim-uvc` only): ignores-exposure.
@@ -28,6 +28,11 @@ FAULTS = {
     "latency-jitter": "the projector's latency jitters by one refresh period",
     "ignores-exposure": "the camera accepts manual exposure and gain writes and ignores them, as many webcams "
                         "(sim-uvc)",
+    "usb2": "the camera on a USB 2 link: fewer, slower colour modes (sim-realsense: 15 and 5 fps only)",
+    "stall": "the colour stream drops a few frames, then stops until the camera is reset (hardware_reset) "
+             "(sim-realsense)",
+    "flicker": "an exposure that is not a whole number of refresh periods flickers from frame to frame at "
+               "any phase (a global shutter; the camera's and the projector's clocks not locked)",
 }
 
 #: settings applied this many frames late under apply-lag (a D455: librealsense #11228)
@@ -54,6 +59,8 @@ def hardware_overrides(faults, refresh_hz: float = 60.0) -> dict:
         out["settings_lag_frames"] = APPLY_LAG_FRAMES
     if "latency-jitter" in faults:
         out["jitter_ms"] = 1000.0 / refresh_hz
+    if "flicker" in faults:
+        out["flicker_random"] = True
     return out
 
 

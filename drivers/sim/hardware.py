@@ -1,5 +1,5 @@
 """How the simulated rig behaves like hardware: projector latency, the camera's own frame clock,
-exposure (auto exposure that drifts, manual exposure, banding) and the depth camera's IR emitter.
+exposure (auto exposure that drifts, manual exposure, flicker) and the depth camera's IR emitter.
 
 The rig (drivers/sim/rig.py) keeps one `HardwareModel` (the constants) and one `Timeline` per device:
 
@@ -12,8 +12,13 @@ The rig (drivers/sim/rig.py) keeps one `HardwareModel` (the constants) and one `
   before their delivery time.
 - Brightness: the renderer's linear image (calibrated for `REFERENCE_EXPOSURE_US` at gain 1) is scaled
   by exposure x gain and saturates at 255. The projector's light flickers at the refresh rate (PWM /
-  DLP): an exposure that is not a whole number of refresh periods catches an uneven part of the light
-  on each row (rolling shutter), which shows as horizontal bands (`banding_amplitude`).
+  DLP): an exposure that is not a whole number of refresh periods catches more or less of it depending
+  on the phase of the flicker at which the exposure starts. The D455's colour sensor (OV9782) has a
+  global shutter, so every row of a frame catches the same share: the whole frame's projector light
+  is brighter or darker (`flicker_amplitude`, `flicker_phase`), from frame to frame as the phase moves.
+  The camera's frame clock and the projector's refresh are not locked: the phase drifts by
+  `flicker_beat_hz` (a "60 Hz" output at 59.94 Hz beating against 30 fps); under the `flicker` fault
+  it is drawn afresh for every frame (the worst case: any phase at any frame).
 
 `ideal=True` switches all of it off: the projector changes at once, frames are rendered on request
 with no clock, no auto exposure, no emitter (the fast mode for unit tests that test geometry).
@@ -48,7 +53,9 @@ class HardwareModel:
     auto_exposure: bool = True  # at power-on, as a RealSense colour sensor
     initial_exposure_us: float = 6000.0
     emitter_enabled: bool = True  # at power-on, as a D455
-    band_depth: float = 0.35  # banding amplitude for an exposure half a period off a whole number
+    flicker_depth: float = 0.35  # flicker amplitude for an exposure half a period off a whole number
+    flicker_beat_hz: float = 0.06  # how fast the flicker's phase at the frames' starts drifts
+    flicker_random: bool = False  # the phase drawn per frame (the `flicker` fault)
     # a change of exposure, gain, auto exposure or emitter applies to frames whose exposure starts this
     # many frame periods after it (a D455 needs a few frames: allow about 5 before measuring brightness)
     settings_lag_frames: float = 3.0
@@ -74,21 +81,23 @@ class HardwareModel:
         return cls(latency_ms=float(latency_ms), jitter_ms=float(jitter), **kw)
 
 
-def banding_amplitude(exposure_us: float, refresh_hz: float, depth: float) -> float:
-    """Relative amplitude of the bands: 0 for a whole number of refresh periods, growing with the
-    fractional remainder (largest half a period off), smaller the more whole periods the exposure holds."""
+def flicker_amplitude(exposure_us: float, refresh_hz: float, depth: float) -> float:
+    """Relative amplitude of the frame-to-frame flicker of the projector's light: 0 for a whole number
+    of refresh periods, growing with the fractional remainder (largest half a period off), smaller the
+    more whole periods the exposure holds."""
     periods = exposure_us * 1e-6 * refresh_hz
     frac = periods - math.floor(periods)
     off = min(frac, 1.0 - frac)  # 0 .. 0.5
-    if off < 1e-3:  # the exposure's rounding to a microsecond: no visible band
+    if off < 1e-3:  # the exposure's rounding to a microsecond: no visible flicker
         return 0.0
     return float(depth * 2.0 * off / max(periods, 1.0))
 
 
-def band_profile(height: int, amplitude: float, phase: float, bands: float = 3.0) -> np.ndarray:
-    """(height, 1) multiplicative row profile of the projector's light: 1 + amplitude x a sine."""
-    y = np.arange(height, dtype=np.float32)[:, None]
-    return 1.0 + np.float32(amplitude) * np.sin(np.float32(2 * np.pi * bands) * y / height + np.float32(phase))
+def flicker_phase(model: "HardwareModel", seed: int, frame_number: int, exposure_start_s: float) -> float:
+    """The flicker's phase (0..1) at which frame `frame_number`'s exposure starts (module doc)."""
+    if model.flicker_random:
+        return float(np.random.default_rng([int(seed), 77, int(frame_number)]).uniform())
+    return float((exposure_start_s * (model.refresh_hz + model.flicker_beat_hz)) % 1.0)
 
 
 def emitter_dots(shape: tuple[int, int], seed: int, count: int = 2500) -> np.ndarray:

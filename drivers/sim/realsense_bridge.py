@@ -15,7 +15,8 @@ reconnecting) runs through librealsense.
 Frames: a pusher thread takes frames from the simulated camera and hands them to librealsense with
 their frame numbers, in the global_time domain (host system clock, ms, at the start of readout) with
 `actual_exposure`, `frame_timestamp` and `sensor_timestamp` metadata, so the driver's exposure_start_s
-estimate is exercised as on hardware. The simulated camera renders lazily, so the pusher renders only
+estimate is exercised as on hardware. Under the no-metadata fault a frame carries none of them and is
+stamped in the system_time domain at its arrival, as librealsense does without metadata. The simulated camera renders lazily, so the pusher renders only
 what the driver will hand out: it pushes while a caller waits in get_frame (the camera class below
 tells it), no faster than the stream's frame rate, and always the newest frame the simulated camera
 has delivered (as the driver's capture thread, draining a streaming camera, always holds the newest).
@@ -50,6 +51,34 @@ COLOUR_OPTIONS = {
 }
 
 
+def _resettable_device_class(rs, owner):
+    """A software device whose hardware_reset() does what a D455's does (SimRealSenseDevice.hardware_reset);
+    made on first use, pyrealsense2 being imported lazily."""
+
+    class ResettableSoftwareDevice(rs.software_device):
+        def hardware_reset(self):  # as a D455: it goes away and enumerates again, its controls at defaults
+            owner.hardware_reset()
+
+    return ResettableSoftwareDevice
+
+
+#: under the stall fault: frames streamed before the stream stalls (after the rig check, which takes
+#: about 150-250, during the captures), and device frame numbers lost just before it (a USB link in trouble drops frames first)
+STALL_AFTER_FRAMES = 300
+STALL_DROPPED_FRAMES = 3
+#: how long a reset D455 takes to enumerate again, in the emulation
+RESET_S = 0.5
+#: the colour rates the software device lists at the simulated camera's size, on a USB 3 link and under
+#: the usb2 fault (a USB 2 link carries fewer and slower modes; the D455's exact USB 2 list is not
+#: emulated: its size stays the simulated camera's)
+USB3_RATES = (30, 15, 5)
+USB2_RATES = (15, 5)
+
+
+def offered_rates(faults) -> tuple[int, ...]:
+    return USB2_RATES if "usb2" in faults else USB3_RATES
+
+
 class _Removed:
     """What a devices-changed callback receives when the device goes away."""
 
@@ -82,6 +111,15 @@ class SimRealSenseDevice:
         self.forwarded: list[tuple[str, Any]] = []  # (what, value) handed to the simulated camera
         self.faults = frozenset(faults)  # drivers/sim/faults.py
         self._awb_gains = np.ones(3)  # auto white balance's colour gains (B, G, R) now
+        #: device frame numbers: one per frame pushed (the pusher skips the simulated frames nobody waits
+        #: for: a streaming D455 numbers every frame it sends), gaps only where a fault drops frames
+        self._device_number = 0
+        self.sim_numbers: dict[int, int] = {}  # device frame number -> the simulated camera's frame number
+        self.streamed = 0  # frames pushed since power-up or the last reset
+        self.stalled = False  # the stall fault: the stream has stopped until hardware_reset()
+        self.resets = 0
+        self.stall_after_frames = STALL_AFTER_FRAMES
+        self.stream_fps = self.fps  # the rate the driver streams (its mode)
         self._build()
 
     # ---- the software device ------------------------------------------------------------------------
@@ -89,9 +127,10 @@ class SimRealSenseDevice:
         rs = self.rs
         model = self.sim_camera.model
         w, h = model.size
-        dev = rs.software_device()
+        dev = _resettable_device_class(rs, self)()
         for key, value in (("name", "Intel RealSense D455 (simulated)"), ("serial_number", self.serial),
-                           ("firmware_version", "5.16.0.1"), ("usb_type_descriptor", "3.2"),
+                           ("firmware_version", "5.16.0.1"),
+                           ("usb_type_descriptor", "2.1" if "usb2" in self.faults else "3.2"),
                            ("product_line", "D400")):
             dev.register_info(getattr(rs.camera_info, key), value)
         colour = dev.add_sensor("RGB Camera")
@@ -106,17 +145,21 @@ class SimRealSenseDevice:
         d[: min(5, dist.size)] = dist[:5]
         intr.model = rs.distortion.brown_conrady
         intr.coeffs = [float(c) for c in d]
-        vs = rs.video_stream()
-        vs.type, vs.index, vs.uid = rs.stream.color, 0, 0
-        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = w, h, self.fps, 3, rs.format.bgr8
-        vs.intrinsics = intr
-        profile = colour.add_video_stream(vs).as_video_stream_profile()
+        profiles = {}
+        for uid, rate in enumerate(offered_rates(self.faults)):
+            vs = rs.video_stream()
+            vs.type, vs.index, vs.uid = rs.stream.color, 0, uid
+            vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = w, h, rate, 3, rs.format.bgr8
+            vs.intrinsics = intr
+            profiles[rate] = colour.add_video_stream(vs).as_video_stream_profile()
+        profile = profiles.get(self.fps, next(iter(profiles.values())))
         for name, (lo, hi, step, default) in COLOUR_OPTIONS.items():
             self._option(colour, getattr(rs.option, name), lo, hi, step, default)
         depth = dev.add_sensor("Stereo Module")
         self._option(depth, rs.option.emitter_enabled, 0, 2, 1, 1)
         with self._lock:
             self.device, self.colour, self.depth, self.profile = dev, colour, depth, profile
+            self.profiles = profiles
             self.present = True
             self._applied = {}
 
@@ -143,7 +186,19 @@ class SimRealSenseDevice:
 
     def replug(self) -> None:
         """A camera with the same serial comes back, its controls at their power-up defaults."""
+        self._device_number = 0
+        self.streamed = 0
+        self.stalled = False
         self._build()
+
+    def hardware_reset(self) -> None:
+        """The device's hardware_reset(): it drops off the bus (the devices-changed callback fires) and
+        enumerates again RESET_S later, streaming again (a stalled stream too)."""
+        self.resets += 1
+        self.unplug()
+        timer = threading.Timer(RESET_S, self.replug)
+        timer.daemon = True
+        timer.start()
 
     # ---- options -> the simulated camera ----------------------------------------------------------------
     def options(self) -> dict:
@@ -206,11 +261,16 @@ class SimRealSenseDevice:
         self._awb_gains = 0.5 * self._awb_gains + 0.5 * np.clip(want, 0.6, 1.6)
         return out
 
-    def push(self, frame, exposure_us: float, exposure_start_s: float) -> None:
+    def push(self, frame, exposure_us: float, exposure_start_s: float) -> bool:
         """Deliver a simulated frame through librealsense: global-time stamp at the start of readout,
         metadata placing the exposure so that the driver's estimate comes out at `exposure_start_s`
-        (never later)."""
+        (never later). False (nothing delivered) while the stream is stalled (the stall fault: after
+        `stall_after_frames` frames, the first time only, until hardware_reset())."""
         rs = self.rs
+        if "stall" in self.faults and self.resets == 0 and self.streamed >= self.stall_after_frames:
+            self.stalled = True
+        if self.stalled:
+            return False
         units = max(1, int(round(exposure_us / COLOUR_EXPOSURE_UNIT_US)))
         exp_dev_s = units * COLOUR_EXPOSURE_UNIT_US * 1e-6
         readout_s = exposure_start_s + exposure_us * 1e-6
@@ -236,20 +296,33 @@ class SimRealSenseDevice:
         f.pixels = img
         f.bpp = 3
         f.stride = img.shape[1] * 3
-        f.timestamp = (readout_s + wall_minus_mono) * 1000.0
-        f.domain = rs.timestamp_domain.global_time
-        f.frame_number = int(frame.frame_number)
-        f.profile = self.profile
+        if "no-metadata" in self.faults:
+            # without metadata librealsense has no hardware timestamp: it stamps the frame with the host's
+            # system clock on arrival (librealsense #13241), here when a streaming D455's frame would
+            # arrive: a frame interval after its exposure began (the simulated camera delivers it then)
+            f.timestamp = (exposure_start_s + 1.0 / self.fps + wall_minus_mono) * 1000.0
+            f.domain = rs.timestamp_domain.system_time
+        else:
+            f.timestamp = (readout_s + wall_minus_mono) * 1000.0
+            f.domain = rs.timestamp_domain.global_time
+        if "stall" in self.faults and self.resets == 0 and self.streamed == self.stall_after_frames - 1:
+            self._device_number += STALL_DROPPED_FRAMES  # dropped on the link, then the stream stops
+        self._device_number += 1
+        self.streamed += 1
+        self.sim_numbers[self._device_number] = int(frame.frame_number)
+        f.frame_number = self._device_number
+        f.profile = self.profiles.get(self.stream_fps, self.profile)  # the mode the driver opened
         sensor.on_video_frame(f)
+        return True
 
 
 class SimRealSenseCamera(RealSenseCamera):
     """The real driver, unchanged, plus one thing the emulation needs: while a caller waits in
     get_frame the pusher is told to deliver frames (the simulated camera renders only on demand)."""
 
-    def __init__(self, device: SimRealSenseDevice, **kw):
+    def __init__(self, device: SimRealSenseDevice, fps: int | None = None, **kw):
         w, h = device.sim_camera.size
-        super().__init__(device.serial, w, h, device.fps, context=device, **kw)
+        super().__init__(device.serial, w, h, device.fps if fps is None else fps, context=device, **kw)
         self.sim_device = device
         self._waiting = 0
         self._want = threading.Condition()
@@ -262,6 +335,7 @@ class SimRealSenseCamera(RealSenseCamera):
 
     def start(self) -> None:
         super().start()
+        self.sim_device.stream_fps = self.fps
         if self._pusher is None or not self._pusher.is_alive():
             self._pusher_stop = threading.Event()
             self._pusher = threading.Thread(target=self._push_loop, args=(self._pusher_stop,),
@@ -286,7 +360,7 @@ class SimRealSenseCamera(RealSenseCamera):
             self._want.notify_all()
         try:
             f = super().get_frame(timeout_s, newer_than=newer_than, not_before_s=not_before_s)
-            self.device_numbers[f.frame_number] = int(f.meta["device_frame_number"])
+            self.device_numbers[f.frame_number] = self.sim_device.sim_numbers[int(f.meta["device_frame_number"])]
             return f
         finally:
             with self._want:
@@ -295,7 +369,7 @@ class SimRealSenseCamera(RealSenseCamera):
     def _push_loop(self, stop: threading.Event) -> None:
         dev = self.sim_device
         sim = dev.sim_camera
-        period = 1.0 / max(1, dev.fps)
+        period = 1.0 / max(1, self.fps)
         last_number: int | None = None
         next_at = 0.0
         while not stop.is_set():
@@ -323,7 +397,10 @@ class SimRealSenseCamera(RealSenseCamera):
                 exposure_us = float(f.meta.get("exposure_us") or settings["exposure_us"])
                 start_s = f.exposure_start_s if f.exposure_start_s is not None else t_request
                 before = self.stats.accepted
-                dev.push(f, exposure_us, start_s)
+                if not dev.push(f, exposure_us, start_s):  # stalled: nothing reaches the driver
+                    last_number = f.frame_number
+                    time.sleep(period)
+                    continue
             except Exception as e:  # noqa: BLE001 - the driver reports a stalled stream as a timeout
                 self.push_error = e
                 time.sleep(0.05)
@@ -342,10 +419,13 @@ class SimRealSenseRig:
 
     kind = "sim-realsense"
 
-    def __init__(self, sim_rig, fps: int = 30, faults=()):
+    def __init__(self, sim_rig, fps: int = 30, faults=(), camera_mode=None):
         self.sim = sim_rig
         self.device = SimRealSenseDevice(sim_rig.camera, fps, faults=faults)
-        self.camera = SimRealSenseCamera(self.device)
+        # the driver asks for a mode by name (--camera-mode, refused unless listed) or for 30 fps (falling
+        # back to the fastest listed, as on a real USB 2 link)
+        self.camera = SimRealSenseCamera(self.device, 30 if camera_mode is None else int(camera_mode[2]),
+                                         exact_mode=camera_mode is not None)
 
     def __getattr__(self, name):  # scenario, projector, operator, ground_truth, renderer, ...
         return getattr(self.sim, name)
@@ -363,17 +443,30 @@ class SimRealSenseRig:
         self.close()
 
 
-def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int = 30,
-                           faults=(), **settings) -> SimRealSenseRig:
+def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int | None = None,
+                           faults=(), camera_mode=None, **settings) -> SimRealSenseRig:
     """The simulated rig of `scenario` (drivers.sim.rig.open_sim_rig options) with its camera delivered
-    through librealsense and drivers/realsense.py; `faults` (drivers.sim.faults) apply to both."""
+    through librealsense and drivers/realsense.py; `faults` (drivers.sim.faults) apply to both.
+    camera_mode: (width, height, fps) the driver asks for (the simulated camera's size at a listed rate);
+    the simulated camera then runs at that rate (default: 30 fps, or the fastest rate listed)."""
     from drivers.sim.rig import open_sim_rig
+    from drivers.sim.scenarios import DEFAULT_SCENARIO, get_scenario
 
     args = () if scenario is None else (scenario,)
     from drivers.clock import MONOTONIC
 
     # librealsense stamps frames on the host's clock: the simulated hardware behind it must keep the same
     settings.setdefault("clock", MONOTONIC)
-    sim = open_sim_rig(*args, seed=seed, quality=quality, faults=faults, **settings)
+    rates = offered_rates(faults)
+    if camera_mode is not None:
+        w, h = get_scenario(scenario or DEFAULT_SCENARIO, seed).rig.camera.size
+        modes = ", ".join(f"{w}x{h}@{r}" for r in rates)
+        if tuple(camera_mode[:2]) != (w, h) or int(camera_mode[2]) not in rates:
+            raise DeviceError(f"RealSense colour stream {camera_mode[0]}x{camera_mode[1]}@{camera_mode[2]} (BGR8) is not "
+                              f"offered by this device; available: {modes}; choose one with --camera-mode")
+        fps = int(camera_mode[2])
+    elif fps is None:
+        fps = 30 if 30 in rates else max(rates)
+    sim = open_sim_rig(*args, seed=seed, quality=quality, faults=faults, fps=fps, **settings)
     sim.camera.start()
-    return SimRealSenseRig(sim, fps, faults)
+    return SimRealSenseRig(sim, fps, faults, camera_mode)

@@ -34,9 +34,9 @@ from drivers.sim.hardware import (
     CameraSettingsTimeline,
     HardwareModel,
     ProjectorTimeline,
-    band_profile,
-    banding_amplitude,
     emitter_dots,
+    flicker_amplitude,
+    flicker_phase,
 )
 from drivers.sim.render import QUALITIES, PlacedBoard, Renderer, RenderSettings, SceneState, layout_for
 from drivers.sim.scenarios import (
@@ -366,7 +366,8 @@ class SimRig:
     def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
                  latency_ms: float | None = None, hardware: HardwareModel | None = None,
-                 clock: Clock | None = None, realtime: bool = True, faults=(), **settings):
+                 clock: Clock | None = None, realtime: bool = True, faults=(), fps: float | None = None,
+                 **settings):
         if quality not in QUALITIES:
             raise SpecError(f"unknown quality '{quality}' (one of {', '.join(QUALITIES)})")
         self.scenario = scenario
@@ -387,8 +388,10 @@ class SimRig:
             from drivers.sim.faults import hardware_overrides
 
             self.faults = frozenset(faults)  # drivers/sim/faults.py
-            self.hardware = hardware or HardwareModel.for_seed(scenario.seed, latency_ms, ideal=ideal,
-                                                               **({} if ideal else hardware_overrides(self.faults)))
+            overrides = {} if ideal else hardware_overrides(self.faults)
+            if fps is not None:  # the camera's frame rate (a RealSense mode's, sim-realsense)
+                overrides["fps"] = float(fps)
+            self.hardware = hardware or HardwareModel.for_seed(scenario.seed, latency_ms, ideal=ideal, **overrides)
         except ValueError as e:
             raise SpecError(str(e)) from None
         #: frame number -> ((projector ticket, fraction of the exposure it was visible), ...)
@@ -469,8 +472,8 @@ class SimRig:
                       gain: float = 1.0, emitter: bool = False):
         """The camera image of frame `frame_number` and its meta. Ideal (segments None): the projector's
         current image. Hardware-like: the linear images of the projector images in `segments`
-        ((ticket, image, fraction)) blended by fraction, scaled by exposure x gain, banded when the
-        exposure is not a whole number of refresh periods, with the emitter's dots when it is on."""
+        ((ticket, image, fraction)) blended by fraction, scaled by exposure x gain, its projector light
+        flickering when the exposure is not a whole number of refresh periods, with the emitter's dots when it is on."""
         with self._lock:
             moving = self._board is not None and self._frames_since_move < self.operator.settling_frames
             move_id = self._move_id
@@ -487,12 +490,14 @@ class SimRig:
         for _, proj_img, frac in segments:
             part = self.renderer.render_linear(SceneState(st.boards, proj_img)) * np.float32(frac)
             lin = part if lin is None else lin + part
-        amp = banding_amplitude(exposure_us, hw.refresh_hz, hw.band_depth)
+        amp = flicker_amplitude(exposure_us, hw.refresh_hz, hw.flicker_depth)
+        factor = 1.0
         if amp > 0 and any(np.any(s[1]) for s in segments):
-            # the projector's share of the light (ambient is steady) flickers row by row
+            # the projector's share of the light (ambient is steady) in the whole frame (global shutter)
             ambient = self.renderer.render_linear(SceneState(st.boards, None))
-            phase = 2 * np.pi * ((self.camera.exposure_start_s(frame_number) * hw.refresh_hz) % 1.0)
-            lin = ambient + (lin - ambient) * band_profile(lin.shape[0], amp, phase)
+            phase = flicker_phase(hw, self.scenario.seed, frame_number, self.camera.exposure_start_s(frame_number))
+            factor = 1.0 + amp * math.sin(2 * math.pi * phase)
+            lin = ambient + (lin - ambient) * np.float32(factor)
         lin = lin * np.float32(exposure_us / REFERENCE_EXPOSURE_US * gain)
         if emitter:
             if self._dots is None:
@@ -500,7 +505,8 @@ class SimRig:
             lin = lin + self._dots * np.float32(exposure_us / REFERENCE_EXPOSURE_US * gain)
         img = self.renderer.finish(lin, self.renderer.settings, rng)
         meta["mean_level"] = float(img[:, :, 0].mean())
-        meta["banding_amplitude"] = amp
+        meta["flicker_amplitude"] = amp
+        meta["flicker_factor"] = factor  # the projector light's share in this frame, 1 without flicker
         return img, meta
 
     def render_still(self, noise_key: int) -> np.ndarray:
