@@ -276,9 +276,10 @@ def detect_board(image: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corne
     return _detect_board_gray(gray, spec, mirrored, min_corners, response)
 
 
-def _refinement_image(img: np.ndarray, response: CameraResponse | None) -> np.ndarray:
+def _refinement_image(img: np.ndarray, response: CameraResponse | None):
     """The image the corners are refined on: `img` itself, or with the camera's recorded response its
-    levels linearised (float32, light in 0..255 units). An X-junction is point-symmetric under any tone
+    levels linearised (float32, light in 0..255 units; _Linearised: only the regions the refinement
+    reads are converted). An X-junction is point-symmetric under any tone
     curve, so the curve does not bias a corner, but it spreads the sensor's noise unevenly: the dark toe
     is steep (about 4 levels per level of light at the black squares, 0.8 at the white ones), so the
     black squares' noise dominates the encoded image and corners scatter more (projector-step boards at
@@ -286,7 +287,22 @@ def _refinement_image(img: np.ndarray, response: CameraResponse | None) -> np.nd
     realism"). In light, the noise is the sensor's again."""
     if response is None or response.linear:
         return img
-    return response.lut().astype(np.float32)[img]
+    return _Linearised(img, response.lut())
+
+
+class _Linearised:
+    """An 8-bit image read as light through a 256-level table, converted region by region as it is
+    sliced (`lin[y0:y1, x0:x1]`): the corner refinement reads a few patches around the corners, and
+    converting a whole 1080p frame to float32 cost more than all of them together. Slicing gives
+    exactly the values the converted whole image would hold."""
+
+    def __init__(self, img: np.ndarray, lut: np.ndarray):
+        self._img = img
+        self._lut = np.asarray(lut, np.float32)
+        self.shape = img.shape
+
+    def __getitem__(self, index) -> np.ndarray:
+        return self._lut[self._img[index]]
 
 
 def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corners: int = 6,
@@ -657,8 +673,7 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray, lut
     dy = (Y - pts[sel, 1, None, None]).astype(np.float64) * np.ones_like(win)
     gx, gy = _background_slopes(win, rim, X * np.ones_like(win), Y * np.ones_like(win), pts[sel])
     ramp = gx[:, None, None] * dx + gy[:, None, None] * dy
-    bg = np.array([np.median((win[j] - ramp[j])[rim[j]]) if rim[j].any() else np.nan for j in range(len(sel))])
-    bg = bg[:, None, None] + ramp
+    bg = _rim_medians(win - ramp, rim)[:, None, None] + ramp
     wgt = np.where(inside, win - bg, 0.0)
     wgt[wgt < 0] = 0.0
     s = wgt.sum(axis=(1, 2))
@@ -670,6 +685,20 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray, lut
         & (np.abs(cy - pts[sel, 1]) < 0.5 * r + 0.5)
     out[sel[ok], 0] = cx[ok]
     out[sel[ok], 1] = cy[ok]
+    return out
+
+
+def _rim_medians(values: np.ndarray, rim: np.ndarray) -> np.ndarray:
+    """Per window (axis 0), the median of `values` over its `rim` pixels (NaN for an empty rim): all the
+    windows at once, as np.median of each would give (the mean of the two middle values for an even
+    count)."""
+    m = len(values)
+    flat = np.where(rim, values, np.inf).reshape(m, -1)
+    flat.sort(axis=1)
+    count = rim.reshape(m, -1).sum(axis=1)
+    rows = np.arange(m)
+    out = (flat[rows, np.maximum(count - 1, 0) // 2] + flat[rows, count // 2]) / 2.0
+    out[count == 0] = np.nan
     return out
 
 
@@ -687,7 +716,7 @@ def _background_slopes(win, rim, X, Y, centres) -> tuple[np.ndarray, np.ndarray]
     A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
     keep = np.ones(len(val), bool)
     for _ in range(2):
-        coef, *_ = np.linalg.lstsq(A[keep], val[keep], rcond=None)
+        coef = _least_squares(A[keep], val[keep])
         res = val - A @ coef
         mad = 1.4826 * np.median(np.abs(res[keep]))
         keep = np.abs(res) <= max(3.0 * mad, 1e-9)
@@ -697,6 +726,13 @@ def _background_slopes(win, rim, X, Y, centres) -> tuple[np.ndarray, np.ndarray]
     gx = (coef[1] + 2 * coef[3] * cu + coef[4] * cv) / scale
     gy = (coef[2] + coef[4] * cu + 2 * coef[5] * cv) / scale
     return gx, gy
+
+
+def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin |A x - b| for a tall, well-conditioned A of a few columns, by its normal equations summed
+    without BLAS: np.linalg.lstsq hands a 2000 x 6 problem to multi-threaded OpenBLAS, whose threads spin
+    against the detection threads (and anything else on the cores) for ten times the arithmetic."""
+    return np.linalg.solve(np.einsum("ni,nj->ij", A, A), np.einsum("ni,n->i", A, b))
 
 
 def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi, lut: np.ndarray | None = None):
