@@ -333,7 +333,8 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
     if found is None:
         corners, ids, markers, strict = _charuco_in(search, spec)
         n = 0 if ids is None else len(ids)
-        if search is not img and n < spec.n_corners:  # the ROI guess missed part of the board
+        if search is not img and n < spec.n_corners and _missing_beyond(corners, ids, (x0, y0), spec, roi, (h, w)):
+            # the ROI guess missed part of the board (corners found inside it need no second search)
             corners2, ids2, markers2, strict2 = _charuco_in(img, spec)
             if ids2 is not None and len(ids2) > n:
                 corners, ids, markers, strict, n = corners2, ids2, markers2, strict2, len(ids2)
@@ -350,8 +351,17 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
             # and the black cells fade. A linearised copy decodes them again (docs/SIMULATOR.md,
             # "Photometric realism"); the corners are refined below as any others (in the image itself,
             # or linearised with the session's recorded response: _refinement_image).
-            # (the region where the board was looked for first, then the whole image)
-            regions = [(img, 0, 0)] if search is img else [(search, *roi[:2]), (img, 0, 0)]
+            # Only where corners can still be found: around the board the corners found predict (none
+            # when every missing corner lies outside the image), else where the board was looked for
+            # first, then the whole image.
+            board_box = _board_box(corners, ids, (x0, y0), spec, (h, w))
+            if board_box is None:
+                regions = [(img, 0, 0)] if search is img else [(search, *roi[:2]), (img, 0, 0)]
+            elif board_box == ():
+                regions = []
+            else:
+                bx0, by0, bx1, by1 = board_box
+                regions = [(img[by0:by1, bx0:bx1], bx0, by0)]
             for region, ox, oy in regions:
                 lc, lids, lmarkers, lstrict = _charuco_in(cv2.LUT(region, _LINEARISE_LUT), spec)
                 if lids is not None and len(lids) > n:
@@ -373,6 +383,70 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
         corners = _flip_x(corners, gray.shape[1])
     order = np.argsort(ids)
     return BoardObservation(ids[order], corners[order], mirrored)
+
+
+def _predicted_corners(corners, ids, offset, spec: CharucoSpec):
+    """(every corner of the board in pixels, mask of those not found, square side px) from the homography
+    of the corners found (at `corners` + `offset`), or None when it cannot be estimated (under 4 corners,
+    a degenerate fit, a corner beyond the plane's horizon)."""
+    if ids is None or corners is None or len(ids) < 4:
+        return None
+    obj = spec.corner_points()[:, :2]
+    H, _ = cv2.findHomography(obj[ids], np.asarray(corners, float) + np.asarray(offset, float), 0)
+    if H is None:
+        return None
+    allpx = _map_board(H, obj)
+    step = _map_board(H, obj[ids] + [spec.square_length, 0.0])
+    if allpx is None or step is None or not np.all(np.isfinite(allpx)):
+        return None
+    missing = np.ones(len(obj), bool)
+    missing[ids] = False
+    return allpx, missing, float(np.median(np.linalg.norm(step - allpx[ids], axis=1)))
+
+
+def _in_view(pts: np.ndarray, shape, grow_px: float) -> np.ndarray:
+    """Mask of points inside the image grown by `grow_px` on every side."""
+    h, w = shape
+    return (pts[:, 0] >= -0.5 - grow_px) & (pts[:, 0] <= w - 0.5 + grow_px) & \
+        (pts[:, 1] >= -0.5 - grow_px) & (pts[:, 1] <= h - 0.5 + grow_px)
+
+
+def _missing_beyond(corners, ids, offset, spec: CharucoSpec, roi, shape) -> bool:
+    """Whether a corner not found may lie in view but outside the region searched (`roi`, its edges
+    inside the image shrunk by two squares, so that the markers beside the corner are whole in it):
+    only then can a search of the whole image find more. True when that cannot be predicted."""
+    pred = _predicted_corners(corners, ids, offset, spec)
+    if pred is None:
+        return True
+    allpx, missing, side = pred
+    pts = allpx[missing & _in_view(allpx, shape, 0.25 * side)]
+    h, w = shape
+    x0, y0, x1, y1 = roi
+    m = 2.0 * side
+    lo = np.array([x0 + m if x0 > 0 else -np.inf, y0 + m if y0 > 0 else -np.inf])
+    hi = np.array([x1 - m if x1 < w else np.inf, y1 - m if y1 < h else np.inf])
+    return bool(np.any((pts < lo) | (pts > hi)))
+
+
+def _board_box(corners, ids, offset, spec: CharucoSpec, shape):
+    """Where a second search can find the corners not found: (x0, y0, x1, y1) around the whole board as
+    the corners found predict it, grown by 2.5 squares (its outer markers and the thresholding windows
+    around them); () when every missing corner lies outside the image (a corner less than a quarter
+    square inside the border has its outer marker cut: no search finds it); None when it cannot be
+    predicted."""
+    pred = _predicted_corners(corners, ids, offset, spec)
+    if pred is None:
+        return None
+    allpx, missing, side = pred
+    if not np.any(missing & _in_view(allpx, shape, 0.25 * side)):
+        return ()
+    h, w = shape
+    lo = np.floor(allpx.min(axis=0) - 2.5 * side).astype(int)
+    hi = np.ceil(allpx.max(axis=0) + 2.5 * side).astype(int) + 1
+    x0, y0, x1, y1 = max(lo[0], 0), max(lo[1], 0), min(hi[0], w), min(hi[1], h)
+    if x1 - x0 < 16 or y1 - y0 < 16:
+        return None
+    return (int(x0), int(y0), int(x1), int(y1))
 
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
