@@ -32,6 +32,7 @@ detectors, calibrateCamera and stereoCalibrate, no refinement) as a third arm of
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import resource
@@ -122,13 +123,13 @@ def measure_stages(folder: Path, with_truth: bool = True) -> dict:
     SessionStore = _module("calib.formats.session", "calib.session").SessionStore
     obs = _module("calib.models.observations", "calib.observations")
     STEP_PROJECTOR, STEP_REAL_VIRTUAL, VIEW_MIRROR = obs.STEP_PROJECTOR, obs.STEP_REAL_VIRTUAL, obs.VIEW_MIRROR
-    response_mod = _module("calib.detection.response")
 
     store = SessionStore.open(folder)
     m = store.manifest
     cv2.setNumThreads(1)
     # code that reads the camera's response gets it, as detect_session passes it; older code has none
-    response = {} if response_mod is None else {"response": response_mod.recorded_response(m.rig.camera_settings)}
+    takes = "response" in inspect.signature(D._detect_board_gray).parameters
+    response = {"response": D.recorded_response(m.rig.camera_settings)} if takes else {}
     sub = defaultdict(float)
     for _, name in SUB_STAGES:
         fn = getattr(D, name, None)
@@ -180,14 +181,17 @@ def measure_stages(folder: Path, with_truth: bool = True) -> dict:
 
 
 def _module(*names):
-    """The first of the dotted module names that imports, or None."""
+    """The first of the dotted module names that imports from CODE's tree, or None (an editable install
+    of another tree can supply names CODE does not have: those are not CODE's)."""
     import importlib
 
     for name in names:
         try:
-            return importlib.import_module(name)
+            mod = importlib.import_module(name)
         except ImportError:
             continue
+        if CODE in Path(mod.__file__).resolve().parents:
+            return mod
     return None
 
 
