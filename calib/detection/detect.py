@@ -820,15 +820,19 @@ def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi, lut: np.ndarray |
         return DetectionFailure("pattern not found")
     cand = np.array([k.pt for k in kps], float)
     sizes = np.array([k.size for k in kps], float)
-    # the grid finder runs on a clean image of dots at the candidates (no second blob search)
-    dots = np.zeros(work.shape, np.uint8)
-    for (x, y) in cand:
+    # the grid finder runs on a clean image of dots at the candidates (no second blob search), only as
+    # large as the candidates' box: its dot search scanned the whole crop, most of it empty (the grid's
+    # points serve only to pick candidates, so a shifted image finds the same ones)
+    lo = np.maximum(np.floor(cand.min(axis=0)).astype(int) - 8, 0)
+    hi = np.ceil(cand.max(axis=0)).astype(int) + 9
+    dots = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)
+    for (x, y) in cand - lo:
         cv2.circle(dots, (int(round(x * 4)), int(round(y * 4))), 8, 255, -1, cv2.LINE_8, 2)
     found = None
     for flags in (cv2.CALIB_CB_ASYMMETRIC_GRID, cv2.CALIB_CB_ASYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING):
         ok, centres = cv2.findCirclesGrid(dots, pattern.pattern_size, flags=flags, blobDetector=_dot_detector())
         if ok and centres is not None:
-            found = np.asarray(centres, float).reshape(-1, 2)
+            found = np.asarray(centres, float).reshape(-1, 2) + lo
             break
     if found is None:
         if len(cand) < n_need:
