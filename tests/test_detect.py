@@ -252,3 +252,54 @@ def test_flip_homography_is_pixel_centre_exact():
     img = np.random.default_rng(0).integers(0, 255, (7, 11), dtype=np.uint8)
     warped = cv2.warpPerspective(img, flip_H(11), (11, 7), flags=cv2.INTER_NEAREST)
     assert np.array_equal(warped, cv2.flip(img, 1))
+
+
+def _board_corners_px(scale, offset):
+    """Every corner of SPEC at `scale` px per unit, shifted by `offset` px (a fronto-parallel view)."""
+    return SPEC.corner_points()[:, :2] * scale + np.asarray(offset, float)
+
+
+def test_the_linearised_retry_is_searched_around_the_board_or_not_at_all():
+    import calib.detection.detect as D
+
+    shape = (H, W)
+    ids = np.arange(SPEC.n_corners)
+    # half the corners found, the others predicted in view: a box around the whole board (2.5 squares more)
+    allpx = _board_corners_px(1.0, (300, 200))
+    found = ids[ids % 7 < 4]
+    box = D._board_box(allpx[found], found, (0, 0), SPEC, shape)
+    side = 1.0 * SPEC.square_length
+    assert box[0] <= allpx[:, 0].min() - 2 * side and box[2] >= allpx[:, 0].max() + 2 * side
+    assert box[1] <= allpx[:, 1].min() - 2 * side and box[3] >= allpx[:, 1].max() + 2 * side
+    assert (box[2] - box[0]) * (box[3] - box[1]) < 0.5 * W * H
+    # corners found in a region's coordinates are offset into the image's
+    shifted = D._board_box(allpx[found] - [40, 30], found, (40, 30), SPEC, shape)
+    assert shifted == box
+    # the missing corners all lie beyond the image's right edge: no retry can find them
+    cut = _board_corners_px(1.0, (W - 0.5 - 3.5 * side, 200))
+    inside = ids[cut[:, 0] < W - 0.5]
+    assert 0 < len(inside) < SPEC.n_corners
+    assert D._board_box(cut[inside], inside, (0, 0), SPEC, shape) == ()
+    # too few corners to predict the board: not known (the caller searches as before)
+    assert D._board_box(allpx[:3], ids[:3], (0, 0), SPEC, shape) is None
+
+
+def test_a_board_incomplete_in_its_roi_is_searched_again_only_if_corners_may_lie_beyond_it():
+    import calib.detection.detect as D
+
+    shape = (H, W)
+    ids = np.arange(SPEC.n_corners)
+    allpx = _board_corners_px(1.0, (300, 200))
+    found = ids[ids % 7 < 4]
+    side = 1.0 * SPEC.square_length
+    lo, hi = allpx.min(axis=0), allpx.max(axis=0)
+    wide = (int(lo[0] - 3 * side), int(lo[1] - 3 * side), int(hi[0] + 3 * side), int(hi[1] + 3 * side))
+    assert not D._missing_beyond(allpx[found], found, (0, 0), SPEC, wide, shape)
+    tight = (int(lo[0] - 3 * side), int(lo[1] - 3 * side), int(hi[0] - 2 * side), int(hi[1] + 3 * side))
+    assert D._missing_beyond(allpx[found], found, (0, 0), SPEC, tight, shape)
+    # an ROI edge on the image's border needs no margin: nothing lies beyond it
+    at_edge = _board_corners_px(1.0, (W - 0.5 - 3.5 * side, 200))
+    inside = ids[at_edge[:, 0] < W - 0.5 - side]
+    roi = (int(at_edge[:, 0].min() - 3 * side), 0, W, H)
+    assert not D._missing_beyond(at_edge[inside], inside, (0, 0), SPEC, roi, shape)
+    assert D._missing_beyond(None, None, (0, 0), SPEC, roi, shape)

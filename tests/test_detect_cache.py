@@ -1,9 +1,12 @@
 """detections.json: a session is decoded and detected once; a changed image, job or detector is detected
 again; a broken cache file is ignored with a warning; the format round-trips exactly."""
 
+import importlib.util
 import json
 import shutil
 from collections import Counter
+from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -89,6 +92,23 @@ def test_changed_image_or_job_is_detected_again(store, monkeypatch):
     detected.clear()
     detect_session(SessionStore.open(st.folder), workers=1)
     assert set(detected) == {ids["rv"], ids["bad_rv"]}  # the mirror captures use the mirror board
+
+
+@pytest.mark.parametrize("module", detect_cache._DETECTION_MODULES)
+def test_fingerprint_changes_with_each_detection_module(module, tmp_path, monkeypatch):
+    # the camera response's inverse decides centroids and corners as much as detect.py does: an edit to
+    # any of these modules must make every kept detection stale
+    before = detect_cache.detector_fingerprint.__wrapped__()
+    real = importlib.util.find_spec
+    edited = tmp_path / "edited.py"
+    edited.write_bytes(Path(real(module).origin).read_bytes() + b"\n# edited\n")
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name: SimpleNamespace(origin=str(edited)) if name == module else real(name))
+    assert detect_cache.detector_fingerprint.__wrapped__() != before
+
+
+def test_the_fingerprint_covers_the_camera_response():
+    assert "calib.detection.response" in detect_cache._DETECTION_MODULES
 
 
 def test_other_detector_or_broken_file_means_detecting_again(store, monkeypatch):

@@ -4,7 +4,7 @@ retake) detects only the captures that are new or changed.
 
 An entry is used only when all of these still hold; otherwise that capture is detected again:
 - the detector is the same: the SHA-1 of the detection modules' source (`_DETECTION_MODULES`:
-  detect, cache, boards, pattern, observations) and OpenCV's version (`detector_fingerprint`; any
+  detect, cache, response, boards, pattern, observations) and OpenCV's version (`detector_fingerprint`; any
   change to that code invalidates every entry);
 - the image is the same: the SHA-1 of the PNG file's bytes;
 - the job is the same: step, mirrored or not, board and pattern specs, camera size (`job_key`);
@@ -53,8 +53,8 @@ _KEY_BYTES = 32
 
 #: the modules whose code decides what detection returns (their source is fingerprinted), by dotted
 #: name so that the file is found wherever the module lives
-_DETECTION_MODULES = ("calib.detection.detect", "calib.detection.cache", "calib.models.boards",
-                      "calib.models.pattern", "calib.models.observations")
+_DETECTION_MODULES = ("calib.detection.detect", "calib.detection.cache", "calib.detection.response",
+                      "calib.models.boards", "calib.models.pattern", "calib.models.observations")
 
 
 @lru_cache(maxsize=1)

@@ -276,9 +276,10 @@ def detect_board(image: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corne
     return _detect_board_gray(gray, spec, mirrored, min_corners, response)
 
 
-def _refinement_image(img: np.ndarray, response: CameraResponse | None) -> np.ndarray:
+def _refinement_image(img: np.ndarray, response: CameraResponse | None):
     """The image the corners are refined on: `img` itself, or with the camera's recorded response its
-    levels linearised (float32, light in 0..255 units). An X-junction is point-symmetric under any tone
+    levels linearised (float32, light in 0..255 units; _Linearised: only the regions the refinement
+    reads are converted). An X-junction is point-symmetric under any tone
     curve, so the curve does not bias a corner, but it spreads the sensor's noise unevenly: the dark toe
     is steep (about 4 levels per level of light at the black squares, 0.8 at the white ones), so the
     black squares' noise dominates the encoded image and corners scatter more (projector-step boards at
@@ -286,7 +287,22 @@ def _refinement_image(img: np.ndarray, response: CameraResponse | None) -> np.nd
     realism"). In light, the noise is the sensor's again."""
     if response is None or response.linear:
         return img
-    return response.lut().astype(np.float32)[img]
+    return _Linearised(img, response.lut())
+
+
+class _Linearised:
+    """An 8-bit image read as light through a 256-level table, converted region by region as it is
+    sliced (`lin[y0:y1, x0:x1]`): the corner refinement reads a few patches around the corners, and
+    converting a whole 1080p frame to float32 cost more than all of them together. Slicing gives
+    exactly the values the converted whole image would hold."""
+
+    def __init__(self, img: np.ndarray, lut: np.ndarray):
+        self._img = img
+        self._lut = np.asarray(lut, np.float32)
+        self.shape = img.shape
+
+    def __getitem__(self, index) -> np.ndarray:
+        return self._lut[self._img[index]]
 
 
 def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_corners: int = 6,
@@ -317,7 +333,8 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
     if found is None:
         corners, ids, markers, strict = _charuco_in(search, spec)
         n = 0 if ids is None else len(ids)
-        if search is not img and n < spec.n_corners:  # the ROI guess missed part of the board
+        if search is not img and n < spec.n_corners and _missing_beyond(corners, ids, (x0, y0), spec, roi, (h, w)):
+            # the ROI guess missed part of the board (corners found inside it need no second search)
             corners2, ids2, markers2, strict2 = _charuco_in(img, spec)
             if ids2 is not None and len(ids2) > n:
                 corners, ids, markers, strict, n = corners2, ids2, markers2, strict2, len(ids2)
@@ -334,8 +351,17 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
             # and the black cells fade. A linearised copy decodes them again (docs/SIMULATOR.md,
             # "Photometric realism"); the corners are refined below as any others (in the image itself,
             # or linearised with the session's recorded response: _refinement_image).
-            # (the region where the board was looked for first, then the whole image)
-            regions = [(img, 0, 0)] if search is img else [(search, *roi[:2]), (img, 0, 0)]
+            # Only where corners can still be found: around the board the corners found predict (none
+            # when every missing corner lies outside the image), else where the board was looked for
+            # first, then the whole image.
+            board_box = _board_box(corners, ids, (x0, y0), spec, (h, w))
+            if board_box is None:
+                regions = [(img, 0, 0)] if search is img else [(search, *roi[:2]), (img, 0, 0)]
+            elif board_box == ():
+                regions = []
+            else:
+                bx0, by0, bx1, by1 = board_box
+                regions = [(img[by0:by1, bx0:bx1], bx0, by0)]
             for region, ox, oy in regions:
                 lc, lids, lmarkers, lstrict = _charuco_in(cv2.LUT(region, _LINEARISE_LUT), spec)
                 if lids is not None and len(lids) > n:
@@ -357,6 +383,70 @@ def _detect_board_gray(gray: np.ndarray, spec: CharucoSpec, mirrored: bool, min_
         corners = _flip_x(corners, gray.shape[1])
     order = np.argsort(ids)
     return BoardObservation(ids[order], corners[order], mirrored)
+
+
+def _predicted_corners(corners, ids, offset, spec: CharucoSpec):
+    """(every corner of the board in pixels, mask of those not found, square side px) from the homography
+    of the corners found (at `corners` + `offset`), or None when it cannot be estimated (under 4 corners,
+    a degenerate fit, a corner beyond the plane's horizon)."""
+    if ids is None or corners is None or len(ids) < 4:
+        return None
+    obj = spec.corner_points()[:, :2]
+    H, _ = cv2.findHomography(obj[ids], np.asarray(corners, float) + np.asarray(offset, float), 0)
+    if H is None:
+        return None
+    allpx = _map_board(H, obj)
+    step = _map_board(H, obj[ids] + [spec.square_length, 0.0])
+    if allpx is None or step is None or not np.all(np.isfinite(allpx)):
+        return None
+    missing = np.ones(len(obj), bool)
+    missing[ids] = False
+    return allpx, missing, float(np.median(np.linalg.norm(step - allpx[ids], axis=1)))
+
+
+def _in_view(pts: np.ndarray, shape, grow_px: float) -> np.ndarray:
+    """Mask of points inside the image grown by `grow_px` on every side."""
+    h, w = shape
+    return (pts[:, 0] >= -0.5 - grow_px) & (pts[:, 0] <= w - 0.5 + grow_px) & \
+        (pts[:, 1] >= -0.5 - grow_px) & (pts[:, 1] <= h - 0.5 + grow_px)
+
+
+def _missing_beyond(corners, ids, offset, spec: CharucoSpec, roi, shape) -> bool:
+    """Whether a corner not found may lie in view but outside the region searched (`roi`, its edges
+    inside the image shrunk by two squares, so that the markers beside the corner are whole in it):
+    only then can a search of the whole image find more. True when that cannot be predicted."""
+    pred = _predicted_corners(corners, ids, offset, spec)
+    if pred is None:
+        return True
+    allpx, missing, side = pred
+    pts = allpx[missing & _in_view(allpx, shape, 0.25 * side)]
+    h, w = shape
+    x0, y0, x1, y1 = roi
+    m = 2.0 * side
+    lo = np.array([x0 + m if x0 > 0 else -np.inf, y0 + m if y0 > 0 else -np.inf])
+    hi = np.array([x1 - m if x1 < w else np.inf, y1 - m if y1 < h else np.inf])
+    return bool(np.any((pts < lo) | (pts > hi)))
+
+
+def _board_box(corners, ids, offset, spec: CharucoSpec, shape):
+    """Where a second search can find the corners not found: (x0, y0, x1, y1) around the whole board as
+    the corners found predict it, grown by 2.5 squares (its outer markers and the thresholding windows
+    around them); () when every missing corner lies outside the image (a corner less than a quarter
+    square inside the border has its outer marker cut: no search finds it); None when it cannot be
+    predicted."""
+    pred = _predicted_corners(corners, ids, offset, spec)
+    if pred is None:
+        return None
+    allpx, missing, side = pred
+    if not np.any(missing & _in_view(allpx, shape, 0.25 * side)):
+        return ()
+    h, w = shape
+    lo = np.floor(allpx.min(axis=0) - 2.5 * side).astype(int)
+    hi = np.ceil(allpx.max(axis=0) + 2.5 * side).astype(int) + 1
+    x0, y0, x1, y1 = max(lo[0], 0), max(lo[1], 0), min(hi[0], w), min(hi[1], h)
+    if x1 - x0 < 16 or y1 - y0 < 16:
+        return None
+    return (int(x0), int(y0), int(x1), int(y1))
 
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
@@ -657,8 +747,7 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray, lut
     dy = (Y - pts[sel, 1, None, None]).astype(np.float64) * np.ones_like(win)
     gx, gy = _background_slopes(win, rim, X * np.ones_like(win), Y * np.ones_like(win), pts[sel])
     ramp = gx[:, None, None] * dx + gy[:, None, None] * dy
-    bg = np.array([np.median((win[j] - ramp[j])[rim[j]]) if rim[j].any() else np.nan for j in range(len(sel))])
-    bg = bg[:, None, None] + ramp
+    bg = _rim_medians(win - ramp, rim)[:, None, None] + ramp
     wgt = np.where(inside, win - bg, 0.0)
     wgt[wgt < 0] = 0.0
     s = wgt.sum(axis=(1, 2))
@@ -670,6 +759,20 @@ def _refine_centroids(gray: np.ndarray, pts: np.ndarray, radius: np.ndarray, lut
         & (np.abs(cy - pts[sel, 1]) < 0.5 * r + 0.5)
     out[sel[ok], 0] = cx[ok]
     out[sel[ok], 1] = cy[ok]
+    return out
+
+
+def _rim_medians(values: np.ndarray, rim: np.ndarray) -> np.ndarray:
+    """Per window (axis 0), the median of `values` over its `rim` pixels (NaN for an empty rim): all the
+    windows at once, as np.median of each would give (the mean of the two middle values for an even
+    count)."""
+    m = len(values)
+    flat = np.where(rim, values, np.inf).reshape(m, -1)
+    flat.sort(axis=1)
+    count = rim.reshape(m, -1).sum(axis=1)
+    rows = np.arange(m)
+    out = (flat[rows, np.maximum(count - 1, 0) // 2] + flat[rows, count // 2]) / 2.0
+    out[count == 0] = np.nan
     return out
 
 
@@ -687,7 +790,7 @@ def _background_slopes(win, rim, X, Y, centres) -> tuple[np.ndarray, np.ndarray]
     A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
     keep = np.ones(len(val), bool)
     for _ in range(2):
-        coef, *_ = np.linalg.lstsq(A[keep], val[keep], rcond=None)
+        coef = _least_squares(A[keep], val[keep])
         res = val - A @ coef
         mad = 1.4826 * np.median(np.abs(res[keep]))
         keep = np.abs(res) <= max(3.0 * mad, 1e-9)
@@ -697,6 +800,13 @@ def _background_slopes(win, rim, X, Y, centres) -> tuple[np.ndarray, np.ndarray]
     gx = (coef[1] + 2 * coef[3] * cu + coef[4] * cv) / scale
     gy = (coef[2] + coef[4] * cu + 2 * coef[5] * cv) / scale
     return gx, gy
+
+
+def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin |A x - b| for a tall, well-conditioned A of a few columns, by its normal equations summed
+    without BLAS: np.linalg.lstsq hands a 2000 x 6 problem to multi-threaded OpenBLAS, whose threads spin
+    against the detection threads (and anything else on the cores) for ten times the arithmetic."""
+    return np.linalg.solve(np.einsum("ni,nj->ij", A, A), np.einsum("ni,n->i", A, b))
 
 
 def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi, lut: np.ndarray | None = None):
@@ -710,15 +820,19 @@ def _find_circles(gray: np.ndarray, pattern: PatternSpec, roi, lut: np.ndarray |
         return DetectionFailure("pattern not found")
     cand = np.array([k.pt for k in kps], float)
     sizes = np.array([k.size for k in kps], float)
-    # the grid finder runs on a clean image of dots at the candidates (no second blob search)
-    dots = np.zeros(work.shape, np.uint8)
-    for (x, y) in cand:
+    # the grid finder runs on a clean image of dots at the candidates (no second blob search), only as
+    # large as the candidates' box: its dot search scanned the whole crop, most of it empty (the grid's
+    # points serve only to pick candidates, so a shifted image finds the same ones)
+    lo = np.maximum(np.floor(cand.min(axis=0)).astype(int) - 8, 0)
+    hi = np.ceil(cand.max(axis=0)).astype(int) + 9
+    dots = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)
+    for (x, y) in cand - lo:
         cv2.circle(dots, (int(round(x * 4)), int(round(y * 4))), 8, 255, -1, cv2.LINE_8, 2)
     found = None
     for flags in (cv2.CALIB_CB_ASYMMETRIC_GRID, cv2.CALIB_CB_ASYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING):
         ok, centres = cv2.findCirclesGrid(dots, pattern.pattern_size, flags=flags, blobDetector=_dot_detector())
         if ok and centres is not None:
-            found = np.asarray(centres, float).reshape(-1, 2)
+            found = np.asarray(centres, float).reshape(-1, 2) + lo
             break
     if found is None:
         if len(cand) < n_need:
