@@ -1,0 +1,122 @@
+"""One structured-light projector capture -> a ProjectorView: the board, and board points with the
+projector pixels that light them.
+
+Stages (each its own module): the board's ChArUco corners in the sequence's white frame
+(calib.detection.detect.detect_board), the per-pixel decoding (calib.detection.structured_light), and
+the projector pixel of each chosen camera point from a local homography
+(calib.detection.local_homography). The points (BoardPoints):
+  - CORNERS: the detected ChArUco corners, their homographies fitted over the white squares' pixels
+    around them (the black squares are masked out), as Moreno & Taubin do;
+  - BLANK_GRID: camera pixels on a lattice `grid_step_px` apart (windows that do not overlap, so the
+    points' errors are independent) where at least GRID_MIN_VALID of the window decoded: the board's
+    blank area and its white border;
+  - BOTH.
+The view's pattern_cam_px are those camera pixels and pattern_proj_px the fitted projector pixels, so
+both calibration methods take them like circle centres (the camera pixel maps onto the board through the
+board's pose); here the camera side is exact (grid) or a detected corner, and the projector side carries
+the fit's uncertainty, returned beside the view.
+
+Entry point: `detect_structured_view(images, spec, board, projector_size, mirrored) -> StructuredView |
+DetectionFailure`.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calib.detection.detect import detect_board
+from calib.detection.local_homography import HALF_WINDOW_PX, LocalProjectorPoints, fit_local_homographies
+from calib.detection.response import CameraResponse
+from calib.detection.structured_light import DecodedMap, decode_sequence
+from calib.errors import SpecError
+from calib.models.boards import CharucoSpec
+from calib.models.observations import DetectionFailure, ProjectorView
+from calib.models.structured_light import StructuredLightSpec
+
+#: a lattice point is used when at least this share of its window decoded
+GRID_MIN_VALID = 0.9
+#: fewer board points than this with a projector pixel and the capture is not used
+MIN_POINTS = 6
+
+
+class BoardPoints(str, enum.Enum):
+    CORNERS = "corners"
+    BLANK_GRID = "blank-grid"
+    BOTH = "both"
+
+
+@dataclass(frozen=True, eq=False)
+class StructuredView:
+    """The view, each of its pattern points' fit (`points`, in the view's point order), the decoded map,
+    and the share of the board's ChArUco hull that decoded (how much of the board the projector lit)."""
+
+    view: ProjectorView
+    points: LocalProjectorPoints
+    decoded: DecodedMap
+    n_failed_points: int
+
+
+def grid_points(decoded: DecodedMap, step_px: int, half_window_px: int = HALF_WINDOW_PX,
+                min_valid: float = GRID_MIN_VALID) -> np.ndarray:
+    """(N, 2) camera pixels on the lattice (multiples of `step_px`) whose window decoded to at least
+    `min_valid`."""
+    if step_px < 1:
+        raise SpecError(f"grid step must be >= 1 px, got {step_px}")
+    k = 2 * int(half_window_px) + 1
+    frac = cv2.boxFilter(decoded.valid.astype(np.float32), -1, (k, k), normalize=True, borderType=cv2.BORDER_CONSTANT)
+    H, W = decoded.shape
+    ys, xs = np.mgrid[half_window_px:H - half_window_px:step_px, half_window_px:W - half_window_px:step_px]
+    sel = frac[ys, xs] >= min_valid
+    return np.column_stack([xs[sel], ys[sel]]).astype(float)
+
+
+def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec, projector_size: tuple[int, int],
+                           mirrored: bool, capture_id: str = "", points: BoardPoints = BoardPoints.BLANK_GRID, *,
+                           half_window_px: int = HALF_WINDOW_PX, grid_step_px: int | None = None,
+                           response: CameraResponse | None = None, min_corners: int = 6):
+    """Detect one structured-light capture (module docstring): StructuredView, or DetectionFailure with
+    a reason when the board is not found, the sequence does not decode, or too few points remain."""
+    images = list(images)
+    points = BoardPoints(points)
+    try:
+        decoded = decode_sequence(images, spec, projector_size, response=response)
+    except SpecError as e:
+        return DetectionFailure(f"structured-light sequence: {e}")
+    obs = detect_board(images[0], board, mirrored, min_corners, response)
+    if not obs:
+        return DetectionFailure(f"board not found in the sequence's white frame ({obs.reason})")
+    n_valid = decoded.counts["valid"]
+    if n_valid == 0:
+        c = decoded.counts
+        if c["saturated"] > c["unlit"]:
+            return DetectionFailure("the projector's light saturates the camera on the board: lower the exposure")
+        return DetectionFailure("no camera pixel decoded: the board is not lit by the projector, or the frames "
+                                "are too dark (raise the exposure)")
+    cam = []
+    if points in (BoardPoints.CORNERS, BoardPoints.BOTH):
+        cam.append(np.asarray(obs.corners_px, float))
+    if points in (BoardPoints.BLANK_GRID, BoardPoints.BOTH):
+        step = int(grid_step_px) if grid_step_px is not None else 2 * int(half_window_px) + 1
+        cam.append(grid_points(decoded, step, half_window_px))
+    cam = np.concatenate(cam) if cam else np.zeros((0, 2))
+    fit = fit_local_homographies(decoded, cam, half_window_px)
+    ok = fit.ok
+    if ok.sum() < MIN_POINTS:
+        return DetectionFailure(f"only {int(ok.sum())} board points have a decoded projector position (need "
+                                f"{MIN_POINTS}): the projector lights too little of the board")
+    sel = np.flatnonzero(ok)
+    kept = LocalProjectorPoints(*(_take(a, sel) for a in (fit.cam_px, fit.proj_px, fit.cov_px2, fit.n_pixels,
+                                                          fit.n_rejected, fit.rms_px)),
+                                tuple(fit.reasons[i] for i in sel))
+    view = ProjectorView(capture_id, obs, kept.cam_px, kept.proj_px, None)
+    return StructuredView(view, kept, decoded, int((~ok).sum()))
+
+
+def _take(a, sel):
+    out = np.asarray(a)[sel]
+    out.setflags(write=False)
+    return out
