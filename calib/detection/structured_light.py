@@ -16,6 +16,8 @@ Per pixel, vectorised over the image:
      difference carries no information), UNLIT (lit below `min_contrast`: outside the projection, in
      shadow, the background), DARK_PRINT (lit below `dark_fraction` of the brightest lit board surface:
      the board's black squares and markers, whose low albedo leaves a weak, blur-contaminated signal),
+     EDGE (next to a pixel rejected so far: blur mixes in the light of the neighbouring surface, which
+     saw another projector position, and biases the coordinate by up to half a pixel's footprint),
      LOW_MODULATION (the sinusoids' amplitude below `min_modulation` of lit: stripes blurred away, or a
      pixel straddling an edge of the board), INCONSISTENT (a coordinate more than `max_jump_px` from the
      median of its valid 3 x 3 neighbours: a wrongly unwrapped period, a reflection, a wrong bit).
@@ -54,8 +56,9 @@ class Invalid(enum.IntEnum):
     SATURATED = 1
     UNLIT = 2
     DARK_PRINT = 3
-    LOW_MODULATION = 4
-    INCONSISTENT = 5
+    EDGE = 4
+    LOW_MODULATION = 5
+    INCONSISTENT = 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,6 +156,10 @@ def decode_sequence(images, spec: StructuredLightSpec, projector_size: tuple[int
     if lit_ok.size:
         bright = float(np.percentile(lit_ok, 99))
         mark(lit < dark_fraction * bright, Invalid.DARK_PRINT)
+    # next to a rejected surface, the optics' blur mixes in a neighbour's light from another projector
+    # position, weighted by its albedo: a bias of up to half a pixel's footprint
+    dark = (reason != 0).astype(np.uint8)
+    mark(cv2.dilate(dark, np.ones((3, 3), np.uint8)) > 0, Invalid.EDGE)
     if spec.phase_shifting:
         mark(modulation < min_modulation, Invalid.LOW_MODULATION)
     jump = float(max_jump_px) if max_jump_px is not None else (spec.period_px / 2.0 if spec.phase_shifting else 16.0)
