@@ -16,6 +16,7 @@ from calib.errors import FormatError, SpecError
 from calib.models.observations import DetectionFailure
 from calib.models.structured_light import Axis, FrameRole, StructuredLightSpec, gray_decode, gray_encode
 from calib.transforms import invert_T, rays_to_board_plane
+from drivers.projector_images import structured_light_images
 from drivers.sim.render import Renderer
 from drivers.sim.scenarios import get_scenario
 from drivers.sim.structured import render_sequence, true_projector_px
@@ -46,7 +47,7 @@ def test_the_projectors_own_images_decode_to_their_pixels(spec):
     assert n_gray == spec.n_bits(W) + spec.n_bits(H)
     assert sum(f.role is FrameRole.PHASE for f in frames) == 2 * spec.phase_steps
     # projector levels of 255 are saturated for the decoder: show them at 0.9 of the range
-    imgs = [(im.astype(np.float32) * 0.9).round().astype(np.uint8) for im in spec.images(W, H)]
+    imgs = [(im.astype(np.float32) * 0.9).round().astype(np.uint8) for im in structured_light_images(spec, (W, H))]
     d = decode_sequence(imgs, spec, (W, H))
     yy, xx = np.mgrid[0:H, 0:W]
     tol = 0.05 if spec.phase_shifting else 0.0
