@@ -254,7 +254,7 @@ def test_local_homography_is_within_its_own_uncertainty():
 def test_local_homography_rejects_outliers_and_refuses_one_sided_windows():
     rng = np.random.default_rng(5)
     pts = np.array([[80.0, 60.0], [25.0, 60.0], [2.0, 60.0]])
-    fit = fit_local_homographies(_synthetic_map(HM, 0.2, rng, outliers=0.05), pts)
+    fit = fit_local_homographies(_synthetic_map(HM, 0.2, rng, outliers=0.05), pts, half_window_px=10)
     exact = np.column_stack([pts[:1], [1.0]]) @ HM.T
     assert fit.n_rejected[0] >= 10
     assert np.linalg.norm(fit.proj_px[0] - exact[0, :2] / exact[0, 2]) < 5 * fit.sigma_px[0]

@@ -26,8 +26,9 @@ import numpy as np
 
 from calib.detection.structured_light import DecodedMap
 
-#: default half window (camera pixels): 20 x 20 px windows hold ~300 pixels on a white board area
-HALF_WINDOW_PX = 10
+#: default half window (camera pixels): a 13 x 13 px window holds ~150 decoded pixels on a white board
+#: area; smaller windows fit closer to the print, which spreads the points wider over the board
+HALF_WINDOW_PX = 6
 MIN_PIXELS = 40
 REJECT_SIGMAS = 4.0
 #: the points' pixels must extend at least this share of the half window on each side of it, on both axes

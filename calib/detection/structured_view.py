@@ -6,7 +6,8 @@ Stages (each its own module): the board's ChArUco corners in the sequence's whit
 the projector pixel of each chosen camera point from a local homography
 (calib.detection.local_homography). The points (BoardPoints):
   - CORNERS: the detected ChArUco corners, their homographies fitted over the white squares' pixels
-    around them (the black squares are masked out), as Moreno & Taubin do;
+    around them (the black squares are masked out; a larger window, CORNER_HALF_WINDOW_PX), as Moreno &
+    Taubin do;
   - BLANK_GRID: camera pixels on a lattice `grid_step_px` apart (windows that do not overlap, so the
     points' errors are independent) where at least GRID_MIN_VALID of the window decoded: the board's
     blank area and its white border;
@@ -37,6 +38,8 @@ from calib.models.boards import CharucoSpec
 from calib.models.observations import DetectionFailure, ProjectorView
 from calib.models.structured_light import StructuredLightSpec
 
+#: half window around a ChArUco corner: half of it is black squares, so it needs a larger one
+CORNER_HALF_WINDOW_PX = 10
 #: a lattice point is used when at least this share of its window decoded
 GRID_MIN_VALID = 0.9
 #: fewer board points than this with a projector pixel and the capture is not used
@@ -77,6 +80,7 @@ def grid_points(decoded: DecodedMap, step_px: int, half_window_px: int = HALF_WI
 def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec, projector_size: tuple[int, int],
                            mirrored: bool, capture_id: str = "", points: BoardPoints = BoardPoints.BLANK_GRID, *,
                            half_window_px: int = HALF_WINDOW_PX, grid_step_px: int | None = None,
+                           corner_half_window_px: int = CORNER_HALF_WINDOW_PX,
                            response: CameraResponse | None = None, min_corners: int = 6):
     """Detect one structured-light capture (module docstring): StructuredView, or DetectionFailure with
     a reason when the board is not found, the sequence does not decode, or too few points remain."""
@@ -96,14 +100,16 @@ def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec
             return DetectionFailure("the projector's light saturates the camera on the board: lower the exposure")
         return DetectionFailure("no camera pixel decoded: the board is not lit by the projector, or the frames "
                                 "are too dark (raise the exposure)")
-    cam = []
+    fits = []
     if points in (BoardPoints.CORNERS, BoardPoints.BOTH):
-        cam.append(np.asarray(obs.corners_px, float))
+        fits.append(fit_local_homographies(decoded, np.asarray(obs.corners_px, float), corner_half_window_px))
     if points in (BoardPoints.BLANK_GRID, BoardPoints.BOTH):
         step = int(grid_step_px) if grid_step_px is not None else 2 * int(half_window_px) + 1
-        cam.append(grid_points(decoded, step, half_window_px))
-    cam = np.concatenate(cam) if cam else np.zeros((0, 2))
-    fit = fit_local_homographies(decoded, cam, half_window_px)
+        fits.append(fit_local_homographies(decoded, grid_points(decoded, step, half_window_px), half_window_px))
+    fit = fits[0] if len(fits) == 1 else LocalProjectorPoints(
+        *(np.concatenate([getattr(f, k) for f in fits]) for k in ("cam_px", "proj_px", "cov_px2", "n_pixels",
+                                                                   "n_rejected", "rms_px")),
+        fits[0].reasons + fits[1].reasons)
     ok = fit.ok
     if ok.sum() < MIN_POINTS:
         return DetectionFailure(f"only {int(ok.sum())} board points have a decoded projector position (need "
