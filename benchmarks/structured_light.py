@@ -83,7 +83,7 @@ def mirror_views(sc, seed: int):
     return observe(ss, 0.1, seed + 1000).mirror_views
 
 
-def projector_views(sc, R, arm: str, poses, seed: int, response, stats: dict, window: dict):
+def projector_views(sc, R, arm: str, poses, seed: int, response, stats: dict, window: dict, renders: dict):
     P = sc.rig.projector
     mirrored = sc.rig.mirror is not None
     out = []
@@ -102,7 +102,9 @@ def projector_views(sc, R, arm: str, poses, seed: int, response, stats: dict, wi
             out.append(ProjectorView(cid, board, uv, q, pos))
             continue
         spec, pts = ARMS[arm]
-        imgs = render_sequence(R, sc.layout, T, spec, rng)
+        if (spec, i) not in renders:  # the arms of one sequence share its images (the same noise draws)
+            renders[(spec, i)] = render_sequence(R, sc.layout, T, spec, rng)
+        imgs = renders[(spec, i)]
         sv = detect_structured_view(imgs, spec, sc.projector_board, (P.width, P.height), mirrored, cid, pts,
                                     response=response, **window)
         if not sv:
@@ -131,9 +133,10 @@ def run(args) -> None:
             poses = placements(sc, args.placements)
             mviews = mirror_views(sc, seed) if sc.mirror_method else ()
             truth = sc.ground_truth()
+            renders: dict = {}
             for arm in args.arms:
                 stats = pstats.setdefault(arm, {})
-                views = projector_views(sc, R, arm, poses, seed, response, stats, window)
+                views = projector_views(sc, R, arm, poses, seed, response, stats, window, renders)
                 obs = SessionObservations(r.camera.size, r.projector.size, r.view, sc.projector_board, sc.pattern,
                                           tuple(views), sc.mirror_board, tuple(mviews), sc.board_thickness_mm)
                 for m in args.methods:

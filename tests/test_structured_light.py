@@ -280,3 +280,38 @@ def test_board_points_get_their_projector_pixels(which, request):
         slack = 0.0 if points is BoardPoints.BLANK_GRID else 0.1 * 4.0  # ~0.1 cam px x ~4 proj px per cam px
         assert np.all(e < 6 * sv.points.sigma_px + 0.02 + slack)
         assert np.sqrt(np.mean(e ** 2)) < (0.1 if points is BoardPoints.BLANK_GRID else 0.3)
+
+
+# ---- into the calibration methods ------------------------------------------------------------------
+def test_structured_views_calibrate_the_projector_with_both_methods():
+    """Five placements of the structured-light step (the projector image's corners and centre) with the
+    scenario's mirror views: both methods calibrate, and the joint one lands near the truth (a loose
+    sanity bound; the accuracy itself is measured in benchmarks/structured_light.py)."""
+    from calib.joint.method import calibrate_joint
+    from calib.models.observations import SessionObservations
+    from calib.paper.method import calibrate_paper
+    from calib.quality.metrics import compare
+    from calib.synthetic import SyntheticSession, observe
+
+    sc = get_scenario("nonoverlap-136")
+    R = _renderer(sc)
+    P = sc.rig.projector
+    views = []
+    for i, pos in enumerate((0, 2, 4, 6, 8)):
+        T = sc.projector_poses[pos * sc.per_position][1]
+        imgs = render_sequence(R, sc.layout, T, SPEC, np.random.default_rng([i, 23]))
+        sv = detect_structured_view(imgs, SPEC, sc.projector_board, (P.width, P.height), True, f"p{i}",
+                                    response=RESPONSE)
+        assert not isinstance(sv, DetectionFailure), sv
+        views.append(sv.view)
+    ss = SyntheticSession(sc.rig, sc.layout, sc.mirror_board, sc.pattern, [], sc.mirror_poses, sc.mirror_method)
+    mirror_views = observe(ss, 0.1, 5).mirror_views
+    obs = SessionObservations(sc.rig.camera.size, P.size, sc.rig.view, sc.projector_board, sc.pattern,
+                              tuple(views), sc.mirror_board, tuple(mirror_views))
+    truth = sc.ground_truth()
+    paper = compare(calibrate_paper(obs), truth)
+    joint = compare(calibrate_joint(obs, pattern_model="point"), truth)
+    print(f"paper: {paper.distance:.3f} mm, ProjK {paper.proj_k_px:.2f} px; "
+          f"joint: {joint.distance:.3f} mm {joint.angle_deg:.4f} deg, ProjK {joint.proj_k_px:.2f} px")
+    assert paper.proj_k_px < 40 and paper.distance < 10
+    assert joint.proj_k_px < 3 and joint.distance < 1.0 and joint.angle_deg < 0.15
