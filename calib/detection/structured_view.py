@@ -54,8 +54,9 @@ class BoardPoints(str, enum.Enum):
 
 @dataclass(frozen=True, eq=False)
 class StructuredView:
-    """The view, each of its pattern points' fit (`points`, in the view's point order), the decoded map,
-    and the share of the board's ChArUco hull that decoded (how much of the board the projector lit)."""
+    """The view, each of its pattern points' fit (`points`, in the view's point order), the decoded map
+    (its `counts` say how many pixels decoded and why the others did not), and how many requested points
+    got no projector pixel (`n_failed_points`: unlit, masked or one-sided windows)."""
 
     view: ProjectorView
     points: LocalProjectorPoints
