@@ -14,7 +14,8 @@ detected as a session would be (the camera's recorded tone curve given to the de
                 on a lattice over the board's decoded white area (calib.detection.structured_view);
   sl-corners    the same sequence, projector points at the ChArUco corners;
   sl-both       both sets of points;
-  sl-gray-grid  Gray code alone down to 1-pixel stripes (46 frames too), lattice points.
+  sl-gray-grid  Gray code alone down to 1-pixel stripes (46 frames too), lattice points;
+  sl-grid-4steps  4 phase steps instead of 8 (38 frames); sl-grid-64px  a 64 px period (42 frames).
 The mirror-calibration views are the same for every arm: the scenario's 14 mirror placements as exact
 synthetic observations with 0.1 px Gaussian noise (calib.synthetic.observe), so that the arms differ by
 their projector step only. Then the paper and joint methods, and the errors against the truth.
@@ -58,6 +59,8 @@ ARMS = {
     "sl-corners": (StructuredLightSpec(32, 8), BoardPoints.CORNERS),
     "sl-both": (StructuredLightSpec(32, 8), BoardPoints.BOTH),
     "sl-gray-grid": (StructuredLightSpec(32, 0), BoardPoints.BLANK_GRID),
+    "sl-grid-4steps": (StructuredLightSpec(32, 4), BoardPoints.BLANK_GRID),
+    "sl-grid-64px": (StructuredLightSpec(64, 8), BoardPoints.BLANK_GRID),
 }
 POSITION_ORDER = (0, 2, 4, 6, 8, 1, 3, 5, 7, 9, 10, 11, 12)
 
@@ -158,15 +161,16 @@ def run(args) -> None:
                                            pm.mirror_angle_deg if pm.mirror_angle_deg is not None else float("nan")))
         print(f"\n## {name}: {args.placements} projector placements, {args.seeds} seeds, {args.quality} quality "
               f"({time.process_time() - t0:.0f} s CPU)\n")
-        print("| arm | points per view | point error RMS px | p99 px | fit sigma median px | failed views |")
-        print("|---|---|---|---|---|---|")
+        print("| arm | frames | points per view | point error RMS px | p99 px | fit sigma median px | failed views |")
+        print("|---|---|---|---|---|---|---|")
         for arm in args.arms:
             s = pstats.get(arm, {})
             if arm == "circles" or not s.get("err"):
                 continue
             e = np.concatenate(s["err"])
             sg = np.concatenate(s["sigma"])
-            print(f"| {arm} | {len(e) / len(s['err']):.0f} | {np.sqrt(np.mean(e ** 2)):.3f} | "
+            n_frames = len(ARMS[arm][0].frames(*get_scenario(name).rig.projector.size))
+            print(f"| {arm} | {n_frames} | {len(e) / len(s['err']):.0f} | {np.sqrt(np.mean(e ** 2)):.3f} | "
                   f"{np.percentile(e, 99):.3f} | {np.median(sg):.3f} | {len(s.get('failed', []))} |")
         print()
         print("| arm | method | views | distance mm | angle deg | ProjK px | CamK px | proj dist px | cam dist px "
