@@ -262,6 +262,27 @@ def test_local_homography_rejects_outliers_and_refuses_one_sided_windows():
     assert not fit.ok[2] and "0 decoded pixels" in fit.reasons[2]  # inside the strip
 
 
+def _truly_lit_share(cap, corners):
+    hull = cv2.convexHull(np.asarray(corners, np.float32)).reshape(-1, 2)
+    mask = np.zeros(cap.images[0].shape[:2], np.uint8)
+    cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
+    ys, xs = np.nonzero(mask)
+    q = true_projector_px(cap.R, cap.sc.layout, cap.T, np.column_stack([xs, ys]).astype(float))
+    return float(np.mean(cap.R.projector.in_image(q)))
+
+
+def test_the_share_of_the_board_the_projector_lights(mirrored):
+    """Pose 16 holds the board with part of its print outside the projector's light (the renderer's exact
+    projector pixels say how much); pose 0's print is lit whole."""
+    partial = _Capture("nonoverlap-136", 16)
+    for cap, whole in ((partial, False), (mirrored, True)):
+        sv = detect_structured_view(cap.images, SPEC, cap.sc.projector_board, cap.proj_size, True, response=RESPONSE)
+        truth = _truly_lit_share(cap, sv.view.board.corners_px)
+        assert (truth > 0.99) == whole  # the premise
+        print(f"lit share {sv.lit_share:.3f}, truth {truth:.3f}")
+        assert abs(sv.lit_share - truth) < 0.03
+
+
 @pytest.mark.parametrize("which", ["mirrored", "direct"])
 def test_board_points_get_their_projector_pixels(which, request):
     cap = request.getfixturevalue(which)

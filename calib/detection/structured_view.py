@@ -32,7 +32,7 @@ import numpy as np
 from calib.detection.detect import detect_board
 from calib.detection.local_homography import HALF_WINDOW_PX, LocalProjectorPoints, fit_local_homographies
 from calib.detection.response import CameraResponse
-from calib.detection.structured_light import DecodedMap, decode_sequence
+from calib.detection.structured_light import MIN_CONTRAST, DecodedMap, decode_sequence
 from calib.errors import SpecError
 from calib.models.boards import CharucoSpec
 from calib.models.observations import DetectionFailure, ProjectorView
@@ -55,13 +55,15 @@ class BoardPoints(str, enum.Enum):
 @dataclass(frozen=True, eq=False)
 class StructuredView:
     """The view, each of its pattern points' fit (`points`, in the view's point order), the decoded map
-    (its `counts` say how many pixels decoded and why the others did not), and how many requested points
-    got no projector pixel (`n_failed_points`: unlit, masked or one-sided windows)."""
+    (its `counts` say how many pixels decoded and why the others did not), how many requested points
+    got no projector pixel (`n_failed_points`: unlit, masked or one-sided windows), and `lit_share`
+    (lit_share_of), so a board partly outside the projection can be told so."""
 
     view: ProjectorView
     points: LocalProjectorPoints
     decoded: DecodedMap
     n_failed_points: int
+    lit_share: float  # of the image area inside the detected ChArUco corners, the part the projector lights
 
 
 def grid_points(decoded: DecodedMap, step_px: int, half_window_px: int = HALF_WINDOW_PX,
@@ -76,6 +78,29 @@ def grid_points(decoded: DecodedMap, step_px: int, half_window_px: int = HALF_WI
     ys, xs = np.mgrid[half_window_px:H - half_window_px:step_px, half_window_px:W - half_window_px:step_px]
     sel = frac[ys, xs] >= min_valid
     return np.column_stack([xs[sel], ys[sel]]).astype(float)
+
+
+def lit_share_of(decoded: DecodedMap, corners_px: np.ndarray, min_contrast: float = MIN_CONTRAST) -> float:
+    """Share of the image area inside the convex hull of the ChArUco corners that the projector lights:
+    `lit` (median-filtered over 5 x 5, so that no noise spike counts) above `min_contrast`, with the holes
+    of up to 1.5 squares closed (a black square of a dim board reflects too little to show the light
+    itself)."""
+    pts = np.asarray(corners_px, np.float32).reshape(-1, 2)
+    if len(pts) < 3:
+        return 0.0
+    hull = cv2.convexHull(pts).reshape(-1, 2)
+    mask = np.zeros(decoded.shape, np.uint8)
+    cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
+    if not mask.any():
+        return 0.0
+    d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
+    np.fill_diagonal(d, np.inf)
+    square_px = float(np.median(d.min(axis=1)))
+    k = max(3, int(round(1.5 * square_px)) | 1)
+    lit = cv2.medianBlur(np.clip(decoded.lit, 0, 255).astype(np.uint8), 5)
+    # a closing fills the black squares (holes narrower than the kernel) without moving the light's edge
+    near = cv2.morphologyEx((lit >= min_contrast).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
+    return float(near[mask > 0].mean())
 
 
 def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec, projector_size: tuple[int, int],
@@ -120,7 +145,7 @@ def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec
                                                           fit.n_rejected, fit.rms_px)),
                                 tuple(fit.reasons[i] for i in sel))
     view = ProjectorView(capture_id, obs, kept.cam_px, kept.proj_px, None)
-    return StructuredView(view, kept, decoded, int((~ok).sum()))
+    return StructuredView(view, kept, decoded, int((~ok).sum()), lit_share_of(decoded, obs.corners_px))
 
 
 def _take(a, sel):
