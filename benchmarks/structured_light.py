@@ -10,12 +10,12 @@ positions 0, 2, 4, 6, 8: the projector image's four corners and its centre, then
 At each pose, per arm, the camera images are rendered with the scenario's photometric effects and
 detected as a session would be (the camera's recorded tone curve given to the detector):
   circles       today's step: the circle grid at that position (calib.detection.detect);
-  sl-grid       the structured-light sequence (32 px period, 8 phase steps: 46 frames), its projector points
+  sl-grid       the structured-light sequence (32 px period, 8 phase steps: 47 frames), its projector points
                 on a lattice over the board's decoded white area (calib.detection.structured_view);
   sl-corners    the same sequence, projector points at the ChArUco corners;
   sl-both       both sets of points;
-  sl-gray-grid  Gray code alone down to 1-pixel stripes (46 frames too), lattice points;
-  sl-grid-4steps  4 phase steps instead of 8 (38 frames); sl-grid-64px  a 64 px period (42 frames).
+  sl-gray-grid  Gray code alone down to 1-pixel stripes (47 frames too), lattice points;
+  sl-grid-4steps  4 phase steps instead of 8 (39 frames); sl-grid-64px  a 64 px period (43 frames).
 The mirror-calibration views are the same for every arm: the scenario's 14 mirror placements as exact
 synthetic observations with 0.1 px Gaussian noise (calib.synthetic.observe), so that the arms differ by
 their projector step only. Then the paper and joint methods, and the errors against the truth.

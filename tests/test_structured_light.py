@@ -43,6 +43,7 @@ def test_the_projectors_own_images_decode_to_their_pixels(spec):
     W, H = 640, 360
     frames = spec.frames(W, H)
     assert frames[0].role is FrameRole.WHITE and frames[1].role is FrameRole.BLACK
+    assert frames[-1] == type(frames[0])(FrameRole.WHITE, None, 1)  # the closing white (the motion check)
     n_gray = sum(f.role is FrameRole.GRAY for f in frames)
     assert n_gray == spec.n_bits(W) + spec.n_bits(H)
     assert sum(f.role is FrameRole.PHASE for f in frames) == 2 * spec.phase_steps
@@ -260,6 +261,31 @@ def test_local_homography_rejects_outliers_and_refuses_one_sided_windows():
     assert np.linalg.norm(fit.proj_px[0] - exact[0, :2] / exact[0, 2]) < 5 * fit.sigma_px[0]
     assert not fit.ok[1] and "one side" in fit.reasons[1]  # at the masked strip's edge: pixels on its right only
     assert not fit.ok[2] and "0 decoded pixels" in fit.reasons[2]  # inside the strip
+
+
+def test_a_board_that_moves_during_the_sequence_is_refused(mirrored):
+    """The closing white frame rendered with the board 3 mm further along its x axis (about 2 camera px):
+    the capture is refused with a reason naming the motion; 0.1 mm (a fraction of the corner noise's
+    reach, 0.06 px) is still."""
+    from drivers.sim.render import PlacedBoard, SceneState
+
+    P = mirrored.sc.rig.projector
+    white = np.full((P.height, P.width), 255, np.uint8)
+    for shift_mm, refused in ((3.0, True), (0.1, False)):
+        T = mirrored.T.copy()
+        T[:3, 3] += shift_mm * T[:3, 0]
+        last = mirrored.R.render(SceneState((PlacedBoard(mirrored.sc.layout, T),), white), np.random.default_rng(9))
+        imgs = mirrored.images[:-1] + [last]
+        sv = detect_structured_view(imgs, SPEC, mirrored.sc.projector_board, mirrored.proj_size, True,
+                                    response=RESPONSE)
+        assert isinstance(sv, DetectionFailure) == refused, sv
+        if refused:
+            assert "moved" in sv.reason and "hold it still" in sv.reason
+    # the board gone by the closing frame: refused too
+    empty = mirrored.R.render(SceneState((), white), np.random.default_rng(9))
+    sv = detect_structured_view(mirrored.images[:-1] + [empty], SPEC, mirrored.sc.projector_board, mirrored.proj_size,
+                                True, response=RESPONSE)
+    assert isinstance(sv, DetectionFailure) and "out of view" in sv.reason
 
 
 def _truly_lit_share(cap, corners):

@@ -2,7 +2,8 @@
 projector pixels that light them.
 
 Stages (each its own module): the board's ChArUco corners in the sequence's white frame
-(calib.detection.detect.detect_board), the per-pixel decoding (calib.detection.structured_light), and
+(calib.detection.detect.detect_board; the capture is refused when they moved by more than MAX_MOTION_PX
+by the closing white frame), the per-pixel decoding (calib.detection.structured_light), and
 the projector pixel of each chosen camera point from a local homography
 (calib.detection.local_homography). The points (BoardPoints):
   - CORNERS: the detected ChArUco corners, their homographies fitted over the white squares' pixels
@@ -44,6 +45,9 @@ CORNER_HALF_WINDOW_PX = 10
 GRID_MIN_VALID = 0.9
 #: fewer board points than this with a projector pixel and the capture is not used
 MIN_POINTS = 6
+#: a ChArUco corner that moved more than this between the sequence's first and closing white frames
+#: means the board moved (corner noise is some 0.05 px; a board held by hand drifts by pixels)
+MAX_MOTION_PX = 0.5
 
 
 class BoardPoints(str, enum.Enum):
@@ -78,6 +82,18 @@ def grid_points(decoded: DecodedMap, step_px: int, half_window_px: int = HALF_WI
     ys, xs = np.mgrid[half_window_px:H - half_window_px:step_px, half_window_px:W - half_window_px:step_px]
     sel = frac[ys, xs] >= min_valid
     return np.column_stack([xs[sel], ys[sel]]).astype(float)
+
+
+def board_motion_px(first, last) -> float:
+    """Largest displacement (camera px) of the ChArUco corners found in both the first and the closing
+    white frame; inf when the closing frame has no board or no corner in common."""
+    if not first or not last:
+        return float("inf")
+    common, a, b = np.intersect1d(np.asarray(first.ids), np.asarray(last.ids), return_indices=True)
+    if len(common) < 3:
+        return float("inf")
+    d = np.asarray(first.corners_px)[a] - np.asarray(last.corners_px)[b]
+    return float(np.hypot(d[:, 0], d[:, 1]).max())
 
 
 def lit_share_of(decoded: DecodedMap, corners_px: np.ndarray, min_contrast: float = MIN_CONTRAST) -> float:
@@ -119,6 +135,11 @@ def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec
     obs = detect_board(images[0], board, mirrored, min_corners, response)
     if not obs:
         return DetectionFailure(f"board not found in the sequence's white frame ({obs.reason})")
+    moved = board_motion_px(obs, detect_board(images[-1], board, mirrored, min_corners, response))
+    if not moved <= MAX_MOTION_PX:
+        how = "out of view" if not np.isfinite(moved) else f"by {moved:.1f} px"
+        return DetectionFailure(f"the board moved during the sequence ({how} between its first and last white "
+                                f"frames): hold it still and capture this pose again")
     n_valid = decoded.counts["valid"]
     if n_valid == 0:
         c = decoded.counts

@@ -1,7 +1,8 @@
 """The structured-light sequence the projector shows while the board stands still (issue 23).
 
 The sequence codes every projector pixel's column and row (Moreno & Taubin 2012, with phase shifting):
-  - a full-white and a full-black frame: per camera pixel, how much the projector lights it;
+  - a full-white and a full-black frame: per camera pixel, how much the projector lights it (and a
+    closing full-white frame, whose board corners against the first frame's show whether the board moved);
   - per axis (columns, then rows), a reflected-binary Gray code of `cell_px`-wide stripes, each bit
     followed by its inverse: a bit is read as "pattern brighter than inverse", which needs no threshold
     and is immune to the projector's and the camera's tone curves;
@@ -61,7 +62,7 @@ class SequenceFrame:
 @dataclass(frozen=True)
 class StructuredLightSpec:
     """The sequence: Gray code down to `period_px / 2`-wide stripes plus `phase_steps` sinusoids of period
-    `period_px` per axis (default 32 px, 8 steps: 46 frames for a 1920x1080 projector), or with
+    `period_px` per axis (default 32 px, 8 steps: 47 frames for a 1920x1080 projector), or with
     `phase_steps` = 0 the Gray code down to 1-pixel stripes."""
 
     period_px: int = 32
@@ -100,6 +101,8 @@ class StructuredLightSpec:
             for b in range(self.n_bits(extent)):
                 out += [SequenceFrame(FrameRole.GRAY, axis, b), SequenceFrame(FrameRole.GRAY_INVERSE, axis, b)]
             out += [SequenceFrame(FrameRole.PHASE, axis, k) for k in range(self.phase_steps)]
+        # the closing white frame: its board corners against the first one's tell whether the board moved
+        out.append(SequenceFrame(FrameRole.WHITE, None, 1))
         return tuple(out)
 
     def render(self, proj_width: int, proj_height: int, frame: SequenceFrame) -> np.ndarray:
