@@ -50,6 +50,7 @@ def test_the_projectors_own_images_decode_to_their_pixels(spec):
     # projector levels of 255 are saturated for the decoder: show them at 0.9 of the range
     imgs = [(im.astype(np.float32) * 0.9).round().astype(np.uint8) for im in structured_light_images(spec, (W, H))]
     d = decode_sequence(imgs, spec, (W, H))
+    assert not any(a.flags.writeable for a in (d.proj_x, d.proj_y, d.reason, d.lit, d.modulation))
     yy, xx = np.mgrid[0:H, 0:W]
     tol = 0.05 if spec.phase_shifting else 0.0
     if spec.phase_shifting:

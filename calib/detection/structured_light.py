@@ -175,7 +175,7 @@ def decode_sequence(images, spec: StructuredLightSpec, projector_size: tuple[int
     counts = {r.name.lower(): int(np.count_nonzero(reason == r)) for r in Invalid}
     for a in (x, y, reason, lit, modulation):
         a.setflags(write=False)
-    return DecodedMap(x, y, reason, lit.astype(np.float32), modulation, (pw, ph), MappingProxyType(counts))
+    return DecodedMap(x, y, reason, lit, modulation, (pw, ph), MappingProxyType(counts))
 
 
 def _gray8(img) -> np.ndarray:
