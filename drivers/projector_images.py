@@ -16,6 +16,7 @@ import numpy as np
 
 from calib.errors import SpecError
 from calib.models.pattern import PatternSpec
+from calib.models.structured_light import StructuredLightSpec
 
 Size = tuple[int, int]  # (width, height)
 
@@ -66,6 +67,12 @@ def pattern_image(spec: PatternSpec, size: Size, position: int) -> tuple[np.ndar
 def pattern_images(spec: PatternSpec, size: Size) -> list[np.ndarray]:
     """The images of all `spec.positions` positions, in order."""
     return [pattern_image(spec, size, k)[0] for k in range(spec.positions)]
+
+
+def structured_light_images(spec: StructuredLightSpec, size: Size) -> list[np.ndarray]:
+    """The frames of a structured-light sequence (calib.models.structured_light), in display order."""
+    w, h = _check_size(size)
+    return spec.images(w, h)
 
 
 def checkerboard(size: Size, cell_px: int = 1, phase: int = 0) -> np.ndarray:

@@ -1,0 +1,175 @@
+"""One structured-light projector capture -> a ProjectorView: the board, and board points with the
+projector pixels that light them.
+
+Stages (each its own module): the board's ChArUco corners in the sequence's white frame
+(calib.detection.detect.detect_board; the capture is refused when they moved by more than MAX_MOTION_PX
+by the closing white frame), the per-pixel decoding (calib.detection.structured_light), and
+the projector pixel of each chosen camera point from a local homography
+(calib.detection.local_homography). The points (BoardPoints):
+  - CORNERS: the detected ChArUco corners, their homographies fitted over the white squares' pixels
+    around them (the black squares are masked out; a larger window, CORNER_HALF_WINDOW_PX), as Moreno &
+    Taubin do;
+  - BLANK_GRID: camera pixels on a lattice `grid_step_px` apart (windows that do not overlap, so the
+    points' errors are independent) where at least GRID_MIN_VALID of the window decoded: the board's
+    blank area and its white border;
+  - BOTH.
+The view's pattern_cam_px are those camera pixels and pattern_proj_px the fitted projector pixels, so
+both calibration methods take them like circle centres (the camera pixel maps onto the board through the
+board's pose); here the camera side is exact (grid) or a detected corner, and the projector side carries
+the fit's uncertainty, returned beside the view.
+
+Entry point: `detect_structured_view(images, spec, board, projector_size, mirrored) -> StructuredView |
+DetectionFailure`.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calib.detection.detect import detect_board
+from calib.detection.local_homography import HALF_WINDOW_PX, LocalProjectorPoints, fit_local_homographies
+from calib.detection.response import CameraResponse
+from calib.detection.structured_light import MIN_CONTRAST, DecodedMap, decode_sequence
+from calib.errors import SpecError
+from calib.models.boards import CharucoSpec
+from calib.models.observations import DetectionFailure, ProjectorView
+from calib.models.structured_light import StructuredLightSpec
+
+#: half window around a ChArUco corner: half of it is black squares, so it needs a larger one
+CORNER_HALF_WINDOW_PX = 10
+#: a lattice point is used when at least this share of its window decoded
+GRID_MIN_VALID = 0.9
+#: fewer board points than this with a projector pixel and the capture is not used
+MIN_POINTS = 6
+#: a ChArUco corner that moved more than this between the sequence's first and closing white frames
+#: means the board moved (corner noise is some 0.05 px; a board held by hand drifts by pixels)
+MAX_MOTION_PX = 0.5
+
+
+class BoardPoints(str, enum.Enum):
+    CORNERS = "corners"
+    BLANK_GRID = "blank-grid"
+    BOTH = "both"
+
+
+@dataclass(frozen=True, eq=False)
+class StructuredView:
+    """The view, each of its pattern points' fit (`points`, in the view's point order), the decoded map
+    (its `counts` say how many pixels decoded and why the others did not), how many requested points
+    got no projector pixel (`n_failed_points`: unlit, masked or one-sided windows), and `lit_share`
+    (lit_share_of), so a board partly outside the projection can be told so."""
+
+    view: ProjectorView
+    points: LocalProjectorPoints
+    decoded: DecodedMap
+    n_failed_points: int
+    lit_share: float  # of the image area inside the detected ChArUco corners, the part the projector lights
+
+
+def grid_points(decoded: DecodedMap, step_px: int, half_window_px: int = HALF_WINDOW_PX,
+                min_valid: float = GRID_MIN_VALID) -> np.ndarray:
+    """(N, 2) camera pixels on the lattice (multiples of `step_px`) whose window decoded to at least
+    `min_valid`."""
+    if step_px < 1:
+        raise SpecError(f"grid step must be >= 1 px, got {step_px}")
+    k = 2 * int(half_window_px) + 1
+    frac = cv2.boxFilter(decoded.valid.astype(np.float32), -1, (k, k), normalize=True, borderType=cv2.BORDER_CONSTANT)
+    H, W = decoded.shape
+    ys, xs = np.mgrid[half_window_px:H - half_window_px:step_px, half_window_px:W - half_window_px:step_px]
+    sel = frac[ys, xs] >= min_valid
+    return np.column_stack([xs[sel], ys[sel]]).astype(float)
+
+
+def board_motion_px(first, last) -> float:
+    """Largest displacement (camera px) of the ChArUco corners found in both the first and the closing
+    white frame; inf when the closing frame has no board or no corner in common."""
+    if not first or not last:
+        return float("inf")
+    common, a, b = np.intersect1d(np.asarray(first.ids), np.asarray(last.ids), return_indices=True)
+    if len(common) < 3:
+        return float("inf")
+    d = np.asarray(first.corners_px)[a] - np.asarray(last.corners_px)[b]
+    return float(np.hypot(d[:, 0], d[:, 1]).max())
+
+
+def lit_share_of(decoded: DecodedMap, corners_px: np.ndarray, min_contrast: float = MIN_CONTRAST) -> float:
+    """Share of the image area inside the convex hull of the ChArUco corners that the projector lights:
+    `lit` (median-filtered over 5 x 5, so that no noise spike counts) above `min_contrast`, with the holes
+    of up to 1.5 squares closed (a black square of a dim board reflects too little to show the light
+    itself)."""
+    pts = np.asarray(corners_px, np.float32).reshape(-1, 2)
+    if len(pts) < 3:
+        return 0.0
+    hull = cv2.convexHull(pts).reshape(-1, 2)
+    mask = np.zeros(decoded.shape, np.uint8)
+    cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
+    if not mask.any():
+        return 0.0
+    d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
+    np.fill_diagonal(d, np.inf)
+    square_px = float(np.median(d.min(axis=1)))
+    k = max(3, int(round(1.5 * square_px)) | 1)
+    lit = cv2.medianBlur(np.clip(decoded.lit, 0, 255).astype(np.uint8), 5)
+    # a closing fills the black squares (holes narrower than the kernel) without moving the light's edge
+    near = cv2.morphologyEx((lit >= min_contrast).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
+    return float(near[mask > 0].mean())
+
+
+def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec, projector_size: tuple[int, int],
+                           mirrored: bool, capture_id: str = "", points: BoardPoints = BoardPoints.BLANK_GRID, *,
+                           half_window_px: int = HALF_WINDOW_PX, grid_step_px: int | None = None,
+                           corner_half_window_px: int = CORNER_HALF_WINDOW_PX,
+                           response: CameraResponse | None = None, min_corners: int = 6):
+    """Detect one structured-light capture (module docstring): StructuredView, or DetectionFailure with
+    a reason when the board is not found, the sequence does not decode, or too few points remain."""
+    images = list(images)
+    points = BoardPoints(points)
+    try:
+        decoded = decode_sequence(images, spec, projector_size, response=response)
+    except SpecError as e:
+        return DetectionFailure(f"structured-light sequence: {e}")
+    obs = detect_board(images[0], board, mirrored, min_corners, response)
+    if not obs:
+        return DetectionFailure(f"board not found in the sequence's white frame ({obs.reason})")
+    moved = board_motion_px(obs, detect_board(images[-1], board, mirrored, min_corners, response))
+    if not moved <= MAX_MOTION_PX:
+        how = "out of view" if not np.isfinite(moved) else f"by {moved:.1f} px"
+        return DetectionFailure(f"the board moved during the sequence ({how} between its first and last white "
+                                f"frames): hold it still and capture this pose again")
+    n_valid = decoded.counts["valid"]
+    if n_valid == 0:
+        c = decoded.counts
+        if c["saturated"] > c["unlit"]:
+            return DetectionFailure("the projector's light saturates the camera on the board: lower the exposure")
+        return DetectionFailure("no camera pixel decoded: the board is not lit by the projector, or the frames "
+                                "are too dark (raise the exposure)")
+    fits = []
+    if points in (BoardPoints.CORNERS, BoardPoints.BOTH):
+        fits.append(fit_local_homographies(decoded, np.asarray(obs.corners_px, float), corner_half_window_px))
+    if points in (BoardPoints.BLANK_GRID, BoardPoints.BOTH):
+        step = int(grid_step_px) if grid_step_px is not None else 2 * int(half_window_px) + 1
+        fits.append(fit_local_homographies(decoded, grid_points(decoded, step, half_window_px), half_window_px))
+    fit = fits[0] if len(fits) == 1 else LocalProjectorPoints(
+        *(np.concatenate([getattr(f, k) for f in fits]) for k in ("cam_px", "proj_px", "cov_px2", "n_pixels",
+                                                                   "n_rejected", "rms_px")),
+        fits[0].reasons + fits[1].reasons)
+    ok = fit.ok
+    if ok.sum() < MIN_POINTS:
+        return DetectionFailure(f"only {int(ok.sum())} board points have a decoded projector position (need "
+                                f"{MIN_POINTS}): the projector lights too little of the board")
+    sel = np.flatnonzero(ok)
+    kept = LocalProjectorPoints(*(_take(a, sel) for a in (fit.cam_px, fit.proj_px, fit.cov_px2, fit.n_pixels,
+                                                          fit.n_rejected, fit.rms_px)),
+                                tuple(fit.reasons[i] for i in sel))
+    view = ProjectorView(capture_id, obs, kept.cam_px, kept.proj_px, None)
+    return StructuredView(view, kept, decoded, int((~ok).sum()), lit_share_of(decoded, obs.corners_px))
+
+
+def _take(a, sel):
+    out = np.asarray(a)[sel]
+    out.setflags(write=False)
+    return out
