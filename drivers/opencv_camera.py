@@ -354,7 +354,7 @@ class OpenCVCamera:
         out: dict[str, Any] = {"driver": "opencv", "source": self.source, "backend": self.backend,
                                "stream": {"width": self._size[0] if self._size else None,
                                           "height": self._size[1] if self._size else None, "fps": self.fps},
-                               "timing": self._timing().value, "manual_exposure": self._manual is not None,
+                               "frame_timing": self._timing().value, "manual_exposure": self._manual is not None,
                                "autofocus_off": self.autofocus_off,
                                "frames": {"accepted": self.stats.accepted,
                                           "dropped_duplicates": self.stats.duplicates,

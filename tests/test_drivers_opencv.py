@@ -280,7 +280,7 @@ stream = SimCameraStream(sim.camera)
 with stream.hold():
     rig = open_rig("uvc", camera=stream.url, projector_screen=0, settle_s=0.05, fps=float(sys.argv[1]))
 out = {"kind": rig.kind, "camera": type(rig.camera).__name__, "projector": type(rig.projector).__name__,
-       "operator": type(rig.operator).__name__, "size": rig.camera.size, "timing": rig.camera.settings()["timing"], "fps": rig.camera.fps}
+       "operator": type(rig.operator).__name__, "size": rig.camera.size, "timing": rig.camera.settings()["frame_timing"], "fps": rig.camera.fps}
 
 def worker():
     t = rig.projector.wait_presented(rig.projector.show(pi.white(rig.projector.size)), 5.0)
@@ -374,7 +374,8 @@ def test_a_whole_session_runs_through_the_opencv_driver(tmp_path):
     man = json.loads((out / "session.json").read_text())
     assert man["state"]["rig_request"]["kind"] == "sim-uvc"
     settings = man["rig"]["camera_settings"]
-    assert settings["driver"] == "opencv" and settings["timing"] == "stamp"
+    assert settings["driver"] == "opencv" and settings["frame_timing"] == "stamp"
+    assert settings["timing"]["frame_times"] == "device clock"  # the stamps carry the rig's own clock
     assert settings["auto_exposure"] is False and settings["response"]["source"] == "measured"
     from calib.models.result import CalibrationResult
     from calib.quality.metrics import compare
