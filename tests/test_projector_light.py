@@ -1,4 +1,4 @@
-"""A projector image that no longer reaches the camera mid-session (issue 24, defect 9): the station on the
+"""A projector image that no longer reaches the camera mid-session: the station on the
 simulated rig, its projector blanked (SimProjector.blank) while it shows the pattern."""
 
 from app.station.machine import Plan
@@ -30,11 +30,17 @@ def test_a_blanked_projector_is_reported_once_and_clears_when_its_light_returns(
     st.check_rig()
     tick_until_projector_captures(st, m, 1)
     assert m.captures_of(STEP_PROJECTOR) and m.target is not None and m.target.step == STEP_PROJECTOR
+    st.options.auto_capture = False  # the board stays on this target's pattern from here on
+    for _ in range(200):  # the simulated operator brings the board to the next target's pattern
+        st.tick()
+        if st.live is not None and st.live.detection is not None and st.live.detection.pattern_px is not None:
+            break
+    assert st.live.detection.pattern_px is not None
     _ticks(st, 3)
     assert LOST_MESSAGE not in st.instruction()
 
     rig.projector.blank(True)
-    _ticks(st, 14)
+    _ticks(st, 60)  # more than the watch's 45 frames
     assert st.live.detection.board is not None  # the board is still seen, its pattern is not
     assert st.light_watch.lost
     assert LOST_MESSAGE in st.instruction()
@@ -66,3 +72,7 @@ def test_the_watch_needs_a_pattern_seen_first_and_a_board_in_view():
     for _ in range(3):
         w.update(_Det(pattern=False))
     assert w.lost and w.reset() == "back" and not w.lost
+    w.update(_Det(), target="p1")
+    w.update(_Det(pattern=False), target="p1")
+    # a new target's pattern (the operator moves the board to it) is no evidence until it was seen
+    assert [w.update(_Det(pattern=False), target="p2") for _ in range(6)] == [None] * 6 and not w.lost

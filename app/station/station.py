@@ -189,7 +189,7 @@ class Station:
         self._change_timing = None  # how the camera confirms a changed setting (drivers.exposure.ChangeTiming)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
-        self.light_watch = ProjectorLightWatch()  # the projector's image still reaching the camera (defect 9)
+        self.light_watch = ProjectorLightWatch()  # the projector's image still reaching the camera
 
     # ---- devices --------------------------------------------------------------------------------
     @property
@@ -652,7 +652,7 @@ class Station:
         if target is None or target.step != STEP_PROJECTOR:
             self.light_watch.reset()  # no pattern shown: no evidence (the hint clears with the step)
         elif det is not None:
-            self._watch_light(self.light_watch.update(det))
+            self._watch_light(self.light_watch.update(det, target))
         self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, self.detection_fps,
                              accepted, frame.exposure_start_s)
         if decision is not None and target is not None:
