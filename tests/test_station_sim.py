@@ -145,8 +145,11 @@ def test_small_session_calibrates_near_ground_truth(tmp_path, monkeypatch):
 
     monkeypatch.setattr(D, "_detect_job", counting)
     rig, m = session(tmp_path)
-    st = Station(rig, m, StationOptions(auto=True))
+    lines = []
+    st = Station(rig, m, StationOptions(auto=True), log=lines.append)
     tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=400)
+    # the projector's light reached the camera throughout (app.station.projector_light: no false alarm)
+    assert not any("no longer reaches the camera" in ln for ln in lines), lines
     c = m.counts()
     assert c["mirror"] == 3 and c["projector"] == 13 and c["positions_done"] == 13
     # (a capture the station deleted, to take its pose again, may or may not have been detected first)

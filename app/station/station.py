@@ -43,6 +43,7 @@ from app.station.machine import (
     SessionMachine,
     Target,
 )
+from app.station.projector_light import BACK_MESSAGE as LIGHT_BACK, LOST_MESSAGE as LIGHT_LOST, ProjectorLightWatch
 from calib.detection.detect import DetectionFailure, detect_capture
 from calib.errors import ProcamError, SessionError, SpecError
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
@@ -188,6 +189,7 @@ class Station:
         self._change_timing = None  # how the camera confirms a changed setting (drivers.exposure.ChangeTiming)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
+        self.light_watch = ProjectorLightWatch()  # the projector's image still reaching the camera
 
     # ---- devices --------------------------------------------------------------------------------
     @property
@@ -647,6 +649,10 @@ class Station:
             del self._tick_times[:-60]
             decision = self.autocap.update(det)
             self._frames_on_target += 1
+        if target is None or target.step != STEP_PROJECTOR:
+            self.light_watch.reset()  # no pattern shown: no evidence (the hint clears with the step)
+        elif det is not None:
+            self._watch_light(self.light_watch.update(det, target))
         self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, self.detection_fps,
                              accepted, frame.exposure_start_s)
         if decision is not None and target is not None:
@@ -1010,7 +1016,18 @@ class Station:
                     "and calibrate again.")
         return f"The session is complete. The calibration is in {Path(m.store.folder) / 'calibration.json'}."
 
+    def _watch_light(self, event: str | None) -> None:
+        """Log an episode of a projector image that no longer reaches the camera, once when it begins and
+        once when it ends (app.station.projector_light)."""
+        if event == "lost":
+            self.log(LIGHT_LOST)
+            _log.warning(LIGHT_LOST)
+        elif event == "back":
+            self.log(LIGHT_BACK)
+
     def _live_hint(self, live: LiveView | None) -> str:
+        if self.light_watch.lost:
+            return f" Now: {LIGHT_LOST}."
         if live is None or live.decision is None:
             return ""
         d = live.decision

@@ -231,6 +231,7 @@ class SimProjector:
         self._image = np.zeros((H, W), np.uint8)
         self._image.setflags(write=False)
         self.settle_s = 0.0
+        self.blanked = False  # blank(): the projector's image no longer reaches the scene
         self.timeline = ProjectorTimeline(rig.hardware, rig.scenario.seed, self._rig.clock.now(), self._image)
 
     @property
@@ -292,6 +293,11 @@ class SimProjector:
         """When the image of `ticket` really became visible (the simulator's truth, for tests)."""
         t = self.timeline
         return t._times[[e[0] for e in t._entries].index(int(ticket))]
+
+    def blank(self, on: bool = True) -> None:
+        """A test hook: the projector goes blank (its screen blanked, asleep or unplugged) while the station
+        still shows its image; its light stops reaching the scene until blank(False)."""
+        self.blanked = bool(on)
 
     def close(self) -> None:
         self._closed = True
@@ -478,6 +484,10 @@ class SimRig:
             moving = self._board is not None and self._frames_since_move < self.operator.settling_frames
             move_id = self._move_id
         st = self.state(frame_number)
+        if self.projector.blanked:  # a blank projector lights nothing (SimProjector.blank)
+            st = SceneState(st.boards, None)
+            if segments is not None:
+                segments = [(tk, None, frac) for tk, _, frac in segments]
         rng = np.random.default_rng([self.scenario.seed, 1, frame_number])
         meta = {"sim": True, "moving": moving, "move_id": move_id,
                 "T_cam_board": None if not st.boards else st.boards[0].T_cam_board.tolist()}
