@@ -20,22 +20,23 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from calib.errors import SpecError
+from calib.models.vocab import RigKind, Step, choices
 from drivers.errors import DeviceError
 
-RIG_KINDS = ("sim", "sim-realsense", "sim-uvc", "realsense", "uvc")
+RIG_KINDS = choices(RigKind)
 #: rigs whose world is simulated (a scripted operator, a ground truth), whatever the camera path
-SIMULATED_KINDS = ("sim", "sim-realsense", "sim-uvc")
+SIMULATED_KINDS = tuple(k for k in RigKind if k.is_simulated)
 
 
 def is_simulated(kind: str | None) -> bool:
     """True for the rigs whose world is simulated (`sim`, `sim-realsense`, `sim-uvc`)."""
     return kind in SIMULATED_KINDS
 
-STEP_PROJECTOR = "projector"
-STEP_REAL_VIRTUAL = "mirror-real-virtual"
-STEP_REAL_MIRROR = "mirror-real-mirror"
-STEP_VERIFICATION = "verification"
-STEPS = (STEP_PROJECTOR, STEP_REAL_VIRTUAL, STEP_REAL_MIRROR, STEP_VERIFICATION)
+STEP_PROJECTOR = Step.PROJECTOR
+STEP_REAL_VIRTUAL = Step.REAL_VIRTUAL
+STEP_REAL_MIRROR = Step.REAL_MIRROR
+STEP_VERIFICATION = Step.VERIFICATION
+STEPS = tuple(Step)
 
 
 class HumanOperator:

@@ -45,12 +45,13 @@ from calib.formats.session_lock import acquire as _acquire_lock
 from calib.models.boards import CharucoSpec
 from calib.models.observations import STEP_PROJECTOR, STEPS, VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
+from calib.models.vocab import MirrorMethod, choices
 
 FORMAT = "procam-session"
 VERSION = 1
 MANIFEST = "session.json"
 IMAGES_DIR = "images"
-MIRROR_METHODS = ("real-virtual", "real-mirror")
+MIRROR_METHODS = choices(MirrorMethod)
 MAX_IMAGE_SIDE = 100_000  # pixels: a width or height above this is a corrupt field, not a camera
 #: the top-level keys of session.json; another key (from a newer program) may hold at most UNKNOWN_MAX_BYTES
 MANIFEST_KEYS = ("format", "version", "rig", "projector_board", "mirror_board", "pattern", "mirror_method",

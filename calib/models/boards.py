@@ -15,10 +15,11 @@ import cv2
 import numpy as np
 
 from calib.errors import FormatError, SpecError
+from calib.models.vocab import LengthUnit, choices
 
-UNITS = ("mm", "cm", "m", "in")
+UNITS = choices(LengthUnit)
 #: millimetres per unit of UNITS
-MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+MM_PER_UNIT = {u.value: u.mm for u in LengthUnit}
 #: the range of a board's square side in millimetres: a printed board from a fingertip to a wall; beyond it
 #: a length is a corrupt value (and OpenCV's board geometry fails on it)
 SQUARE_MM_RANGE = (0.1, 10000.0)

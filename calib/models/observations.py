@@ -14,13 +14,15 @@ import numpy as np
 from calib.models.boards import CharucoSpec
 from calib.models.pattern import PatternSpec
 
-STEP_PROJECTOR = "projector"
-STEP_REAL_VIRTUAL = "mirror-real-virtual"
-STEP_REAL_MIRROR = "mirror-real-mirror"
-STEPS = (STEP_PROJECTOR, STEP_REAL_VIRTUAL, STEP_REAL_MIRROR)
+from calib.models.vocab import CALIBRATION_STEPS, Step, View
 
-VIEW_MIRROR = "mirror"
-VIEW_DIRECT = "direct"
+STEP_PROJECTOR = Step.PROJECTOR
+STEP_REAL_VIRTUAL = Step.REAL_VIRTUAL
+STEP_REAL_MIRROR = Step.REAL_MIRROR
+STEPS = CALIBRATION_STEPS
+
+VIEW_MIRROR = View.MIRROR
+VIEW_DIRECT = View.DIRECT
 
 
 def _ro(a, shape_tail, dtype=float):

@@ -13,8 +13,9 @@ import cv2
 import numpy as np
 
 from calib.errors import FormatError, SpecError
+from calib.models.vocab import PatternKind, choices
 
-KINDS = ("circles", "chessboard")
+KINDS = choices(PatternKind)
 #: bounds of a pattern's values: its spacing from a pixel to the largest image side a file may state
 #: (calib.models.camera.MAX_IMAGE_SIDE), far more points and positions than any projector shows
 SPACING_PX_RANGE = (1.0, 65536.0)

@@ -33,10 +33,11 @@ from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.result import MirrorPlane
 from calib.synthetic import BoardLayout, MirrorRect
+from calib.models.vocab import RenderQuality, choices
 from calib.transforms import invert_T
 
 # ---- settings -------------------------------------------------------------------------------------
-QUALITIES = ("live", "session")
+QUALITIES = choices(RenderQuality)
 
 
 @dataclass(frozen=True)

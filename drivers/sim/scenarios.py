@@ -30,15 +30,16 @@ from calib.synthetic import (
     projector_pose,
     projector_poses,
 )
+from calib.models.vocab import Step
 from calib.transforms import make_T, rotation_about, transform_points
 from drivers.sim.render import RenderSettings
 
 DEFAULT_SCENARIO = "nonoverlap-136"
-STEP_PROJECTOR = "projector"
-STEP_REAL_VIRTUAL = "mirror-real-virtual"
-STEP_REAL_MIRROR = "mirror-real-mirror"
-STEP_VERIFICATION = "verification"
-OPERATOR_STEPS = (STEP_PROJECTOR, STEP_REAL_VIRTUAL, STEP_REAL_MIRROR, STEP_VERIFICATION)
+STEP_PROJECTOR = Step.PROJECTOR
+STEP_REAL_VIRTUAL = Step.REAL_VIRTUAL
+STEP_REAL_MIRROR = Step.REAL_MIRROR
+STEP_VERIFICATION = Step.VERIFICATION
+OPERATOR_STEPS = tuple(Step)
 
 
 def default_projector_board() -> CharucoSpec:
