@@ -24,13 +24,14 @@ from calib.joint.method import calibrate_joint
 from calib.models.camera import CameraModel
 from calib.models.observations import SessionObservations
 from calib.models.result import CalibrationResult
+from calib.models.vocab import CalibrationMethod
 from calib.paper.method import Progress, calibrate_paper
 from calib.quality.trust import check_calibration
 
 Method = Callable[[SessionObservations, "CameraModel | None", "Progress | None"], CalibrationResult]
 
 #: name -> function(obs, camera, progress) -> CalibrationResult
-METHODS: dict[str, Method] = {"paper": calibrate_paper, "joint": calibrate_joint}
+METHODS: dict[str, Method] = {CalibrationMethod.PAPER: calibrate_paper, CalibrationMethod.JOINT: calibrate_joint}
 
 
 #: what calibrate_observations / calibrate_session do with the trust check (calib.quality.trust): "check" raises

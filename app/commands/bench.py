@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from app.commands import _types
+from calib.models.vocab import RenderQuality, choices
 
 NAME = "bench"
 HELP = "benchmarks on the simulated rig: calibration accuracy vs ground truth, render speed"
@@ -51,7 +52,8 @@ def add_arguments(p) -> None:
     a.add_argument("--methods", default=None,
                    help="comma-separated calibration methods (default: every registered method; also "
                         "joint-bic, the joint method without the coverage criterion)")
-    a.add_argument("--quality", choices=("live", "session"), default="session", help="render quality (default %(default)s)")
+    a.add_argument("--quality", choices=choices(RenderQuality), default="session",
+                   help="render quality (default %(default)s)")
     a.add_argument("--noise", type=_types.noise_dn, default=None, metavar="SIGMA", help="read noise override (levels)")
     a.add_argument("--blur", type=_types.blur_px, default=None, metavar="SIGMA", help="optical blur override (px)")
     a.add_argument("--keep", metavar="DIR", default=None, help="keep the simulated sessions under DIR")

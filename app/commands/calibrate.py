@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from app.commands import _types
+from calib.models.vocab import DistortionModel, choices
 
 NAME = "calibrate"
 HELP = "calibrate a saved capture session (camera, mirror, projector) and write calibration.json"
@@ -19,7 +20,7 @@ DESCRIPTION = (
 )
 
 
-MODELS = ("auto", "none", "k1", "k1k2", "4coef", "5coef", "rational")
+MODELS = ("auto", *choices(DistortionModel))
 DEFAULT_METHOD = "joint"
 RESULT_NAME = "calibration.json"
 VERIFICATION_NAME = "verification.json"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 
 from app.commands import _types
+from calib.models.vocab import LengthUnit, choices
 
 NAME = "import-procamcalib"
 HELP = "convert a recording made with EDM-Research/ProcamCalib into a session folder"
@@ -28,7 +29,7 @@ def add_arguments(p) -> None:
     p.add_argument("--mirror-board", metavar="SPEC", help="board of the mirror step (default: --board)")
     p.add_argument("--board-thickness", type=_types.float_range(0.0, 1000.0), default=0.0, metavar="T",
                    help="real-mirror: printed face above the mirror surface, in --units (default %(default)s)")
-    p.add_argument("--units", default="mm", choices=("mm", "cm", "m", "in"),
+    p.add_argument("--units", default="mm", choices=choices(LengthUnit),
                    help="length unit of the square/marker lengths (default mm)")
     p.add_argument("--out", required=True, metavar="SESSION", help="session folder to create (new or empty)")
     p.add_argument("--no-progress", action="store_true",

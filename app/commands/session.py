@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from app.commands._rig_options import add_rig_options
+from calib.models.vocab import MirrorMethod, choices
 
 NAME = "session"
 HELP = "run a guided capture-and-calibrate session headless (--rig sim --auto: fully simulated)"
@@ -31,7 +32,7 @@ def add_arguments(p) -> None:
     g.add_argument("--out", metavar="DIR", help="new session folder")
     g.add_argument("--resume", metavar="DIR", help="continue the session in DIR where it stopped")
     add_rig_options(p)
-    p.add_argument("--mirror-method", choices=("real-virtual", "real-mirror"), default=None,
+    p.add_argument("--mirror-method", choices=choices(MirrorMethod), default=None,
                    help="mirror calibration method (default: the scenario's, else real-virtual)")
 
 

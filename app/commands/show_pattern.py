@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 from app.commands import _types
+from calib.models.vocab import PatternKind, choices
 
 NAME = "show-pattern"
 HELP = "show the projector pattern fullscreen on a screen (Esc or q quits)"
@@ -31,7 +32,7 @@ def _size(text: str) -> tuple[int, int]:
 def add_arguments(p) -> None:
     p.add_argument("--screen", type=_types.screen, default=None, metavar="N",
                    help="screen index from `procam devices` (default: the non-primary one of two screens; required with more)")
-    p.add_argument("--pattern", choices=("circles", "chessboard"), default="circles")
+    p.add_argument("--pattern", choices=choices(PatternKind), default="circles")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--position", type=_types.int_range(0, 999), default=0, metavar="K",
                    help="pattern position (0-based, default 0)")

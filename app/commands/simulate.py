@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from app.commands import _types
+from calib.models.vocab import RenderQuality, choices
 
 NAME = "simulate"
 HELP = "render a capture session of a simulated rig (with ground truth), or --list the scenarios"
@@ -43,7 +44,7 @@ def add_arguments(p) -> None:
     p.add_argument("--shot", type=_types.shot_e_per_dn, default=None, metavar="E_PER_DN",
                    help="shot noise: photo-electrons per 8-bit level (default: the scenario's; 0 = off)")
     p.add_argument("--blur", type=_types.blur_px, default=None, metavar="SIGMA", help="optical blur sigma in pixels")
-    p.add_argument("--quality", choices=("live", "session"), default="session",
+    p.add_argument("--quality", choices=choices(RenderQuality), default="session",
                    help="anti-aliasing: session = 3x3 samples per pixel (default), live = 1")
     p.add_argument("--per-position", type=_types.int_range(1, 100), default=None, metavar="N",
                    help=f"board poses per pattern position (default: the scenario's, "

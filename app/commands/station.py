@@ -16,6 +16,7 @@ from pathlib import Path
 
 from app.commands import _types
 from app.commands._rig_options import add_rig_options
+from calib.models.vocab import MirrorMethod, choices
 
 NAME = "station"
 HELP = "the guided capture-and-calibrate station, operated from a browser panel"
@@ -45,7 +46,7 @@ def add_arguments(p) -> None:
                         "calibration.json, or a calibration.json; its boards are used), re-measure what moved, "
                         "compare; the panel shows its checklist and prompts the operator; with --resume DIR a "
                         "stopped recalibration continues (docs/RECALIBRATION.md)")
-    p.add_argument("--mirror-method", choices=("real-virtual", "real-mirror"), default=None,
+    p.add_argument("--mirror-method", choices=choices(MirrorMethod), default=None,
                    help="with --auto: the mirror method the station chooses (default: the scenario's)")
 
 

@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from app.commands import _types
+from calib.models.vocab import RenderQuality, choices
 
 NAME = "verify"
 HELP = "measure a session's calibration on the rig: epipolar curves drawn by the projector vs picked camera pixels"
@@ -77,7 +78,7 @@ def add_arguments(p) -> None:
     sim = p.add_argument_group("--rig sim, sim-realsense, sim-uvc")
     sim.add_argument("--scenario", default=None, help="scenario (default: the one the session was simulated with)")
     sim.add_argument("--seed", type=_types.seed, default=None, help="scenario seed (default: the session's)")
-    sim.add_argument("--quality", choices=("live", "session"), default="live",
+    sim.add_argument("--quality", choices=choices(RenderQuality), default="live",
                      help="render quality of the simulated camera (default live: 1 sample per pixel)")
     from app.commands._rig_options import add_sim_faults_option, add_sim_latency_option
 

@@ -23,6 +23,7 @@ from calib.errors import ProcamError, SessionError
 from calib.formats.session import SessionStore
 from calib.models.result import CalibrationResult
 from calib.transforms import invert_T
+from calib.models.vocab import DistortionModel
 
 CALIBRATION_FILE = "calibration.json"
 VERIFICATION_FILE = "verification.json"
@@ -202,7 +203,7 @@ def _read_verification(path: Path, cal_path: Path):
 
 # ---- residuals ---------------------------------------------------------------------------------------
 def _dist_model(dist) -> str:
-    return "rational" if np.asarray(dist).size == 8 else "5coef"
+    return DistortionModel.RATIONAL if np.asarray(dist).size == 8 else DistortionModel.FIVECOEF
 
 
 def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Residuals:

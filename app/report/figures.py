@@ -16,9 +16,10 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from calib.models.camera import CameraModel
+from calib.models.vocab import Step
 from calib.quality.coverage import grid_shape
 
-STEP_COLOURS = {"projector": "#1f77b4", "mirror-real-virtual": "#ff7f0e", "mirror-real-mirror": "#2ca02c"}
+STEP_COLOURS = {Step.PROJECTOR: "#1f77b4", Step.REAL_VIRTUAL: "#ff7f0e", Step.REAL_MIRROR: "#2ca02c"}
 KIND_COLOURS = {"board": "#1f77b4", "pattern": "#d62728", "mirror-real": "#ff7f0e", "mirror-virtual": "#9467bd"}
 DPI = 100
 

@@ -46,6 +46,7 @@ from calib.paper.method import calibrate_paper
 from calib.quality.projection_uncertainty import projection_uncertainty
 from calib.quality.trust import TrustReason, check_calibration
 from calib.transforms import FLIP_X, make_T
+from calib.models.vocab import DistortionModel
 
 PATTERN_MODELS = ("auto", "point", "conic")
 
@@ -151,7 +152,7 @@ def _dist8(dist) -> np.ndarray:
 
 
 def _dist_out(d8: np.ndarray, model: str) -> np.ndarray:
-    return np.array(d8[:8] if model == "rational" else d8[:5], float)
+    return np.array(d8[:8] if model == DistortionModel.RATIONAL else d8[:5], float)
 
 
 # ==================================================================================================
@@ -179,8 +180,8 @@ class _State:
     R: np.ndarray  # (V, 3, 3)
     t: np.ndarray  # (V, 3)
     plane: np.ndarray  # (V, 3): theta, a, b of poses on the mirror
-    cam_model: str = "5coef"
-    proj_model: str = "5coef"
+    cam_model: str = DistortionModel.FIVECOEF
+    proj_model: str = DistortionModel.FIVECOEF
 
     def copy(self) -> "_State":
         return _State(self.cam_K.copy(), self.cam_d.copy(), self.proj_K.copy(), self.proj_d.copy(),
@@ -818,10 +819,10 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
             progress(stages.index(stage) + 1, len(stages), stage)
 
     t0 = time.perf_counter()
-    cam0 = options.camera_model if options.camera_model != "auto" else "5coef"
+    cam0 = options.camera_model if options.camera_model != "auto" else DistortionModel.FIVECOEF
     if options.fix_camera:  # keep the given camera exactly (all its coefficients)
-        cam0 = "rational" if init.camera.dist.size == 8 else "5coef"
-    proj0 = options.projector_model if options.projector_model != "auto" else "5coef"
+        cam0 = DistortionModel.RATIONAL if init.camera.dist.size == 8 else DistortionModel.FIVECOEF
+    proj0 = options.projector_model if options.projector_model != "auto" else DistortionModel.FIVECOEF
     prob, left_out = build_problem(obs, init, options, cam0, proj0)
     tick("joint.setup", t0)
 

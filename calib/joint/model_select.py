@@ -27,7 +27,7 @@ RSS; if it no longer holds, the 5-coefficient model is kept. A model forced by t
 Coverage (options.coverage, the default): the residuals only judge a coefficient where there are
 observations. After the BIC / LRT choice, a model with k3 is weighed again over the whole image
 (coverage_choice: estimated mean squared projection error, bias + variance, from the same quadratic
-model) against the same model without its highest radial orders ("4coef" = k1 k2 p1 p2, OpenCV's
+model) against the same model without its highest radial orders (DistortionModel.FOURCOEF = k1 k2 p1 p2, OpenCV's
 CALIB_FIX_K3); the simpler one replaces it when it is predicted at least 10% better. Such a choice is
 refitted for real and kept (the BIC confirmation would undo it). docs/JOINT.md has the measurements.
 
@@ -47,6 +47,7 @@ import numpy as np
 from calib.joint.solver import DIST_MODELS, SELECTION_MODELS, normal_blocks, solve
 from calib.models.camera import CameraModel
 from calib.quality.projection_uncertainty import grid_pixels, motion_fields
+from calib.models.vocab import DistortionModel
 
 
 def chi2_sf(x: float, k: int) -> float:
@@ -117,7 +118,10 @@ def _quadratic_rss(S, g, rss0, theta0, constrained):
 #: grid over which the coverage criterion averages the projection error
 COVERAGE_GRID = (32, 18)
 #: the models the coverage criterion weighs, by the model the BIC / LRT chose
-COVERAGE_CANDIDATES = {"5coef": ("4coef", "5coef"), "rational": ("4coef", "5coef", "rational")}
+COVERAGE_CANDIDATES = {
+    DistortionModel.FIVECOEF: (DistortionModel.FOURCOEF, DistortionModel.FIVECOEF),
+    DistortionModel.RATIONAL: (DistortionModel.FOURCOEF, DistortionModel.FIVECOEF, DistortionModel.RATIONAL),
+}
 #: a simpler model replaces the chosen one only when its estimated error over the image is lower by this
 #: fraction: the bias estimate is itself noisy, and a smaller difference is a coin toss (measured: a true
 #: projector k3 of 0.08 seen over the whole image ties within 0.2%; the wide-angle corner-poor camera's k3
@@ -216,15 +220,16 @@ def shrinkage_prior(S, g, theta0, sigma2, cov: dict, dev: str, chosen: tuple[str
     (w = 1) when z^2 <= 1. Returns {"param", "weight_to_zero", "z2", "k3_5coef", "k3_sigma",
     "prior_sigma", "precision"} (precision in the whitened cost's units: 1 / tau^2 of the unit-variance
     problem; infinite when dropped), or None when the reference is not 5coef."""
-    if cov is None or cov["reference"] != "5coef":
+    if cov is None or cov["reference"] != DistortionModel.FIVECOEF:
         return None
     c = {x["model"]: x for x in cov["candidates"]}
-    vd = c["5coef"]["var_px2"] - c["4coef"]["var_px2"]
-    b2 = c["4coef"]["bias2_px2"]
+    vd = c[DistortionModel.FIVECOEF]["var_px2"] - c[DistortionModel.FOURCOEF]["var_px2"]
+    b2 = c[DistortionModel.FOURCOEF]["bias2_px2"]
     w = 1.0 if vd <= 0 or b2 <= vd else vd / b2
     prefix, other_prefix = ("cam", "proj") if dev == "camera" else ("proj", "cam")
     other = chosen[1] if dev == "camera" else chosen[0]
-    cons = [idx[f"{prefix}.dist{i}"] for i in range(8) if f"{prefix}.dist{i}" in idx and i not in DIST_MODELS["5coef"]]
+    free5 = DIST_MODELS[DistortionModel.FIVECOEF]
+    cons = [idx[f"{prefix}.dist{i}"] for i in range(8) if f"{prefix}.dist{i}" in idx and i not in free5]
     cons += [idx[f"{other_prefix}.dist{i}"] for i in range(8)
              if f"{other_prefix}.dist{i}" in idx and i not in DIST_MODELS[other]]
     _, D = _quadratic_solution(S, g, 0.0, theta0, cons)
@@ -262,9 +267,9 @@ def select_models(prob, options) -> dict:
     # the richest parametrisation for the devices being selected
     rich = base.copy()
     if auto["camera"]:
-        rich.cam_model = "rational"
+        rich.cam_model = DistortionModel.RATIONAL
     if auto["projector"]:
-        rich.proj_model = "rational"
+        rich.proj_model = DistortionModel.RATIONAL
     prob.set_state(rich)
     x_rich = prob.x0()
     S, g, rss0, n = _reduced_system(prob, x_rich)
@@ -297,18 +302,19 @@ def select_models(prob, options) -> dict:
         def key(name):
             return (name, other) if dev == "camera" else (other, name)
 
-        ref = table[key("5coef")]["rss_px2"]
+        ref = table[key(DistortionModel.FIVECOEF)]["rss_px2"]
         tests = {}
-        for name in ("none", "k1", "k1k2"):
+        for name in ("none", "k1", DistortionModel.K1K2):
             k = 5 - len(DIST_MODELS[name])
             W = max(table[key(name)]["rss_px2"] - ref, 0.0) / sigma2
             tests[name] = (W, k, float(chi2_sf(W, k)))
-        W = max(ref - table[key("rational")]["rss_px2"], 0.0) / sigma2
-        tests["rational"] = (W, 3, float(chi2_sf(W, 3)))
-        for name in ("none", "k1", "k1k2"):
+        W = max(ref - table[key(DistortionModel.RATIONAL)]["rss_px2"], 0.0) / sigma2
+        tests[DistortionModel.RATIONAL] = (W, 3, float(chi2_sf(W, 3)))
+        for name in ("none", "k1", DistortionModel.K1K2):
             if tests[name][2] > ALPHA_DROP:
                 return name, tests
-        return ("rational" if tests["rational"][2] < ALPHA_ADD else "5coef"), tests
+        add_k456 = tests[DistortionModel.RATIONAL][2] < ALPHA_ADD
+        return (DistortionModel.RATIONAL if add_k456 else DistortionModel.FIVECOEF), tests
 
     if options.selection == "bic":
         best = min(table, key=lambda k: table[k]["bic"])
@@ -358,16 +364,16 @@ def select_models(prob, options) -> dict:
         else:
             tests = tests_by_dev[dev]
             why = []
-            for name in ("none", "k1", "k1k2"):
+            for name in ("none", "k1", DistortionModel.K1K2):
                 W, k, pv = tests[name]
                 if name == chosen:
                     why.append(f"'{name}' is not significantly worse than 5coef (W = {W:.2f} on {k} dof, "
                                f"p = {pv:.3g} > {ALPHA_DROP})")
                     break
                 why.append(f"'{name}' is significantly worse than 5coef (W = {W:.1f} on {k} dof, p = {pv:.2g})")
-            if chosen in ("5coef", "rational"):
-                W, k, pv = tests["rational"]
-                if chosen == "rational":
+            if chosen in (DistortionModel.FIVECOEF, DistortionModel.RATIONAL):
+                W, k, pv = tests[DistortionModel.RATIONAL]
+                if chosen == DistortionModel.RATIONAL:
                     why.append(f"the rational terms are highly significant (W = {W:.1f} on 3 dof, p = {pv:.2g} "
                                f"< {ALPHA_ADD})")
                 else:
@@ -391,8 +397,8 @@ def select_models(prob, options) -> dict:
                 if getattr(options, "shrinkage", False) else None
             if sh is not None:  # the prior decides in place of the margin rule
                 cov["shrinkage"] = sh
-                cov["chosen"] = "4coef" if sh["weight_to_zero"] >= 1.0 else "5coef"
-                if cov["chosen"] == "5coef":
+                cov["chosen"] = DistortionModel.FOURCOEF if sh["weight_to_zero"] >= 1.0 else DistortionModel.FIVECOEF
+                if cov["chosen"] == DistortionModel.FIVECOEF:
                     priors[sh["param"]] = sh["precision"]
                     report[dev]["reason"] += (
                         f"; k3 shrinkage: k3 {sh['k3_5coef']:+.4g} (1-sigma {sh['k3_sigma']:.2g}, z^2 = "

@@ -14,21 +14,23 @@ from __future__ import annotations
 import numpy as np
 
 from calib.errors import CalibrationError
+from calib.models.vocab import DistortionModel
 
 #: Distortion models: name -> indices of the free coefficients in OpenCV's 8-vector
 #: [k1, k2, p1, p2, k3, k4, k5, k6]. Nested, simplest first.
 DIST_MODELS = {
-    "none": (),
-    "k1": (0,),
-    "k1k2": (0, 1),
-    "4coef": (0, 1, 2, 3),
-    "5coef": (0, 1, 2, 3, 4),
-    "rational": (0, 1, 2, 3, 4, 5, 6, 7),
+    DistortionModel.NONE: (),
+    DistortionModel.K1: (0,),
+    DistortionModel.K1K2: (0, 1),
+    DistortionModel.FOURCOEF: (0, 1, 2, 3),
+    DistortionModel.FIVECOEF: (0, 1, 2, 3, 4),
+    DistortionModel.RATIONAL: (0, 1, 2, 3, 4, 5, 6, 7),
 }
 MODEL_NAMES = tuple(DIST_MODELS)
 #: the candidates of the BIC / LRT selection (calib.joint.model_select); "4coef" (k1, k2, p1, p2: OpenCV's
 #: CALIB_FIX_K3) is reached only by the coverage criterion, which steps down from a model with k3
-SELECTION_MODELS = ("none", "k1", "k1k2", "5coef", "rational")
+SELECTION_MODELS = (DistortionModel.NONE, DistortionModel.K1, DistortionModel.K1K2, DistortionModel.FIVECOEF,
+                    DistortionModel.RATIONAL)
 
 
 def _loss_cost_weights(r: np.ndarray, loss: str, f: float) -> tuple[float, np.ndarray]:
