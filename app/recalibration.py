@@ -21,6 +21,7 @@ from app.station.machine import (
 from app.station.station import Station
 from app.words import signed
 from calib.errors import CalibrationError, SessionError
+from calib.formats import session_files
 from calib.formats.fileio import atomic_write_text
 from calib.formats.session import MANIFEST, SessionStore
 from calib.models.boards import CharucoSpec
@@ -29,8 +30,8 @@ from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult
 from drivers.clock import clock_of
 
-PREVIOUS_DIR = "previous"
-RECALIBRATION_FILE = "recalibration.json"
+PREVIOUS_DIR = session_files.PREVIOUS_DIR
+RECALIBRATION_FILE = session_files.RECALIBRATION
 CHECK_MIRROR_CAPTURES = 2
 CHECK_PROJECTOR_CAPTURES = 2
 ROUND_CAPTURES = 2  # captures added per round of the re-estimate before its 1-sigma is looked at again
@@ -55,7 +56,7 @@ def find_previous(path) -> Path:
     """The previous calibration.json: PATH itself, or PATH/calibration.json for a session folder."""
     p = Path(path)
     if p.is_dir():
-        p = p / "calibration.json"
+        p = p / session_files.CALIBRATION
     if not p.is_file():
         raise SessionError(f"no previous calibration at {path}: give a session folder holding calibration.json, "
                            "or a calibration.json")
@@ -84,7 +85,7 @@ def archive_previous(previous: Path, folder: Path) -> tuple[Path, str]:
     original). Never overwrites: an existing archive is an error."""
     from calib.recalib import sha256_file
 
-    dest = Path(folder) / PREVIOUS_DIR / "calibration.json"
+    dest = Path(folder) / PREVIOUS_DIR / session_files.CALIBRATION
     if dest.exists():
         raise SessionError(f"{dest} already exists: a recalibration never overwrites an archived calibration")
     dest.parent.mkdir(parents=True, exist_ok=True)
@@ -103,7 +104,7 @@ def check_resumed_previous(previous: Path, folder: Path) -> str:
     from calib.recalib import sha256_file
 
     folder = Path(folder)
-    dest = folder / PREVIOUS_DIR / "calibration.json"
+    dest = folder / PREVIOUS_DIR / session_files.CALIBRATION
     try:
         rec = (SessionStore.open(folder).manifest.state or {}).get("recalibration") or {}
     except SessionError:
@@ -333,7 +334,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
 
     folder = Path(machine.store.folder)
     src, previous = load_previous(previous_path)
-    archived = folder / PREVIOUS_DIR / "calibration.json"
+    archived = folder / PREVIOUS_DIR / session_files.CALIBRATION
     if resume:
         digest = check_resumed_previous(src, folder)
         if not archived.exists():

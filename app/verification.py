@@ -43,6 +43,7 @@ from calib.detection.curves import CurveDetection, detect_projected_curve, dista
 from calib.detection.response import CameraResponse
 from calib.epipolar import epipolar_curve, predicted_camera_curve
 from calib.errors import FormatError, ProcamError
+from calib.formats import session_files
 from calib.formats.fileio import RESULT_MAX_BYTES, atomic_write_text, read_json
 from calib.models.result import CalibrationResult
 from drivers.clock import clock_of
@@ -699,7 +700,7 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     report = replace(judge(checks, threshold_px, min_measured, info, settings),
                      response=None if response is None else response.to_dict())
     if session_dir is not None:
-        report.save_json(Path(session_dir) / "verification.json")
+        report.save_json(Path(session_dir) / session_files.VERIFICATION)
     return report
 
 

@@ -18,18 +18,13 @@ import tempfile
 from pathlib import Path
 
 from calib.errors import ProcamError, SessionError
+from calib.formats import session_files
 from calib.formats.session import read_manifest_json
 
-MANIFEST = "session.json"
+MANIFEST = session_files.MANIFEST
 #: files of a session folder that an output must never replace, and what they are
-SESSION_FILES = {
-    "session.json": "the session's manifest",
-    "detections.json": "the session's detection cache",
-    "ground_truth.json": "the session's ground truth",
-    "scene.json": "the simulated session's scene",
-    "verification.json": "the session's verification report",
-}
-IMAGES_DIR = "images"
+SESSION_FILES = session_files.PROTECTED
+IMAGES_DIR = session_files.IMAGES_DIR
 
 
 def _resolved(path) -> Path:

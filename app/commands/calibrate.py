@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from app.commands import _types
+from calib.formats import session_files
 from calib.models.vocab import DistortionModel, choices
 
 NAME = "calibrate"
@@ -22,8 +23,8 @@ DESCRIPTION = (
 
 MODELS = ("auto", *choices(DistortionModel))
 DEFAULT_METHOD = "joint"
-RESULT_NAME = "calibration.json"
-VERIFICATION_NAME = "verification.json"
+RESULT_NAME = session_files.CALIBRATION
+VERIFICATION_NAME = session_files.VERIFICATION
 SAME_TOL = 1e-9  # a re-run giving the same result to this keeps the file and its verification
 
 
@@ -63,7 +64,7 @@ def check_session_arg(path) -> Path:
 
     session = Path(path)
     if session.is_file():
-        if session.name == "session.json":
+        if session.name == session_files.MANIFEST:
             raise SessionError(f"{session} is the session's manifest file; give its folder: "
                                f"procam calibrate {session.parent}")
         raise SessionError(f"{session} is a file, not a session folder (a folder holding session.json and images/)")

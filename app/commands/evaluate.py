@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from calib.formats import session_files
+
 NAME = "evaluate"
 HELP = "compare a calibration.json with ground truth (the paper's metrics)"
 DESCRIPTION = (
@@ -43,8 +45,8 @@ def run(args) -> int:
     from calib.models.result import CalibrationResult
     from calib.quality.metrics import compare
 
-    _check_file(args.result, "RESULT", "calibration.json")
-    _check_file(args.ground_truth, "GROUND_TRUTH", "ground_truth.json")
+    _check_file(args.result, "RESULT", session_files.CALIBRATION)
+    _check_file(args.ground_truth, "GROUND_TRUTH", session_files.GROUND_TRUTH)
     result = CalibrationResult.load_json(args.result)
     truth = CalibrationResult.load_json(args.ground_truth)
     if result.method == GROUND_TRUTH_METHOD and truth.method != GROUND_TRUTH_METHOD:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from calib.formats import session_files
+
 NAME = "export"
 HELP = "write a calibration for other software: opencv, ros, mrcal, opengl, unity, threejs"
 DESCRIPTION = (
@@ -39,10 +41,10 @@ def calibration_file(source) -> Path:
 
     p = Path(source)
     if p.is_dir():
-        if not (p / "calibration.json").is_file():
+        if not (p / session_files.CALIBRATION).is_file():
             raise SessionError(f"no calibration.json in {p}: calibrate it first (procam calibrate {p}) or give "
                                f"the calibration file")
-        return p / "calibration.json"
+        return p / session_files.CALIBRATION
     if not p.is_file():
         raise SessionError(f"{p} does not exist: give a calibrated session folder or a calibration.json")
     return p

@@ -10,6 +10,7 @@ from app.commands import _types
 from app.commands._rig_options import (
     RIG_CHOICES, add_camera_option, add_sim_bump_option, add_sim_faults_option, add_sim_latency_option,
 )
+from calib.formats import session_files
 
 NAME = "recalibrate"
 HELP = "on-site recalibration: check what moved since PREVIOUS, re-measure only that, compare"
@@ -153,7 +154,7 @@ def prepare(args, log):
     if args.resume:
         from app.recalibration import RECALIBRATION_FILE
 
-        if not (folder / "session.json").is_file():
+        if not (folder / session_files.MANIFEST).is_file():
             raise SessionError(f"{folder} holds no session to resume (no session.json): start the recalibration "
                                "without --resume")
         if (folder / RECALIBRATION_FILE).exists():
@@ -233,7 +234,7 @@ def summary(rec: dict, folder, elapsed_s: float) -> str:
     lines += [f"  check {p}: {c['status']}" for p, c in rec["check"]["parts"].items()]
     lines += [f"  {line}" for line in comparison_lines(rec)]
     gt = load_ground_truth(folder)
-    cal = Path(folder) / "calibration.json"
+    cal = Path(folder) / session_files.CALIBRATION
     if gt is not None and cal.exists():
         from calib.models.result import CalibrationResult
         from calib.quality.metrics import compare

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from app.commands._rig_options import add_rig_options
+from calib.formats import session_files
 from calib.models.vocab import MirrorMethod, choices
 
 NAME = "session"
@@ -88,7 +89,7 @@ def refuse_recalibration_folder(folder: Path) -> None:
     from app.station.setup import read_state
     from calib.errors import SessionError
 
-    if (folder / "session.json").is_file() and (read_state(folder) or {}).get("recalibration"):
+    if (folder / session_files.MANIFEST).is_file() and (read_state(folder) or {}).get("recalibration"):
         raise SessionError(f"{folder} is a recalibration: continue it with `procam recalibrate PREVIOUS --out {folder} "
                            f"--resume` or `procam station --recalibrate PREVIOUS --resume {folder}`")
 

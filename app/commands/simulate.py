@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from app.commands import _types
+from calib.formats import session_files
 from calib.models.vocab import RenderQuality, choices
 
 NAME = "simulate"
@@ -203,7 +204,7 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
             results[res[0]] = res
             flush()
     bars.close()
-    scenario.ground_truth().save_json(out / "ground_truth.json")
+    scenario.ground_truth().save_json(out / session_files.GROUND_TRUTH)
     scene = scenario.to_dict()
     scene.update({
         "format": "procam-sim-scene",
@@ -215,5 +216,5 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
     })
     from calib.formats.fileio import atomic_write_text
 
-    atomic_write_text(out / "scene.json", json.dumps(scene, indent=1) + "\n")
+    atomic_write_text(out / session_files.SCENE, json.dumps(scene, indent=1) + "\n")
     return store

@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from app.commands import _types
+from calib.formats import session_files
 from calib.models.vocab import RenderQuality, choices
 
 NAME = "verify"
@@ -232,7 +233,7 @@ def run(args) -> int:
     folder = Path(args.session)
     store = SessionStore.open(folder)
     man = store.manifest
-    cal_path = Path(args.calibration) if args.calibration else folder / "calibration.json"
+    cal_path = Path(args.calibration) if args.calibration else folder / session_files.CALIBRATION
     if not cal_path.exists():
         raise SessionError(f"{cal_path} does not exist: run `procam calibrate {folder}` first")
     result = CalibrationResult.load_json(cal_path)
@@ -242,8 +243,9 @@ def run(args) -> int:
                            f"{result.projector.width}x{result.projector.height} projector, the session's rig differs")
     if args.average < 1:
         raise SessionError("--average must be >= 1")
-    out = Path(args.out) if args.out else folder / "verification.json"
-    if out.resolve() != (folder / "verification.json").resolve():  # never a session's file (app/commands/_outputs.py)
+    out = Path(args.out) if args.out else folder / session_files.VERIFICATION
+    # never a session's file (app/commands/_outputs.py)
+    if out.resolve() != (folder / session_files.VERIFICATION).resolve():
         from app.commands._outputs import check_output_file
 
         check_output_file(out, "--out", inputs=[cal_path])

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from calib.formats import session_files
 from calib.formats.fileio import atomic_write_text
 
 from .data import ReportError, gather
 
-DEFAULT_NAME = "report.html"
+DEFAULT_NAME = session_files.REPORT
 
 
 def default_out(session_dir, calibration_path=None) -> Path:

@@ -20,13 +20,14 @@ import cv2
 import numpy as np
 
 from calib.errors import ProcamError, SessionError
+from calib.formats import session_files
 from calib.formats.session import SessionStore
 from calib.models.result import CalibrationResult
-from calib.transforms import invert_T
 from calib.models.vocab import DistortionModel
+from calib.transforms import invert_T
 
-CALIBRATION_FILE = "calibration.json"
-VERIFICATION_FILE = "verification.json"
+CALIBRATION_FILE = session_files.CALIBRATION
+VERIFICATION_FILE = session_files.VERIFICATION
 
 #: observation kinds of the camera residuals (calib.joint.method's names), in the order the report lists them
 KINDS = ("board", "pattern", "mirror-real", "mirror-virtual")
@@ -238,7 +239,7 @@ def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Resid
                 if ps.on_mirror:
                     state.plane[v] = _plane_params(prob, T)
             prob.set_state(state)
-            source = "calibration.json"
+            source = session_files.CALIBRATION
         except (TypeError, ValueError):  # unreadable: the poses PnP found with the calibrated model stay
             source = "PnP (calibration.json's board poses are unreadable)"
     x = prob.x0()

@@ -26,6 +26,7 @@ from transitions import Machine, MachineError
 from app.station.operator_files import checked_intrinsics, copy_into_session
 from app.words import plural
 from calib.errors import FormatError, ProcamError
+from calib.formats import session_files
 from calib.formats.session import MIRROR_METHODS, Capture, SessionStore
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
@@ -55,7 +56,7 @@ ACTIONS = ("start", "choose_mirror_method", "set_board_thickness", "capture", "d
 _OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake", "mirror_method",
                    "camera_intrinsics", "plan", "calibrated", "result_stale", "verified", "updated_unix_s")
 
-CALIBRATION_FILE = "calibration.json"
+CALIBRATION_FILE = session_files.CALIBRATION
 CALIBRATION_REJECTED = "calibration.rejected.json"  # an untrusted result, for diagnosis only
 
 
@@ -225,7 +226,8 @@ class SessionMachine:
         st = store.manifest.state or {}
         step = st.get("step", CHECK_RIG)
         if step not in STATES:
-            raise FormatError(store.folder / "session.json", "state.step", f"must be one of {STATES}, got '{step}'")
+            raise FormatError(store.folder / session_files.MANIFEST, "state.step",
+                              f"must be one of {STATES}, got '{step}'")
         if plan is None and "plan" in st:
             plan = Plan.from_dict(st.get("plan"))
         # a session always resumes in a stable state: a calibration that was running is re-run on request

@@ -16,6 +16,7 @@ import threading
 
 from app.recalibration import RECALIBRATION_FILE, comparison_lines, part_line, run_recalibration
 from app.station.machine import STATES, ActionRefused
+from calib.formats import session_files
 
 _SIGMA_TARGETS = {  # (part, sigma key) -> target key of calib.recalib.targets_from
     ("projector", "rot_deg"): "projector_rot_deg", ("projector", "t"): "projector_t",
@@ -222,5 +223,6 @@ class RecalibrationPanel:
         from pathlib import Path
 
         folder = Path(self.machine.store.folder)
-        return [f for f in (RECALIBRATION_FILE, "calibration.json", "previous/calibration.json", "verification.json")
+        return [f for f in (RECALIBRATION_FILE, session_files.CALIBRATION,
+                                  f"{session_files.PREVIOUS_DIR}/{session_files.CALIBRATION}", session_files.VERIFICATION)
                 if (folder / f).exists()]

@@ -20,11 +20,12 @@ import numpy as np
 
 from app.words import plural
 from calib.errors import ProcamError, SessionError
+from calib.formats import session_files
 from calib.formats.fileio import RESULT_MAX_BYTES, read_regular
 
 #: The files the results zip carries, in this order, when they exist in the session folder.
-RESULT_FILES = ("calibration.json", "calibration.yaml", "verification.json", "report.html", "recalibration.json")
-REPORT_FILE = "report.html"
+RESULT_FILES = session_files.RESULTS
+REPORT_FILE = session_files.REPORT
 REPORT_MISSING = "the report module is not installed"
 THUMB_WIDTH = 112
 
@@ -109,7 +110,7 @@ class FileEntry:
     size_bytes: int
 
 
-def session_files(folder) -> list[FileEntry]:
+def folder_files(folder) -> list[FileEntry]:
     """Every file of the session folder (captures summarised as one line by the caller)."""
     folder = Path(folder)
     out = []
@@ -143,7 +144,7 @@ def _size(n: int) -> str:
 def files_text(folder) -> str:
     """The session folder and the files written in it (each capture folder as one line)."""
     folder = Path(folder)
-    files = session_files(folder)
+    files = folder_files(folder)
     top = [f for f in files if "/" not in f.name]
     groups: dict[str, list[FileEntry]] = {}
     for f in files:
@@ -204,7 +205,7 @@ def _exports(folder: Path, names) -> list[tuple[str, bytes]]:
     from calib.models.result import CalibrationResult
 
     try:
-        result = CalibrationResult.load_json(folder / "calibration.json")
+        result = CalibrationResult.load_json(folder / session_files.CALIBRATION)
         reasons = trust_reasons(result)
         if reasons:
             return [(EXPORT_NOTES, ("not exported: the trust check rejects this calibration: "
@@ -229,7 +230,7 @@ def results_zip(folder, exports=()) -> tuple[bytes, list[str]]:
     is refused with its name, never followed into the zip."""
     folder = Path(folder)
     names = [n for n in RESULT_FILES if os.path.lexists(folder / n)]
-    if "calibration.json" not in names:
+    if session_files.CALIBRATION not in names:
         raise ProcamError("there is no calibration.json in the session yet; calibrate first")
     files = [(n, read_regular(folder / n, RESULT_MAX_BYTES, "result file")) for n in names]
     if exports:

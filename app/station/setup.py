@@ -8,13 +8,14 @@ from pathlib import Path
 
 from app.station.machine import Plan, SessionMachine
 from calib.errors import SessionError
+from calib.formats import session_files
 from calib.formats.session import MANIFEST, RigInfo, SessionManifest, SessionStore, read_manifest_json
 from calib.models.boards import CharucoSpec
 from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
 
-GROUND_TRUTH_FILE = "ground_truth.json"
-VERIFICATION_FILE = "verification.json"
+GROUND_TRUTH_FILE = session_files.GROUND_TRUTH
+VERIFICATION_FILE = session_files.VERIFICATION
 DEFAULT_SCENARIO = "nonoverlap-136"
 
 
@@ -172,7 +173,7 @@ def make_verify_fn(rig, folder):
 
     def run(result, **kw):
         # the machine saved `result` as calibration.json before verifying: the report records its hash
-        kw.setdefault("calibration_info", {"path": str(Path(folder) / "calibration.json")})
+        kw.setdefault("calibration_info", {"path": str(Path(folder) / session_files.CALIBRATION)})
         # the camera's tone curve the rig check recorded (read now: it is recorded after this is made)
         kw.setdefault("response", V.session_response(folder))
         report = verify(rig.camera, rig.projector, rig.operator, result, **kw)
@@ -204,7 +205,7 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
             try:
                 from app.verification import VerificationReport, verification_is_stale
 
-                if verification_is_stale(vfile, Path(store.folder) / "calibration.json"):
+                if verification_is_stale(vfile, Path(store.folder) / session_files.CALIBRATION):
                     raise ValueError("it verified another calibration.json (replaced since)")
 
                 m.report = VerificationReport.from_json(vfile)

@@ -40,10 +40,11 @@ import cv2
 import numpy as np
 
 from calib.errors import SessionError
+from calib.formats import session_files
 from calib.formats.fileio import RESULT_MAX_BYTES, atomic_write_text, read_regular
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL, BoardObservation, DetectionFailure, MirrorView
 
-CACHE_FILE = "detections.json"
+CACHE_FILE = session_files.DETECTIONS
 FORMAT = "procam-detections"
 VERSION = 1
 #: the environment variable naming the key file (tests point it at a temporary folder)

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from calib.errors import FormatError, SessionError, UnsafeFileError
+from calib.formats import session_files
 from calib.formats.fileio import (MANIFEST_MAX_BYTES, atomic_write_bytes, parse_json, read_regular,
                                   remove_stale_temporaries)
 from calib.formats.session_lock import SessionLock
@@ -49,8 +50,8 @@ from calib.models.vocab import MirrorMethod, choices
 
 FORMAT = "procam-session"
 VERSION = 1
-MANIFEST = "session.json"
-IMAGES_DIR = "images"
+MANIFEST = session_files.MANIFEST
+IMAGES_DIR = session_files.IMAGES_DIR
 MIRROR_METHODS = choices(MirrorMethod)
 MAX_IMAGE_SIDE = 100_000  # pixels: a width or height above this is a corrupt field, not a camera
 #: the top-level keys of session.json; another key (from a newer program) may hold at most UNKNOWN_MAX_BYTES

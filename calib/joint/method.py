@@ -42,11 +42,11 @@ from calib.joint.solver import DIST_MODELS, MODEL_NAMES, _RowSums, solve
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
 from calib.models.result import CalibrationResult, MirrorPlane
+from calib.models.vocab import DistortionModel
 from calib.paper.method import calibrate_paper
 from calib.quality.projection_uncertainty import projection_uncertainty
 from calib.quality.trust import TrustReason, check_calibration
 from calib.transforms import FLIP_X, make_T
-from calib.models.vocab import DistortionModel
 
 PATTERN_MODELS = ("auto", "point", "conic")
 

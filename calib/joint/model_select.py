@@ -46,8 +46,8 @@ import numpy as np
 
 from calib.joint.solver import DIST_MODELS, SELECTION_MODELS, normal_blocks, solve
 from calib.models.camera import CameraModel
-from calib.quality.projection_uncertainty import grid_pixels, motion_fields
 from calib.models.vocab import DistortionModel
+from calib.quality.projection_uncertainty import grid_pixels, motion_fields
 
 
 def chi2_sf(x: float, k: int) -> float:

@@ -13,7 +13,6 @@ import numpy as np
 
 from calib.models.boards import CharucoSpec
 from calib.models.pattern import PatternSpec
-
 from calib.models.vocab import CALIBRATION_STEPS, Step, View
 
 STEP_PROJECTOR = Step.PROJECTOR

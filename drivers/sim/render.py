@@ -32,8 +32,8 @@ import numpy as np
 from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.result import MirrorPlane
-from calib.synthetic import BoardLayout, MirrorRect
 from calib.models.vocab import RenderQuality, choices
+from calib.synthetic import BoardLayout, MirrorRect
 from calib.transforms import invert_T
 
 # ---- settings -------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult
+from calib.models.vocab import Step
 from calib.synthetic import (
     BoardLayout,
     SyntheticRig,
@@ -30,7 +31,6 @@ from calib.synthetic import (
     projector_pose,
     projector_poses,
 )
-from calib.models.vocab import Step
 from calib.transforms import make_T, rotation_about, transform_points
 from drivers.sim.render import RenderSettings
 

@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from calib.formats import session_files
 from calib.formats.fileio import RESULT_MAX_BYTES, read_json
 from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
@@ -31,7 +32,7 @@ class ExpectedPoints(NamedTuple):
 
 def expected_points(folder) -> dict[str, ExpectedPoints]:
     """{capture id: ExpectedPoints} of a `procam simulate` session folder, from its scene.json."""
-    s = read_json(Path(folder) / "scene.json", RESULT_MAX_BYTES, "scene file")
+    s = read_json(Path(folder) / session_files.SCENE, RESULT_MAX_BYTES, "scene file")
     cam, proj = CameraModel.from_dict(s["camera"]), CameraModel.from_dict(s["projector"])
     mirror = MirrorPlane(s["mirror"]["normal"], s["mirror"]["d"]) if s["mirror"] else None
     rig = SyntheticRig(cam, proj, np.array(s["T_cam_proj"]), mirror, None, np.zeros(3), 0.0, 0.0)
