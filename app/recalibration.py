@@ -346,7 +346,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     state = dict(machine.extra_state.get("recalibration") or {})
     state.update(previous=str(src.resolve()), previous_sha256=digest)
     machine.extra_state["recalibration"] = state
-    machine._persist()
+    machine.persist()
     man = machine.manifest
     w, h = man.rig.projector_size
     mirrored = man.mirror_board is not None and previous.mirror is not None
@@ -396,7 +396,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     if not isinstance(check_ids, list):
         check_ids = [c.id for c in machine.manifest.captures]
         state["check_captures"] = check_ids
-        machine._persist()
+        machine.persist()
     report = check_rig(previous, only_captures(obs, set(check_ids)))
     for p, c in report.parts.items():
         log(f"  {p}: {c.status} ({part_line(c, previous.units)})")
@@ -480,7 +480,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     settings = getattr(man.rig, "camera_settings", None) or {}
     if settings.get("bump"):
         state["sim_bump"] = settings["bump"]
-    machine._persist()
+    machine.persist()
     outcome = Outcome(rec, result, ok, message)
     stage("done", outcome)
     return outcome
@@ -525,7 +525,7 @@ def step_instruction(station: Station) -> str:
     """What the person should do for the capture the machine asks for: the station's own guidance (which
     board, where, which tilt), without the hint about the last frame."""
     text = station.instruction()
-    hint = station._live_hint(station.live)
+    hint = station.live_hint(station.live)
     return text[: -len(hint)] if hint and text.endswith(hint) else text
 
 
@@ -563,7 +563,7 @@ def _take(station: Station, machine: RecalibrationMachine, state: str, prompt, l
                                            + (f" ({why})" if why else ""))
             station.tick()
             if prompt is not None:
-                hint = station._live_hint(station.live).strip()
+                hint = station.live_hint(station.live).strip()
                 if hint and hint != said and time.monotonic() - said_s > 2.0:
                     log(hint)
                     said, said_s = hint, time.monotonic()

@@ -91,3 +91,14 @@ def rays_to_board_plane(T_board_dev: np.ndarray, rays: np.ndarray) -> tuple[np.n
     with np.errstate(divide="ignore", invalid="ignore"):
         t = -o[2] / dirs[:, 2]
         return o + t[:, None] * dirs, t
+
+
+def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors that, with the unit vector n, make a right-handed orthonormal frame (e1, e2, n):
+    the local parametrisation of a direction near n (a mirror's normal, its tilts along e1 and e2).
+    Built from the world axis least aligned with n, so it is well conditioned for every n."""
+    n = np.asarray(n, float)
+    ref = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = ref - (ref @ n) * n
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)

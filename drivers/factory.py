@@ -21,7 +21,6 @@ from typing import Any
 
 from calib.errors import SpecError
 from calib.models.vocab import RigKind, Step, choices
-from drivers.errors import DeviceError
 
 RIG_KINDS = choices(RigKind)
 #: rigs whose world is simulated (a scripted operator, a ground truth), whatever the camera path
@@ -187,5 +186,5 @@ def default_rig_kind(context=None) -> str:
         from drivers.realsense import list_realsense_devices
 
         return "realsense" if list_realsense_devices(context) else "sim"
-    except DeviceError:
+    except Exception:  # no librealsense, no USB access (DeviceError or the library's own): the simulated rig
         return "sim"

@@ -108,12 +108,12 @@ def test_the_rig_check_records_the_response_of_a_camera_that_knows_it(tmp_path):
     the station's rig check records the simulated camera's own tone curve; a camera without `response()`
     (the RealSense) leaves it unrecorded."""
     from app.station.machine import Plan
-    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
     from app.station.station import Station
     from calib.formats.session import SessionStore
 
     req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_rig(req, latency_ms=0.0)
+    rig = open_requested_rig(req, latency_ms=0.0)
     plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
     store = create_session(tmp_path / "s", rig, req, plan)
     settings = dict(store.manifest.rig.camera_settings)
@@ -147,10 +147,10 @@ def test_the_response_measured_through_exposure_control_is_the_sim_cameras(gamma
 
 def _realsense_session(tmp_path):
     from app.station.machine import Plan
-    from app.station.setup import RigRequest, create_session, open_rig
+    from app.station.setup import RigRequest, create_session, open_requested_rig
 
     req = RigRequest("sim-realsense", "nonoverlap-136", 0)
-    rig = open_rig(req, latency_ms=0.0)
+    rig = open_requested_rig(req, latency_ms=0.0)
     plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
     return req, rig, plan, create_session(tmp_path / "s", rig, req, plan)
 
@@ -160,7 +160,7 @@ def test_the_rig_check_measures_the_realsense_response_and_a_resume_reuses_it(tm
     measures the tone curve after the exposure search, restores the searched exposure and gain, records
     the fit as "measured"; a resumed session re-uses it without measuring again."""
     import drivers.exposure
-    from app.station.setup import make_machine, open_rig
+    from app.station.setup import make_machine, open_requested_rig
     from app.station.station import Station
     from calib.formats.session import SessionStore
 
@@ -187,7 +187,7 @@ def test_the_rig_check_measures_the_realsense_response_and_a_resume_reuses_it(tm
         raise AssertionError("measured again")
 
     monkeypatch.setattr(drivers.exposure, "measure_response", never)
-    rig2 = open_rig(req, latency_ms=0.0)
+    rig2 = open_requested_rig(req, latency_ms=0.0)
     try:
         store2 = SessionStore.open(tmp_path / "s")
         checks = {c.name: c for c in Station(rig2, make_machine(store2, rig2, plan, resume=True)).check_rig()}

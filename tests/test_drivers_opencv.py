@@ -147,11 +147,11 @@ def test_an_unplugged_camera_is_a_device_error_and_reconnects(rig):
 
 def test_the_station_says_the_camera_is_gone_and_takes_it_back(tmp_path):
     from app.station.machine import Plan
-    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
     from app.station.station import Station, StationOptions
 
     req = RigRequest("sim-uvc", "nonoverlap-136", 0)
-    rig = open_rig(req, realtime=False)
+    rig = open_requested_rig(req, realtime=False)
     try:
         plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
         store = create_session(tmp_path / "s", rig, req, plan)
@@ -228,11 +228,11 @@ def test_a_pre_calibration_asks_the_camera_for_its_size(rig, tmp_path):
 
 def test_the_rig_check_warns_about_a_camera_that_ignores_exposure_and_goes_on(tmp_path):
     from app.station.machine import Plan
-    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
     from app.station.station import Station, StationOptions
 
     req = RigRequest("sim-uvc", "nonoverlap-136", 0)
-    rig = open_rig(req, realtime=False, faults=("ignores-exposure",))
+    rig = open_requested_rig(req, realtime=False, faults=("ignores-exposure",))
     try:
         plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)
         store = create_session(tmp_path / "s", rig, req, plan)
@@ -269,7 +269,7 @@ UVC_RIG_SCRIPT = r"""
 import json
 import sys
 from drivers import projector_images as pi
-from drivers.factory import open_rig
+from drivers.factory import open_requested_rig
 from drivers.projector_window import run_projector_loop
 from drivers.sim.rig import open_sim_rig
 from drivers.sim.stream import SimCameraStream
@@ -278,7 +278,7 @@ sim = open_sim_rig("nonoverlap-136", seed=0, realtime=False)
 sim.camera.start()
 stream = SimCameraStream(sim.camera)
 with stream.hold():
-    rig = open_rig("uvc", camera=stream.url, projector_screen=0, settle_s=0.05, fps=float(sys.argv[1]))
+    rig = open_requested_rig("uvc", camera=stream.url, projector_screen=0, settle_s=0.05, fps=float(sys.argv[1]))
 out = {"kind": rig.kind, "camera": type(rig.camera).__name__, "projector": type(rig.projector).__name__,
        "operator": type(rig.operator).__name__, "size": rig.camera.size, "timing": rig.camera.settings()["frame_timing"], "fps": rig.camera.fps}
 
@@ -339,13 +339,13 @@ def test_captures_through_the_stream_show_only_the_image_recorded_for_them(tmp_p
     """A short session's captures through VideoCapture: each saw only its projector image for its whole
     exposure (SimRig.frame_truth), with the rig check's measured exposure, latency and response."""
     from app.station.machine import Plan
-    from app.station.setup import RigRequest, create_session, make_machine, open_rig
+    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
     from app.station.station import Station, StationOptions
     from calib.models.observations import STEP_PROJECTOR
     from _station_helpers import tick_until_projector_captures
 
     req = RigRequest("sim-uvc", "nonoverlap-136", 0)
-    rig = open_rig(req, latency_ms=150.0, realtime=False)
+    rig = open_requested_rig(req, latency_ms=150.0, realtime=False)
     try:
         assert isinstance(rig.camera, SimStreamCamera)
         plan = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, min_projector_captures=3)

@@ -337,7 +337,7 @@ def test_the_station_state_round_trips_through_the_checks(tmp_path):
     m.choose_mirror_method("real-virtual")
     m.record_capture(TINY)
     m.extra_state.update(rig_request={"kind": "sim", "scenario": "x", "seed": 3, "quality": "live"}, method="joint")
-    m._persist()
+    m.persist()
     m2 = SessionMachine.from_store(SessionStore.open(tmp_path / "s"), calibrate_fn=Recorder().calibrate)
     assert m2.state == MIRROR_CAPTURE and m2.mirror_method == "real-virtual"
 

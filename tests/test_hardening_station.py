@@ -29,7 +29,7 @@ from app.station.access import AccessGate, Backoff, new_access_code, normalize_c
 from app.station.autocapture import AutoCapture, AutoCaptureSettings, LiveDetection
 from app.station.machine import ActionRefused, Plan
 from app.station.panel import DISCONNECT_TEXT, StationPanel
-from app.station.setup import RigRequest, create_session, make_machine, open_rig
+from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
 from app.station.station import Station, StationOptions
 from calib.models.observations import BoardObservation
 from tests._station_helpers import WAIT_MS, StationProcess
@@ -63,7 +63,7 @@ class FakeClock:
 
 def sim_station(tmp_path, **opts) -> Station:
     req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_rig(req)
+    rig = open_requested_rig(req)
     plan = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, min_projector_captures=6)
     store = create_session(tmp_path / "s", rig, req, plan)
     m = make_machine(store, rig, plan)

@@ -3,7 +3,7 @@ simulated rig, its projector blanked (SimProjector.blank) while it shows the pat
 
 from app.station.machine import Plan
 from app.station.projector_light import BACK_MESSAGE, LOST_MESSAGE, ProjectorLightWatch
-from app.station.setup import RigRequest, create_session, make_machine, open_rig
+from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
 from app.station.station import Station, StationOptions
 from calib.models.observations import STEP_PROJECTOR
 from tests._station_helpers import tick_until_projector_captures
@@ -13,7 +13,7 @@ SMALL = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, 
 
 def _station(tmp_path, **opts):
     req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_rig(req)
+    rig = open_requested_rig(req)
     m = make_machine(create_session(tmp_path / "s", rig, req, SMALL), rig, SMALL)
     lines = []
     st = Station(rig, m, StationOptions(**opts), log=lines.append)

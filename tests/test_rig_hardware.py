@@ -170,7 +170,7 @@ def test_captures_through_the_driver_show_only_the_image_recorded_for_them(tmp_p
     librealsense and the driver saw only the projector image recorded for it, for its whole exposure
     (the hardware-like simulator's own record, SimRig.frame_truth)."""
     from app.station.machine import Plan
-    from app.station.setup import RigRequest, create_session, make_machine, open_rig as open_station_rig
+    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig as open_station_rig
     from app.station.station import Station, StationOptions
     from app.verification import verify
     from calib.models.observations import STEP_PROJECTOR

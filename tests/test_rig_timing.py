@@ -11,7 +11,7 @@ import pytest
 
 from _station_helpers import tick_until_projector_captures
 from app.station.machine import Plan
-from app.station.setup import RigRequest, create_session, make_machine, open_rig
+from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
 from app.station.station import Station, StationOptions
 from app.verification import _Grabber, verify
 from calib.models.observations import STEP_PROJECTOR
@@ -244,7 +244,7 @@ SMALL = Plan(poses_per_position=1, real_virtual_captures=2, min_real_virtual=2, 
 @pytest.mark.parametrize("latency_ms", [0.0, 50.0, 150.0])
 def test_no_capture_and_no_verification_frame_shows_another_image(tmp_path, latency_ms):
     req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_rig(req, latency_ms=latency_ms)
+    rig = open_requested_rig(req, latency_ms=latency_ms)
     store = create_session(tmp_path / "s", rig, req, SMALL)
     m = make_machine(store, rig, SMALL)
     st = Station(rig, m, StationOptions(auto=False, follow_operator=True, auto_capture=True))
@@ -301,7 +301,7 @@ def test_sim_latency_option_is_checked():
 
 def test_resume_reapplies_the_recorded_exposure_and_latency(tmp_path):
     req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_rig(req, latency_ms=70.0)
+    rig = open_requested_rig(req, latency_ms=70.0)
     store = create_session(tmp_path / "s", rig, req, SMALL)
     st = Station(rig, make_machine(store, rig, SMALL))
     assert all(c.ok for c in st.check_rig())
@@ -310,7 +310,7 @@ def test_resume_reapplies_the_recorded_exposure_and_latency(tmp_path):
     # a new process: fresh devices (auto exposure, emitter on, latency unknown), the session from disk
     from calib.formats.session import SessionStore
 
-    rig2 = open_rig(req, latency_ms=70.0)
+    rig2 = open_requested_rig(req, latency_ms=70.0)
     assert rig2.projector.settle_s == 0.0 and rig2.camera.settings_timeline.current["auto_exposure"]
     store2 = SessionStore.open(tmp_path / "s")
     st2 = Station(rig2, make_machine(store2, rig2, SMALL, resume=True))

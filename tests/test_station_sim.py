@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from app.station.machine import CALIBRATION, ActionRefused, Plan
-from app.station.setup import RigRequest, create_session, make_machine, open_rig
+from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
 from app.station.station import Station, StationOptions
 from calib.formats.session import SessionStore
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
@@ -39,7 +39,7 @@ def images_seen(rig, frame_number) -> set:
 
 def session(tmp_path, scenario="nonoverlap-136", plan=SMALL, **rig_opts):
     req = RigRequest("sim", scenario, 0)
-    rig = open_rig(req, **rig_opts)
+    rig = open_requested_rig(req, **rig_opts)
     rig.camera = RecordingCamera(rig.camera, rig.projector)
     store = create_session(tmp_path / "s", rig, req, plan)
     return rig, make_machine(store, rig, plan)

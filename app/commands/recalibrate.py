@@ -74,7 +74,7 @@ def run(args) -> int:
         print(terminal_safe(f"[{time.monotonic() - t0:6.1f} s] {text}"), flush=True)
 
     folder = Path(args.out)
-    outcome = run_on_rig(args, log)
+    outcome = run_live(args, log)
     if isinstance(outcome, int):  # stopped part-way: resumable
         return outcome
     print(summary(outcome.record, folder, time.monotonic() - t0), flush=True)
@@ -91,7 +91,7 @@ def run(args) -> int:
     return EXIT_LOW_QUALITY if report_low_quality(res, file=sys.stdout) else 0
 
 
-def run_on_rig(args, log):
+def run_live(args, log):
     """Open (or resume) the recalibration's session and run its flow on the rig: the Outcome, or the
     exit status of a recalibration stopped part-way (the command's message says how to resume)."""
     from app.recalibration import RecalibrationStopped, run_recalibration
@@ -145,9 +145,9 @@ def prepare(args, log):
     from app.recalibration import (
         DEFAULT_MAX_CAPTURES, check_resumed_previous, load_previous, previous_board_specs, rig_verify_fn,
     )
-    from app.station.setup import DEFAULT_SCENARIO, RigRequest, default_rig_kind, open_rig, resume_request
+    from app.station.setup import DEFAULT_SCENARIO, RigRequest, open_requested_rig, resume_request
     from calib.errors import SessionError
-    from drivers.factory import is_simulated
+    from drivers.factory import default_rig_kind, is_simulated
 
     src, previous = load_previous(args.previous)  # a clear error before any device is opened
     folder = Path(args.out)
@@ -190,7 +190,7 @@ def prepare(args, log):
                          args.quality or "live")
     return kind, {"src": src, "previous": previous, "specs": specs, "req": req, "simulated": simulated,
                   "max_captures": max_caps, "verify": rig_verify_fn,
-                  "open": lambda: open_rig(req, **rig_options(args, kind))}
+                  "open": lambda: open_requested_rig(req, **rig_options(args, kind))}
 
 
 def open_recalibration(args, kind: str, rig, ctx, log):
@@ -216,7 +216,7 @@ def open_recalibration(args, kind: str, rig, ctx, log):
         kw = {} if ctx["simulated"] or ctx["specs"] is None else ctx["specs"].manifest_kw()
         store = create_session(folder, rig, req, plan, **kw)
         machine = RecalibrationMachine(store, plan)
-    machine._persist()
+    machine.persist()
     opts = StationOptions(auto=True, follow_operator=True)
     if not ctx["simulated"]:  # a person needs time, and a pose too close to another is never kept
         opts.max_frames_per_target = 10**9

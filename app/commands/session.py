@@ -97,11 +97,12 @@ def refuse_recalibration_folder(folder: Path) -> None:
 def open_session(args, log=print):
     """(rig, store, machine, request) for --out (new) or --resume (existing) from the arguments."""
     from app.station.setup import (
-        DEFAULT_SCENARIO, RigRequest, check_same_rig, create_session, default_rig_kind, make_machine, open_rig,
+        DEFAULT_SCENARIO, RigRequest, check_same_rig, create_session, make_machine, open_requested_rig,
         resume_request,
     )
     from calib.errors import SessionError
     from calib.formats.session import SessionStore
+    from drivers.factory import default_rig_kind
     from calib.models.boards import CharucoSpec
     from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 
@@ -110,7 +111,7 @@ def open_session(args, log=print):
         refuse_recalibration_folder(folder)
         store = SessionStore.open(folder, lock=True)  # one process per session folder: refused while in use
         req = resume_request(folder, kind=args.rig, scenario=args.scenario, seed=args.seed, quality=args.quality)
-        rig = open_rig(req, **rig_options(args, req.kind))
+        rig = open_requested_rig(req, **rig_options(args, req.kind))
         check_same_rig(store, rig)
         plan = None
         if args.poses_per_position is not None or args.mirror_captures is not None:
@@ -132,7 +133,7 @@ def open_session(args, log=print):
 
         if not is_simulated(kind) and not args.board:
             raise SessionError("a real rig needs the board spec: --board COLSxROWS:DICT:SQUARE[:MARKER]")
-        rig = open_rig(req, **rig_options(args, kind))
+        rig = open_requested_rig(req, **rig_options(args, kind))
         kw = {}
         if not is_simulated(kind):
             board = CharucoSpec.parse(args.board, args.units)
@@ -143,7 +144,7 @@ def open_session(args, log=print):
         machine = make_machine(store, rig, plan, workers=args.workers, method=args.method)
         if args.method:
             machine.extra_state["method"] = args.method  # a resumed session calibrates the same way
-            machine._persist()
+            machine.persist()
         what = f"{kind} rig" if not is_simulated(kind) else f"simulated rig '{req.scenario}' (seed {req.seed})" + (
             "" if kind == "sim" else ", camera through the OpenCV driver on a live stream" if kind == "sim-uvc"
             else ", camera through the RealSense driver")
@@ -228,7 +229,8 @@ def run(args) -> int:
 
         print(terminal_safe(f"[{time.monotonic() - t0:6.1f} s] {text}"), flush=True)
 
-    from app.station.setup import default_rig_kind, resume_request
+    from app.station.setup import resume_request
+    from drivers.factory import default_rig_kind
 
     kind = resume_request(args.resume, kind=args.rig).kind if args.resume else (args.rig or default_rig_kind())
     from drivers.factory import is_simulated

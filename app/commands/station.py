@@ -75,7 +75,8 @@ def check_serving(args) -> None:
 def run(args) -> int:
     from app.commands.session import open_session
     from app.station.panel import StationPanel, needs_access_code, new_access_code
-    from app.station.setup import default_rig_kind, resume_request
+    from app.station.setup import resume_request
+    from drivers.factory import default_rig_kind
     from app.station.station import Station, StationOptions
 
     defaulted = False

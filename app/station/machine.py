@@ -243,7 +243,7 @@ class SessionMachine:
         if m.result is None and step in (VERIFICATION, DONE):
             m.state = CALIBRATION  # nothing to verify without a result
         m._log(f"resumed in '{STATE_TITLES[m.state]}' with {len(store.manifest.captures)} captures")
-        m._persist()
+        m.persist()
         return m
 
     # ---- facts ----------------------------------------------------------------------------------
@@ -510,7 +510,7 @@ class SessionMachine:
                 self.store.update(mirror_method=method)
                 self._mark_stale()
                 self._log(f"mirror method: {method}")
-            self._persist()
+            self.persist()
 
     def set_board_thickness(self, value) -> None:
         """Real-mirror: how far the board's printed face is above the mirror surface (board units)."""
@@ -522,7 +522,7 @@ class SessionMachine:
                 if self.mirror_method == "real-mirror":
                     self._mark_stale()
                 self._log(f"board thickness on the mirror: {value:g} {self.manifest.units}")
-            self._persist()
+            self.persist()
 
     def record_capture(self, image, meta: dict | None = None, pattern_points_px=None) -> Capture:
         """Write the capture for the current target (image first, then the manifest); return it once it
@@ -546,7 +546,7 @@ class SessionMachine:
             self._mark_stale()
             where = "" if tgt.pattern_position is None else f" at pattern position {tgt.pattern_position + 1}"
             self._log(f"captured {cap.id} ({tgt.step}{where}, pose {tgt.pose_index + 1})")
-            self._persist()
+            self.persist()
             return cap
 
     def delete_capture(self, capture_id: str) -> Capture:
@@ -558,7 +558,7 @@ class SessionMachine:
                 self.last_capture = None
             self._mark_stale()
             self._log(f"deleted {capture_id}")
-            self._persist()
+            self.persist()
             return cap
 
     def retake(self, capture_id: str | None = None) -> Target:
@@ -583,7 +583,7 @@ class SessionMachine:
             finally:
                 self._retake_step = None
             self._log(f"retake of {capture_id}: deleted, same pose asked again")
-            self._persist()
+            self.persist()
             return tgt
 
     def proceed(self) -> str:
@@ -616,7 +616,7 @@ class SessionMachine:
             self._mark_stale()
             self._log(f"camera intrinsics from {str(path).strip()}, copied into the session as "
                       f"{self.camera_intrinsics}; camera calibration skipped")
-            self._persist()
+            self.persist()
 
     @property
     def intrinsics_path(self) -> str | None:
@@ -629,7 +629,7 @@ class SessionMachine:
             self.camera_intrinsics = None
             self._mark_stale()
             self._log("camera calibrated from the captures")
-            self._persist()
+            self.persist()
 
     def _run_busy(self, work, error_attr: str, failure_text: str):
         """Run a long step outside the lock; on failure clear `busy`, and for a project error record it
@@ -641,7 +641,7 @@ class SessionMachine:
                 self.busy = None
                 setattr(self, error_attr, str(e))
                 self._log(f"{failure_text}: {e}")
-                self._persist()
+                self.persist()
             raise
         except BaseException:
             with self._lock:
@@ -671,7 +671,7 @@ class SessionMachine:
 
             for line in low_quality_lines(result):
                 self._log(line)
-            self._persist()
+            self.persist()
             return result
 
     def verify(self, **kw):
@@ -691,7 +691,7 @@ class SessionMachine:
             mean = getattr(report, "mean_proj_px", None)
             self._log("verification " + ("passed" if passed else "FAILED")
                       + (f" (mean {mean:.2f} projector px)" if isinstance(mean, (int, float)) else ""))
-            self._persist()
+            self.persist()
             return report
 
     def hold(self, label: str, allowed_states=(CALIBRATION, VERIFICATION, DONE)):
@@ -730,7 +730,7 @@ class SessionMachine:
         self.report = None
 
     def _state_changed(self, *_a, **_k) -> None:
-        self._persist()
+        self.persist()
 
     def state_dict(self) -> dict:
         tgt = self.target
@@ -750,7 +750,8 @@ class SessionMachine:
             "updated_unix_s": round(time.time(), 3),
         }
 
-    def _persist(self) -> None:
+    def persist(self) -> None:
+        """Write the machine's state (step, plan, mirror method, log) into session.json."""
         self.store.update(state=self.state_dict())
 
     def log(self, text: str) -> None:

@@ -39,17 +39,7 @@ class RigRequest:
         return cls(**kw)
 
 
-def default_rig_kind() -> str:
-    """'realsense' when a RealSense camera is connected, else 'sim'."""
-    try:
-        from drivers.factory import default_rig_kind as factory_default
-
-        return factory_default()
-    except Exception:  # no librealsense, no USB access: the simulated rig it is
-        return "sim"
-
-
-def open_rig(req: RigRequest, **options):
+def open_requested_rig(req: RigRequest, **options):
     """The rig the request names: the simulated rig (scenario, seed) or the real devices. On a real rig
     call this on the main thread (the projector window's) and run the station with `run_on_rig`."""
     from drivers.factory import open_rig as factory_open
@@ -209,13 +199,13 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
                     raise ValueError("it verified another calibration.json (replaced since)")
 
                 m.report = VerificationReport.from_json(vfile)
-                m._persist()
+                m.persist()
             except Exception as e:  # a report that does not load is simply re-measured
                 m.log(f"the saved verification does not load ({e}); verify again")
     else:
         m = SessionMachine(store, plan or Plan.from_dict((store.manifest.state or {}).get("plan")),
                            calibrate_fn=calibrate, verify_fn=verify_fn)
-    m._persist()
+    m.persist()
     return m
 
 

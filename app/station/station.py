@@ -980,7 +980,7 @@ class Station:
                 what = (f"Lay the mirror board flat on the mirror, at a new place and angle (at least "
                         f"{m.plan.min_mirror('real-mirror')} placements: one alone leaves the mirror's tilt uncertain).")
             head = f"Mirror capture {c['mirror'] + 1} of {c['mirror_total']}: {what}"
-            return head + self._live_hint(live)
+            return head + self.live_hint(live)
         if s == PROJECTOR_CAPTURE:
             tgt = m.target
             c = m.counts()
@@ -991,7 +991,7 @@ class Station:
                      "falls on its blank part")
             where += " and the camera sees the board in the mirror" if not m.direct else ""
             where += "; tilt it differently from the poses already taken."
-            return where + self._live_hint(live)
+            return where + self.live_hint(live)
         if s == CALIBRATION:
             if m.calibration_error:
                 return f"The calibration failed: {m.calibration_error}. Retake or add captures, then calibrate again."
@@ -1025,7 +1025,7 @@ class Station:
         elif event == "back":
             self.log(LIGHT_BACK)
 
-    def _live_hint(self, live: LiveView | None) -> str:
+    def live_hint(self, live: LiveView | None) -> str:
         if self.light_watch.lost:
             return f" Now: {LIGHT_LOST}."
         if live is None or live.decision is None:

@@ -46,7 +46,7 @@ from calib.models.vocab import DistortionModel
 from calib.paper.method import calibrate_paper
 from calib.quality.projection_uncertainty import projection_uncertainty
 from calib.quality.trust import TrustReason, check_calibration
-from calib.transforms import FLIP_X, make_T
+from calib.transforms import FLIP_X, make_T, tangent_basis
 
 PATTERN_MODELS = ("auto", "point", "conic")
 
@@ -189,13 +189,6 @@ class _State:
                       self.R.copy(), self.t.copy(), self.plane.copy(), self.cam_model, self.proj_model)
 
 
-def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    ref = np.eye(3)[int(np.argmin(np.abs(n)))]
-    e1 = ref - (ref @ n) * n
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1)
-
-
 class JointProblem:
     """Observations gathered once into flat arrays, the parameter layout, residuals and Jacobian."""
 
@@ -212,7 +205,7 @@ class JointProblem:
         self.p = pattern  # pose, q (M,2), uv (M,2), mirror (M,), cid, pid
         self.on_mirror = np.array([ps.on_mirror for ps in poses], bool)
         # a fixed in-plane reference for boards lying on the mirror (their 3 parameters are relative to it)
-        self.plane_ref = _tangent_basis(state.n)[0] if self.mirrored else None
+        self.plane_ref = tangent_basis(state.n)[0] if self.mirrored else None
         self.set_state(state)
         self.centroid_corr = np.zeros((len(self.p["q"]), 2))
         self._xu_cache = None
@@ -233,7 +226,7 @@ class JointProblem:
                   "T_cam_proj.t_x", "T_cam_proj.t_y", "T_cam_proj.t_z"]
         if self.mirrored:
             names += ["mirror.tilt_1", "mirror.tilt_2", "mirror.d"]
-            self.e1, self.e2 = _tangent_basis(state.n)
+            self.e1, self.e2 = tangent_basis(state.n)
         self.global_names = names
         self.n_global = len(names)
         ndof = np.where(self.on_mirror, 3, 6)
@@ -317,6 +310,32 @@ class JointProblem:
     def _reflect(X, n, d):
         s2 = 2.0 * (X[:, 0] * n[0] + X[:, 1] * n[1] + X[:, 2] * n[2] + d)
         return np.stack([X[:, 0] - s2 * n[0], X[:, 1] - s2 * n[1], X[:, 2] - s2 * n[2]], axis=-1)
+
+    def reset_warm_start(self) -> None:
+        """Forget the last undistorted projector points: the next solve starts its Newton iterations afresh."""
+        self._xu_cache = None
+
+    def subset(self, keep_c: np.ndarray, keep_p: np.ndarray, drop_pose: np.ndarray) -> None:
+        """Keep the corner and pattern observations of the masks and drop the poses of `drop_pose`
+        (with their state); the caches that hold per-observation values start again."""
+        state = self.state
+        if drop_pose.any():
+            keep_pose = ~drop_pose
+            remap = -np.ones(len(self.poses), int)
+            remap[keep_pose] = np.arange(int(keep_pose.sum()))
+            self.poses = [p for p, k in zip(self.poses, keep_pose) if k]
+            self.on_mirror = self.on_mirror[keep_pose]
+            state.R, state.t, state.plane = state.R[keep_pose], state.t[keep_pose], state.plane[keep_pose]
+        else:
+            remap = np.arange(len(self.poses))
+        self.c = {k: v[keep_c] for k, v in self.c.items()}
+        self.p = {k: v[keep_p] for k, v in self.p.items()}
+        self.c["pose"] = remap[self.c["pose"]]
+        self.p["pose"] = remap[self.p["pose"]]
+        self.centroid_corr = self.centroid_corr[keep_p]
+        self.reset_warm_start()
+        self._proj_cache = None
+        self.set_state(state)
 
     def _undistort_proj(self, pK, pd):
         """Undistorted normalised projector coordinates of every pattern point (Newton, warm start)."""
@@ -661,7 +680,7 @@ def build_problem(obs: SessionObservations, init: CalibrationResult, options: Jo
     n = init.mirror.normal if mirrored else None
     d = init.mirror.d if mirrored else 0.0
     thickness = float(obs.board_thickness)
-    e1 = _tangent_basis(n)[0] if mirrored else None
+    e1 = tangent_basis(n)[0] if mirrored else None
 
     def add_corners(v, bo, X_all, kind, through, cid):
         C["pose"].append(np.full(len(bo.ids), v))
@@ -831,7 +850,7 @@ def refine_joint(obs: SessionObservations, init: CalibrationResult, options: Joi
     x = prob.x0()
     r0 = prob.residuals(x)
     sigma0 = options.noise_px if options.noise_px else max(_robust_sigma(r0), 0.05)
-    prob._xu_cache = None
+    prob.reset_warm_start()
     x, info1 = solve(prob, options.loss, sigma0, options.max_nfev, max(options.tol, 1e-4), options.solver)
     if prob.pattern_model == "conic" and options.centroid_correction:
         _update_centroid_correction(prob, x)
@@ -974,29 +993,10 @@ def _reject(prob: JointProblem, x: np.ndarray, k: float, min_px: float, rejected
                              "reason": f"view dropped: only {int(counts[v])} ChArUco corners left after rejection"})
         keep_c &= ~weak[prob.c["pose"]]
         keep_p &= ~weak[prob.p["pose"]]
-    _subset(prob, keep_c, keep_p, weak)
+    prob.subset(keep_c, keep_p, weak)
     return int(bad.sum())
 
 
-def _subset(prob: JointProblem, keep_c: np.ndarray, keep_p: np.ndarray, drop_pose: np.ndarray) -> None:
-    state = prob.state
-    if drop_pose.any():
-        keep_pose = ~drop_pose
-        remap = -np.ones(len(prob.poses), int)
-        remap[keep_pose] = np.arange(int(keep_pose.sum()))
-        prob.poses = [p for p, k in zip(prob.poses, keep_pose) if k]
-        prob.on_mirror = prob.on_mirror[keep_pose]
-        state.R, state.t, state.plane = state.R[keep_pose], state.t[keep_pose], state.plane[keep_pose]
-    else:
-        remap = np.arange(len(prob.poses))
-    prob.c = {k: v[keep_c] for k, v in prob.c.items()}
-    prob.p = {k: v[keep_p] for k, v in prob.p.items()}
-    prob.c["pose"] = remap[prob.c["pose"]]
-    prob.p["pose"] = remap[prob.p["pose"]]
-    prob.centroid_corr = prob.centroid_corr[keep_p]
-    prob._xu_cache = None
-    prob._proj_cache = None
-    prob.set_state(state)
 
 
 # ==================================================================================================

@@ -203,7 +203,7 @@ def solve(prob, loss: str = "linear", f_scale: float = 1.0, max_nfev: int = 60,
     solver "lm": Levenberg-Marquardt on the normal equations of the sparse Jacobian (default: ~5-10
     iterations); "scipy": scipy.optimize.least_squares (trf, lsmr, x_scale='jac'), same model and
     Jacobian, typically 3-5x more iterations."""
-    prob._xu_cache = None
+    prob.reset_warm_start()
     if solver == "scipy":
         from scipy.optimize import least_squares  # only here: importing scipy.optimize takes ~0.8 s
 

@@ -14,7 +14,7 @@ from calib.models.observations import BoardObservation, SessionObservations
 from calib.models.result import CalibrationResult, MirrorPlane
 from calib.paper.board_pose import solve_board_pose
 from calib.recalib.prior import IntrinsicsPrior
-from calib.transforms import make_T, rays_to_board_plane, transform_points
+from calib.transforms import make_T, rays_to_board_plane, tangent_basis, transform_points
 
 PARTS = ("camera", "mirror", "projector")
 BLOCK_SIZE = {"camera": 4, "mirror": 3, "projector": 6}
@@ -26,13 +26,6 @@ _F = np.diag([-1.0, 1.0, 1.0, 1.0])  # board frame x -> -x (a mirrored view's bo
 
 
 # ---- the model --------------------------------------------------------------------------------------
-def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-    u1 = np.cross(n, a)
-    u1 /= np.linalg.norm(u1)
-    return u1, np.cross(n, u1)
-
-
 def _rotvec_R(w) -> np.ndarray:
     R, _ = cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))
     return R
@@ -83,7 +76,7 @@ class _Model:
         mirror = prev.mirror
         if "mirror" in blocks and mirror is not None:
             d = blocks["mirror"]
-            u1, u2 = _tangent_basis(mirror.normal)
+            u1, u2 = tangent_basis(mirror.normal)
             n = mirror.normal + d[0] * u1 + d[1] * u2
             mirror = MirrorPlane(n / np.linalg.norm(n), mirror.d + d[2])
         T = prev.T_cam_proj

@@ -18,7 +18,6 @@ from calib.recalib._model import (
     _pose_p,
     _pose_T,
     _residuals,
-    _tangent_basis,
     _views,
     fit_blocks,
 )
@@ -29,6 +28,7 @@ from calib.recalib.prior import (
     _stored_covariance,
     intrinsics_prior,
 )
+from calib.transforms import tangent_basis
 
 #: 1-sigma targets of a re-estimate where the previous calibration reports none (see targets_from)
 DEFAULT_TARGETS = {"projector_t": 0.5, "projector_rot_deg": 0.05, "mirror_normal_deg": 0.05, "mirror_d": 0.5,
@@ -191,9 +191,8 @@ def _same_quantity(sentence: str, others: list[str]) -> str | None:
 def _to_joint(fit: Fit, result: CalibrationResult) -> np.ndarray:
     """The Jacobian A of the joint's parametrisation with respect to this module's, at `result`
     (cov_joint = A cov A^T): rotation vector -> Gibbs vector (1/2); the mirror's tilts from this
-    module's tangent basis to calib.joint.method's at the new normal."""
-    from calib.joint.method import _tangent_basis as joint_basis
-
+    module's tangent basis at the fitted normal to the joint's at the new normal (the same basis,
+    calib.transforms.tangent_basis, at two normals)."""
     A = np.eye(len(fit.names))
     names = list(fit.names)
     for a in "xyz":
@@ -202,8 +201,8 @@ def _to_joint(fit: Fit, result: CalibrationResult) -> np.ndarray:
             A[i, i] = 0.5
     if "mirror.tilt_1" in names and result.mirror is not None:
         i = names.index("mirror.tilt_1")
-        u1, u2 = _tangent_basis(fit.result.mirror.normal)  # at the fitted normal (the fit's start is < 1 deg away)
-        e1, e2 = joint_basis(result.mirror.normal)
+        u1, u2 = tangent_basis(fit.result.mirror.normal)  # at the fitted normal (the fit's start is < 1 deg away)
+        e1, e2 = tangent_basis(result.mirror.normal)
         A[i:i + 2, i:i + 2] = [[e1 @ u1, e1 @ u2], [e2 @ u1, e2 @ u2]]
     return A
 
