@@ -46,6 +46,7 @@ from calib.errors import FormatError, ProcamError
 from calib.formats import session_files
 from calib.formats.fileio import RESULT_MAX_BYTES, atomic_write_text, read_json
 from calib.models.result import CalibrationResult
+from calib.models.vocab import RigKind, choices
 from drivers.clock import clock_of
 
 SCHEMA = "procam-verification"
@@ -714,7 +715,7 @@ def file_sha256(path) -> str | None:
         return None
 
 
-VERIFY_RIGS = ("sim", "sim-realsense", "sim-uvc", "realsense", "uvc")  # procam verify's --rig choices
+VERIFY_RIGS = choices(RigKind)  # procam verify's --rig choices
 
 
 def verify_command(session: Path) -> str:

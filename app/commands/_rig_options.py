@@ -2,6 +2,7 @@
 the real rig's devices and boards (a private module: not a sub-command)."""
 
 from app.commands import _types
+from calib.models.vocab import RigKind, choices
 
 #: the capture plan's ranges: a plan outside them is either empty or a session that never ends
 POSES_PER_POSITION = (1, 100)
@@ -9,7 +10,7 @@ MIRROR_CAPTURES = (1, 500)
 
 
 #: --rig's choices (drivers.factory.RIG_KINDS)
-RIG_CHOICES = ("sim", "sim-realsense", "sim-uvc", "realsense", "uvc")
+RIG_CHOICES = choices(RigKind)
 
 
 def add_camera_option(p) -> None:

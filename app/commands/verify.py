@@ -279,7 +279,9 @@ def run(args) -> int:
 
     if args.settle is not None and not args.settle >= 0:
         raise SessionError(f"--settle must be >= 0 seconds, got {args.settle:g}")
-    if args.rig in ("sim", "sim-realsense", "sim-uvc"):
+    from drivers.factory import is_simulated
+
+    if is_simulated(args.rig):
         from drivers.factory import open_rig
 
         rig = open_rig(args.rig, **_sim_options(man, args))
