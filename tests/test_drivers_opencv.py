@@ -269,7 +269,7 @@ UVC_RIG_SCRIPT = r"""
 import json
 import sys
 from drivers import projector_images as pi
-from drivers.factory import open_requested_rig
+from drivers.factory import open_rig
 from drivers.projector_window import run_projector_loop
 from drivers.sim.rig import open_sim_rig
 from drivers.sim.stream import SimCameraStream
@@ -278,7 +278,7 @@ sim = open_sim_rig("nonoverlap-136", seed=0, realtime=False)
 sim.camera.start()
 stream = SimCameraStream(sim.camera)
 with stream.hold():
-    rig = open_requested_rig("uvc", camera=stream.url, projector_screen=0, settle_s=0.05, fps=float(sys.argv[1]))
+    rig = open_rig("uvc", camera=stream.url, projector_screen=0, settle_s=0.05, fps=float(sys.argv[1]))
 out = {"kind": rig.kind, "camera": type(rig.camera).__name__, "projector": type(rig.projector).__name__,
        "operator": type(rig.operator).__name__, "size": rig.camera.size, "timing": rig.camera.settings()["frame_timing"], "fps": rig.camera.fps}
 

@@ -9,7 +9,7 @@ from _station_helpers import run_procam
 from calib.errors import SpecError
 from drivers.base import Frame
 from drivers.exposure import search_exposure
-from drivers.factory import open_requested_rig
+from drivers.factory import open_rig
 from drivers.projector_images import white
 from drivers.sim.faults import FAULTS, parse_faults
 from drivers.sim.realsense_bridge import SimRealSenseCamera, SimRealSenseDevice
@@ -43,7 +43,7 @@ def test_a_bad_fault_name_is_one_line_and_creates_nothing(tmp_path):
 
 
 def test_hardware_faults_change_the_simulated_hardware():
-    rig = open_requested_rig("sim", scenario=SCENE, seed=0, latency_ms=100.0, faults=parse_faults("apply-lag,latency-jitter"))
+    rig = open_rig("sim", scenario=SCENE, seed=0, latency_ms=100.0, faults=parse_faults("apply-lag,latency-jitter"))
     try:
         assert rig.hardware.settings_lag_frames == 5.0
         assert rig.hardware.jitter_ms == pytest.approx(1000.0 / rig.projector.refresh_hz)
@@ -55,7 +55,7 @@ def test_hardware_faults_change_the_simulated_hardware():
 
 def test_no_metadata_frames_carry_neither_exposure_nor_gain_nor_sensor_times():
     for faults, has in ((frozenset(), True), (parse_faults("no-metadata"), False)):
-        rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, faults=faults)
+        rig = open_rig("sim-realsense", scenario=SCENE, seed=0, faults=faults)
         try:
             rig.camera.start()
             f = rig.camera.get_frame(5.0)
@@ -69,7 +69,7 @@ def test_no_metadata_frames_carry_neither_exposure_nor_gain_nor_sensor_times():
 def test_the_exposure_search_raises_a_gain_that_starts_at_zero():
     """The D455's colour gain runs 0..128: a search that scales the gain multiplicatively from the minimum
     stays at 0 and leaves a dim board dim."""
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, **DIM_ROOM, projector_gain=0.04)
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, **DIM_ROOM, projector_gain=0.04)
     try:
         rig.camera.start()
         rig.operator.request_pose("verification", None, 0)  # the board in the projector's light
@@ -153,7 +153,7 @@ def test_the_settle_measurement_reads_the_exposure_the_realsense_driver_records(
     `actual_exposure_us` (through librealsense's metadata), which the settle measurement must read."""
     from drivers.settle import _exposure_s
 
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0)
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0)
     try:
         rig.camera.start()
         applied = rig.camera.set_manual_exposure(16700, 16)
@@ -172,7 +172,7 @@ def test_the_driver_fixes_the_white_balance_and_clears_auto_exposure_priority():
     """A D455 starts with auto white balance on: its colour gains drift as the projected image changes.
     The driver turns it off (and auto exposure priority, which may halve the frame rate) at start."""
     rs = pytest.importorskip("pyrealsense2")
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, faults=parse_faults("auto-white-balance"))
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, faults=parse_faults("auto-white-balance"))
     try:
         rig.camera.start()
         colour = rig.device.colour
@@ -204,7 +204,7 @@ def test_without_metadata_a_change_is_confirmed_by_a_measured_lag_not_by_time_al
     taken with the new settings."""
     from drivers.exposure import ChangeEvidence, apply_exposure, measure_settings_lag
 
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0,
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0,
                    faults=parse_faults("no-metadata,apply-lag"))
     try:
         rig.camera.start()
@@ -286,10 +286,10 @@ def test_a_stalled_stream_is_reset_and_the_frames_lost_before_it_are_counted():
     The driver, finding no frame for stall_reset_s with the device still listed, calls hardware_reset,
     reopens it with its exposure re-applied and says so (StreamReset); frames come again, and the gap
     is counted in settings()["frames"], which the rig check reports."""
-    from app.station.station import stream_findings
+    from app.station.rig_check import stream_findings
     from drivers.errors import StreamReset
 
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=parse_faults("stall"))
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=parse_faults("stall"))
     try:
         rig.device.stall_after_frames = 20
         cam = rig.camera
@@ -328,7 +328,7 @@ def test_on_a_usb2_link_the_camera_falls_back_to_a_listed_mode_and_the_rig_check
     from drivers.errors import DeviceError
 
     usb2 = parse_faults("usb2")
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=usb2)
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=usb2)
     try:
         rig.camera.start()
         assert rig.camera.fps == 15 and rig.sim.hardware.fps == 15.0
@@ -347,14 +347,14 @@ def test_on_a_usb2_link_the_camera_falls_back_to_a_listed_mode_and_the_rig_check
         assert checks["camera exposure"].detail.startswith(("16700 us", "33300 us", "50000 us", "66700 us"))
     finally:
         rig.close()
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=usb2, camera_mode=(1280, 800, 5))
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=usb2, camera_mode=(1280, 800, 5))
     try:
         rig.camera.start()
         assert rig.camera.fps == 5 and rig.camera.link_note().startswith("the camera is on a USB 2.1 link")
     finally:
         rig.close()
     with pytest.raises(DeviceError, match=r"1280x800@30 .*not offered.*available: 1280x800@15, 1280x800@5"):
-        open_requested_rig("sim-realsense", scenario=SCENE, seed=0, faults=usb2, camera_mode=(1280, 800, 30))
+        open_rig("sim-realsense", scenario=SCENE, seed=0, faults=usb2, camera_mode=(1280, 800, 30))
 
 
 def test_camera_mode_option_is_checked_while_parsed(tmp_path):
@@ -370,7 +370,7 @@ def test_without_metadata_frames_still_carry_the_exposure_the_settle_measurement
     jitter estimate needs it; without it the latency is timed by whole frames only)."""
     from drivers.settle import _exposure_s
 
-    rig = open_requested_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=parse_faults("no-metadata"))
+    rig = open_rig("sim-realsense", scenario=SCENE, seed=0, latency_ms=0.0, faults=parse_faults("no-metadata"))
     try:
         rig.camera.start()
         f = rig.camera.get_frame(5.0)
