@@ -90,11 +90,11 @@ def test_every_quality_code_fires_under_tight_limits(thin_result):
 
 
 def test_station_instruction_names_the_low_quality(thin_result):
-    from app.station.station import _low_quality_note
+    from app.station.wording import low_quality_note
 
-    note = _low_quality_note(thin_result)
+    note = low_quality_note(thin_result)
     assert "LOW QUALITY" in note and QUALITY_CODES["quality_pose_translation"] in note
-    assert _low_quality_note(thin_result.with_(diagnostics={})) == ""
+    assert low_quality_note(thin_result.with_(diagnostics={})) == ""
 
 
 def test_procam_calibrate_writes_a_low_quality_result_and_exits_3(tmp_path, capsys):

@@ -15,11 +15,11 @@ import time
 import traceback
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from app.station import wording
 from app.station.activity import CHECK_RIG_NAME, Activities, activity_name, outcome_text, rig_findings
 from app.station.autocapture import (
     AutoCapture,
@@ -36,7 +36,6 @@ from app.station.machine import (
     CHECK_RIG,
     MIRROR_CAPTURE,
     PROJECTOR_CAPTURE,
-    STATE_TITLES,
     VERIFICATION,
     ActionRefused,
     RigCheck,
@@ -687,77 +686,8 @@ class Station:
 
     # ---- what to do next ----------------------------------------------------------------------------
     def instruction(self) -> str:
-        """What the person at the rig should do next, in plain words."""
-        m = self.machine
-        s = m.state
-        live = self.live
-        if self.device_problem:
-            return f"Device problem: {self.device_problem}."
-        if self.problem:
-            return f"Problem: {self.problem}."
-        if m.busy == "calibrating":
-            return "Calibrating the captures. This takes a little while."
-        if m.busy == "verifying":
-            return "Verifying: the projector draws epipolar lines and the camera checks where they land."
-        if s == CHECK_RIG:
-            bad = [c for c in m.rig_checks if not c.ok]
-            if not m.rig_checks:
-                return ("Check the rig: the camera must stream and the projector window must be up. Hold the board "
-                        "in the projector's light where the camera sees it (the check sets the exposure and "
-                        "measures the projector's latency) and press Check rig.")
-            if bad:
-                return "Fix the rig: " + "; ".join(f"{c.name}: {c.detail}" for c in bad) + ". Then press Check rig."
-            return "The rig is ready. Press Start to begin the captures."
-        if s == MIRROR_CAPTURE:
-            if m.mirror_method is None:
-                return ("Choose how to calibrate the mirror: real-virtual (hold the small board between camera "
-                        "and mirror, seen directly and in the mirror) or real-mirror (lay it flat on the mirror).")
-            tgt = m.target
-            c = m.counts()
-            if tgt is None:
-                return f"All {c['mirror_total']} mirror captures are taken. Press 'Next step' to go on to the projector."
-            if m.mirror_method == "real-virtual":
-                what = ("Hold the mirror board between the camera and the mirror so that the camera sees it "
-                        "both directly and in the mirror; change its place and tilt from the last capture.")
-            else:
-                what = (f"Lay the mirror board flat on the mirror, at a new place and angle (at least "
-                        f"{m.plan.min_mirror('real-mirror')} placements: one alone leaves the mirror's tilt uncertain).")
-            head = f"Mirror capture {c['mirror'] + 1} of {c['mirror_total']}: {what}"
-            return head + self.live_hint(live)
-        if s == PROJECTOR_CAPTURE:
-            tgt = m.target
-            c = m.counts()
-            if tgt is None:
-                return f"All {c['projector_total']} projector captures are taken. Press Calibrate."
-            where = (f"The projector shows the pattern at position {tgt.pattern_position + 1} of {m.positions}. "
-                     f"Pose {tgt.pose_index + 1} of {m.plan.poses_per_position}: hold the board so the pattern "
-                     "falls on its blank part")
-            where += " and the camera sees the board in the mirror" if not m.direct else ""
-            where += "; tilt it differently from the poses already taken."
-            return where + self.live_hint(live)
-        if s == CALIBRATION:
-            if m.calibration_error:
-                return f"The calibration failed: {m.calibration_error}. Retake or add captures, then calibrate again."
-            if m.result is None:
-                return "The captures are complete. Press Calibrate."
-            if m.result_stale:
-                return "The captures changed since the last calibration. Press Calibrate to re-run it."
-            low = _low_quality_note(m.result)
-            if low:
-                return low + (" Or press Verify to check it as it is." if m.why_not("verify") is None else "")
-            if m.why_not("verify") is None:
-                return "Calibrated. Press Verify to check the calibration with epipolar lines."
-            return "Calibrated. Press Finish to end the session."
-        if s == VERIFICATION:
-            if m.verification_error:
-                return f"The verification could not run: {m.verification_error}."
-            if m.report is None:
-                return "Press Verify to check the calibration."
-            if getattr(m.report, "passed", False):
-                return "The calibration passed the verification. Press Finish."
-            return ("The calibration failed the verification. Go back, retake captures that look wrong, "
-                    "and calibrate again.")
-        return f"The session is complete. The calibration is in {Path(m.store.folder) / 'calibration.json'}."
+        """What the person at the rig should do next, in plain words (app.station.wording)."""
+        return wording.instruction(self.machine, self.device_problem, self.problem, self.live_hint(self.live))
 
     def _watch_light(self, event: str | None) -> None:
         """Log an episode of a projector image that no longer reaches the camera, once when it begins and
@@ -769,36 +699,7 @@ class Station:
             self.log(LIGHT_BACK)
 
     def live_hint(self, live: LiveView | None) -> str:
-        if self.light_watch.lost:
-            return f" Now: {LIGHT_LOST}."
-        if live is None or live.decision is None:
-            return ""
-        d = live.decision
-        if d.capture:
-            return ""
-        msg = d.message
-        if not msg:
-            return ""
-        return f" Now: {msg}."
+        return wording.live_hint(self.light_watch.lost, live)
 
     def status_line(self) -> str:
-        m = self.machine
-        c = m.counts()
-        parts = [STATE_TITLES[m.state]]
-        if m.mirror_method:
-            parts.append(f"mirror {c['mirror']}/{c['mirror_total']}")
-        parts.append(f"projector {c['projector']}/{c['projector_total']}")
-        return " | ".join(parts)
-
-
-def _low_quality_note(result) -> str:
-    """The instruction for a LOW QUALITY calibration (calib.quality.trust's quality gate), "" when it is not."""
-    from calib.quality.trust import QUALITY_CODES, low_quality_lines
-
-    lines = low_quality_lines(result)
-    if not lines:
-        return ""
-    codes = [ln[1:ln.index("]")] for ln in lines if ln.startswith("[") and "]" in ln]
-    what = "; ".join(QUALITY_CODES.get(c, c) for c in codes)
-    return (f"Calibrated, but LOW QUALITY: {what} (details in the log). Add captures at more pattern positions "
-            "with more varied tilts that reach the image corners, then press Calibrate again.")
+        return wording.status_line(self.machine)
