@@ -33,7 +33,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
 from calib.errors import CalibrationError, UntrustedCalibration
@@ -43,6 +42,7 @@ from calib.models.camera import CameraModel
 from calib.models.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObservations
 from calib.models.result import CalibrationResult, MirrorPlane
 from calib.models.vocab import DistortionModel
+from calib.paper.board_pose import solve_pnp
 from calib.paper.method import calibrate_paper
 from calib.quality.projection_uncertainty import projection_uncertainty
 from calib.quality.trust import TrustReason, check_calibration
@@ -636,20 +636,9 @@ def _orthonormalise(R: np.ndarray) -> np.ndarray:
 # initialisation: board poses from PnP under the initial calibration
 # ==================================================================================================
 def _pnp(cam: CameraModel, X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
-    if len(X) < 4:
-        return None
-    X = np.ascontiguousarray(X, np.float64)
-    uv = np.ascontiguousarray(uv, np.float64).reshape(-1, 1, 2)
-    K, dist = np.array(cam.K), cam.dist5() if cam.dist.size <= 5 else np.array(cam.dist)
-    try:
-        ok, rvec, tvec = cv2.solvePnP(X, uv, K, dist, flags=cv2.SOLVEPNP_IPPE)
-        if not ok:
-            return None
-        rvec, tvec = cv2.solvePnPRefineLM(X, uv, K, dist, rvec, tvec)
-    except cv2.error:
-        return None
-    R, _ = cv2.Rodrigues(rvec)
-    return make_T(R, tvec.reshape(3))
+    """T_cam_board, or None (calib.paper.board_pose.solve_pnp: the better of IPPE's two solutions)."""
+    found = solve_pnp(cam, X, uv)
+    return None if found is None else found[0]
 
 
 def _pose_through_mirror(cam: CameraModel, S: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:

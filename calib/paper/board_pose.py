@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from calib.errors import CalibrationError
 from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.observations import BoardObservation
@@ -112,7 +113,11 @@ def solve_board_pose(camera: CameraModel, spec: CharucoSpec, obs: BoardObservati
     first (at most a quarter of them), and the pose refitted."""
     X = view_object_points(spec, obs)
     uv = np.ascontiguousarray(obs.corners_px, float)
-    T, res = _pnp(camera, X, uv)
+    found = solve_pnp(camera, X, uv)
+    if found is None:
+        raise CalibrationError(f"no board pose fits these {len(X)} ChArUco corners (too few, or all on one line): "
+                               "retake the capture with more of the board in view")
+    T, res = found
     inl = np.ones(len(X), bool)
     if reject_outliers:
         for _ in range(len(X) // 4):
@@ -120,23 +125,32 @@ def solve_board_pose(camera: CameraModel, spec: CharucoSpec, obs: BoardObservati
             if r.max() <= outlier_limit(res[inl]) or inl.sum() <= MIN_CORNERS:
                 break
             inl[int(np.argmax(r))] = False
-            T, _ = _pnp(camera, X[inl], uv[inl])
+            T = solve_pnp(camera, X[inl], uv[inl])[0]  # >= 3/4 of the corners: a pose exists
             res = _residuals(camera, T, X, uv)
     return BoardPose(T, bool(obs.mirrored), res, None if inl.all() else inl)
 
 
-def _pnp(camera: CameraModel, X: np.ndarray, uv: np.ndarray):
-    K, dist = np.array(camera.K), np.array(camera.dist)
-    X = np.ascontiguousarray(X, float)
-    uv = np.ascontiguousarray(uv, float)
-    n, rvecs, tvecs, errs = cv2.solvePnPGeneric(X, uv, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    best = None
-    for rvec, tvec in zip(rvecs, tvecs):
-        rvec, tvec = cv2.solvePnPRefineLM(X, uv, K, dist, rvec.copy(), tvec.copy(), criteria=_LM_CRITERIA)
-        T = T_from_rvec_tvec(rvec, tvec)
-        res = _residuals(camera, T, X, uv)
-        if best is None or np.sum(res**2) < np.sum(best[1] ** 2):
-            best = (T, res)
+def solve_pnp(camera: CameraModel, X: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(T_cam_board, per-point residuals in px) of a planar target from (N, 3) points on z = 0 and their
+    (N, 2) pixels: both IPPE solutions (a plane seen at a small tilt is ambiguous) refined by LM, the one
+    with the smaller residuals kept. None with fewer than 4 points or when OpenCV finds no pose."""
+    if len(X) < 4:
+        return None
+    K = np.array(camera.K)
+    dist = camera.dist5() if camera.dist.size <= 5 else np.array(camera.dist)
+    X = np.ascontiguousarray(X, np.float64)
+    uv = np.ascontiguousarray(uv, np.float64).reshape(-1, 2)
+    try:
+        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(X, uv, K, dist, flags=cv2.SOLVEPNP_IPPE)
+        best = None
+        for rvec, tvec in zip(rvecs, tvecs):
+            rvec, tvec = cv2.solvePnPRefineLM(X, uv, K, dist, rvec.copy(), tvec.copy(), criteria=_LM_CRITERIA)
+            T = T_from_rvec_tvec(rvec, tvec)
+            res = _residuals(camera, T, X, uv)
+            if best is None or np.sum(res**2) < np.sum(best[1] ** 2):
+                best = (T, res)
+    except cv2.error:
+        return None
     return best
 
 
