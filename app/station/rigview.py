@@ -31,7 +31,9 @@ class Device:
 
 
 @dataclass(frozen=True, eq=False)
-class BoardPose:
+class SceneBoard:
+    """A captured board as the 3D view draws it: its pose and outline in the camera frame."""
+
     capture_id: str
     step: str
     T_cam_board: np.ndarray
@@ -46,7 +48,7 @@ class RigScene:
     virtual_camera: Device | None = None
     mirror_quad: np.ndarray | None = None  # (4, 3)
     projector: Device | None = None
-    boards: tuple[BoardPose, ...] = ()
+    boards: tuple[SceneBoard, ...] = ()
     rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))  # (N, 2, 3) projector rays
 
     @property
@@ -139,7 +141,7 @@ def rig_scene(manifest: SessionManifest, result: CalibrationResult | None, appro
                 virtual = True
         w, h = spec.size
         outline = transform_points(T, np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], float))
-        boards.append(BoardPose(cap.id, cap.step, T, outline, virtual))
+        boards.append(SceneBoard(cap.id, cap.step, T, outline, virtual))
         if result is not None and cap.step == STEP_PROJECTOR and not virtual and cap.pattern_points_px is not None:
             q = np.asarray(cap.pattern_points_px, float).mean(axis=0, keepdims=True)
             o = result.T_cam_proj[:3, 3]
