@@ -11,6 +11,7 @@ from app.commands._rig_options import (
     RIG_CHOICES, add_camera_option, add_sim_bump_option, add_sim_faults_option, add_sim_latency_option,
 )
 from calib.formats import session_files
+from calib.models.vocab import RenderQuality, choices
 
 NAME = "recalibrate"
 HELP = "on-site recalibration: check what moved since PREVIOUS, re-measure only that, compare"
@@ -41,7 +42,8 @@ def add_arguments(p) -> None:
                         "command tells the technician each step and waits for Enter)")
     p.add_argument("--scenario", default=None, help="simulated rig scenario (default: PREVIOUS's, else nonoverlap-136)")
     p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default: PREVIOUS's, else 0)")
-    p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
+    p.add_argument("--quality", choices=choices(RenderQuality), default=None,
+                   help="simulated rendering quality (default live)")
     add_sim_latency_option(p)
     add_sim_faults_option(p)
     add_sim_bump_option(p)
