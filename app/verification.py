@@ -693,7 +693,9 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
         progress(len(pts), len(pts), "done")
     info = {"method": result.method, "units": result.units, **(calibration_info or {})}
     if info.get("path") and "sha256" not in info:  # which calibration file this report verified
-        info["sha256"] = file_sha256(info["path"])
+        from calib.recalib import sha256_file
+
+        info["sha256"] = sha256_file(info["path"], unreadable_ok=True)
     settings = {"grid": list(grid) if pixels is None else None, "settle_frames": settle_frames, "average": average,
                 "stroke_px": stroke_px, "min_measured": min_measured, "board_pose_known": board_pose is not None,
                 "curves_per_image": curves_per_image, "projector_images": 2 + len(groups),
@@ -703,16 +705,6 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
     if session_dir is not None:
         report.save_json(Path(session_dir) / session_files.VERIFICATION)
     return report
-
-
-def file_sha256(path) -> str | None:
-    """SHA-256 of a file's bytes (hex), or None when it cannot be read or is not a regular file."""
-    from calib.recalib import sha256_file
-
-    try:
-        return sha256_file(path)
-    except (OSError, ProcamError):
-        return None
 
 
 VERIFY_RIGS = choices(RigKind)  # procam verify's --rig choices
@@ -740,7 +732,9 @@ def verification_is_stale(report_file, calibration_file) -> bool | None:
         return None
     if not isinstance(recorded, str):
         return None
-    return recorded != file_sha256(calibration_file)
+    from calib.recalib import sha256_file
+
+    return recorded != sha256_file(calibration_file, unreadable_ok=True)
 
 
 def _session_board(folder):

@@ -48,6 +48,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from calib.models.camera import CameraModel
+from drivers._frames import wait_latest
 from drivers.base import Frame
 from drivers.clock import MONOTONIC, Clock
 from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout, ExposureUnsupported
@@ -322,26 +323,10 @@ class OpenCVCamera:
         with `not_before_s` (on the camera's clock), only a frame whose exposure began at or after it."""
         deadline = time.monotonic() + timeout_s
         stale_s = self._stale_after_s if self._stale_after_s is not None else max(0.5, 5.0 / self.fps)
-        with self._cond:
-            while True:
-                if self._disconnected:
-                    raise DeviceDisconnected(self._disconnect_message())
-                if self._thread_error is not None:
-                    raise DeviceError(f"camera {self.label}: capture failed: {self._thread_error}")
-                if not self._running:
-                    raise DeviceError(f"camera {self.label}: not streaming; call start() first")
-                f = self._latest
-                if f is not None and (not_before_s is None or (f.exposure_start_s is not None
-                                                               and f.exposure_start_s >= not_before_s)):
-                    if newer_than is None:
-                        if not_before_s is not None or time.monotonic() - self._latest_wall <= stale_s:
-                            return f
-                    elif f.frame_number > newer_than:
-                        return f
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self._cond.wait(min(remaining, 0.25))
+        f = wait_latest(self, lambda: f"camera {self.label}", deadline, newer_than, not_before_s,
+                        lambda f: time.monotonic() - self._latest_wall <= stale_s)
+        if f is not None:
+            return f
         what = "no frame" if newer_than is None else f"no frame newer than #{newer_than}"
         raise DeviceTimeout(f"camera {self.label}: {what} within {timeout_s:.2f} s ({self.backend}); check the "
                             "cable and that no other program uses the camera")

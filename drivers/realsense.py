@@ -69,6 +69,7 @@ from typing import Any, Callable
 import numpy as np
 
 from calib.models.camera import CameraModel
+from drivers._frames import wait_latest
 from drivers.base import Frame
 from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout, StreamReset
 
@@ -562,29 +563,11 @@ class RealSenseCamera:
         deadline = time.monotonic() + timeout_s
         if self._waiting_since is None:
             self._waiting_since = time.monotonic()
-        with self._cond:
-            while True:
-                if self._disconnected:
-                    raise DeviceDisconnected(self._disconnect_message())
-                if self._thread_error is not None:
-                    raise DeviceError(f"RealSense {self._label()}: capture failed: {self._thread_error}")
-                if not self._running:
-                    raise DeviceError(f"RealSense {self._label()}: not streaming; call start() first")
-                f = self._latest
-                if f is not None and (not_before_s is None or (f.exposure_start_s is not None
-                                                               and f.exposure_start_s >= not_before_s)):
-                    if newer_than is None:
-                        if not_before_s is not None or \
-                                time.monotonic() - f.meta["host_time_s"] <= self._stale_after_s:
-                            self._waiting_since = None
-                            return f
-                    elif f.frame_number > newer_than:
-                        self._waiting_since = None
-                        return f
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self._cond.wait(min(remaining, 0.25))
+        f = wait_latest(self, lambda: f"RealSense {self._label()}", deadline, newer_than, not_before_s,
+                        lambda f: time.monotonic() - f.meta["host_time_s"] <= self._stale_after_s)
+        if f is not None:
+            self._waiting_since = None
+            return f
         if not self._device_present():
             with self._cond:
                 self._disconnected = True

@@ -23,8 +23,9 @@ import calib.detection.detect
 import calib.pipeline
 from app.cli import main
 from app.commands._progress import BARS, LINES, OFF, Progress, progress_mode
-from app.verification import VerificationReport, file_sha256, verification_is_stale
+from app.verification import VerificationReport, verification_is_stale
 from calib.models.result import CalibrationResult
+from calib.recalib import sha256_file
 
 SIM_ARGS = ["--per-position", "2", "--mirror-count", "3", "--quality", "live", "--workers", "1"]
 
@@ -111,10 +112,10 @@ def test_calibrate_out_traps_are_refused_before_detection(sim_session, tmp_path,
     # the intrinsics file given on the command line is an input too
     cam = tmp_path / "cam.json"
     shutil.copy(S / "ground_truth.json", cam)
-    cam_hash = file_sha256(cam)
+    cam_hash = sha256_file(cam)
     assert main(["calibrate", str(S), "--camera-intrinsics", str(cam), "--out", str(cam), "--no-progress"]) == 2
     assert "also an input" in one_error_line(capsys.readouterr().err, "calibrate")
-    assert file_sha256(cam) == cam_hash
+    assert sha256_file(cam) == cam_hash
     # a read-only folder
     ro = tmp_path / "ro"
     ro.mkdir()
@@ -376,14 +377,14 @@ def test_a_second_method_keeps_the_first_and_a_replaced_calibration_makes_the_ve
     assert json.loads(main_cal.read_text())["method"] == "joint"
     # a verification of this calibration.json (as `procam verify` writes it: the hash of the file it checked)
     report = {"schema": "procam-verification", "version": 1, "passed": True, "threshold_px": 1.5, "checks": [],
-              "calibration": {"path": str(main_cal), "method": "joint", "sha256": file_sha256(main_cal)}}
+              "calibration": {"path": str(main_cal), "method": "joint", "sha256": sha256_file(main_cal)}}
     (S / "verification.json").write_text(json.dumps(report))
     assert verification_is_stale(S / "verification.json", main_cal) is False
-    joint_hash = file_sha256(main_cal)
+    joint_hash = sha256_file(main_cal)
 
     assert main(["calibrate", str(S), "--method", "paper", "--no-progress"]) == 0
     out = capsys.readouterr().out
-    assert file_sha256(main_cal) == joint_hash  # the joint result is untouched
+    assert sha256_file(main_cal) == joint_hash  # the joint result is untouched
     paper = CalibrationResult.load_json(S / "calibration-paper.json")
     assert paper.method == "paper" and (S / "calibration-paper.yaml").exists()
     assert f"{main_cal} holds the joint calibration and was kept" in out and "stale" not in out
@@ -393,7 +394,7 @@ def test_a_second_method_keeps_the_first_and_a_replaced_calibration_makes_the_ve
     # kept (issue 28: re-running changed nothing, so nothing needs verifying again)
     assert main(["calibrate", str(S), "--method", "joint", "--no-progress"]) == 0
     out = capsys.readouterr().out
-    assert file_sha256(main_cal) == joint_hash and f"kept {main_cal}: the result is the one it holds" in out
+    assert sha256_file(main_cal) == joint_hash and f"kept {main_cal}: the result is the one it holds" in out
     assert "stale" not in out and verification_is_stale(S / "verification.json", main_cal) is False
 
     # a calibration.json the captures do not give (edited here) is replaced; its verification is stale, and
@@ -401,12 +402,12 @@ def test_a_second_method_keeps_the_first_and_a_replaced_calibration_makes_the_ve
     cal = json.loads(main_cal.read_text())
     cal["camera"]["K"][0][0] += 1.0
     main_cal.write_text(json.dumps(cal))
-    report["calibration"]["sha256"] = file_sha256(main_cal)
+    report["calibration"]["sha256"] = sha256_file(main_cal)
     (S / "verification.json").write_text(json.dumps(report))
-    edited_hash = file_sha256(main_cal)
+    edited_hash = sha256_file(main_cal)
     assert main(["calibrate", str(S), "--method", "joint", "--no-progress"]) == 0
     out = capsys.readouterr().out
-    assert file_sha256(main_cal) != edited_hash
+    assert sha256_file(main_cal) != edited_hash
     assert "verification.json verified the calibration this one replaced, so it is stale" in out
     assert f"`procam verify {S} --rig sim` again" in out
     assert verification_is_stale(S / "verification.json", main_cal) is True

@@ -6,18 +6,25 @@ import hashlib
 import os
 from dataclasses import dataclass, field
 
+from calib.errors import ProcamError
 from calib.formats.fileio import RESULT_MAX_BYTES, open_regular
 from calib.recalib.check import CheckReport
 from calib.recalib.reestimate import Reestimate
 
 
 # ---- the record -------------------------------------------------------------------------------------
-def sha256_file(path) -> str:
-    """SHA-256 of a regular file, never hashed through a link (calib.formats.fileio.open_regular)."""
+def sha256_file(path, *, unreadable_ok: bool = False) -> str | None:
+    """SHA-256 (hex) of a regular file, never hashed through a link (calib.formats.fileio.open_regular).
+    With `unreadable_ok`, None instead of the error when it cannot be read or is not a regular file."""
     h = hashlib.sha256()
-    with os.fdopen(open_regular(path, RESULT_MAX_BYTES, "calibration file"), "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
+    try:
+        with os.fdopen(open_regular(path, RESULT_MAX_BYTES, "calibration file"), "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    except (OSError, ProcamError):
+        if unreadable_ok:
+            return None
+        raise
     return h.hexdigest()
 
 

@@ -39,6 +39,7 @@ import numpy as np
 from drivers.base import ExposureControl
 from drivers.errors import DeviceError
 from drivers.realsense import COLOUR_EXPOSURE_UNIT_US, RealSenseCamera, _rs
+from drivers.sim._driver_rig import SimDriverRig
 
 #: D455 colour sensor controls: (min, max, step, default) in the device's own units.
 COLOUR_OPTIONS = {
@@ -414,7 +415,7 @@ class SimRealSenseCamera(RealSenseCamera):
                 time.sleep(0.001)
 
 
-class SimRealSenseRig:
+class SimRealSenseRig(SimDriverRig):
     """A simulated rig whose camera is the RealSense driver on a software device (module doc)."""
 
     kind = "sim-realsense"
@@ -426,21 +427,6 @@ class SimRealSenseRig:
         # back to the fastest listed, as on a real USB 2 link)
         self.camera = SimRealSenseCamera(self.device, 30 if camera_mode is None else int(camera_mode[2]),
                                          exact_mode=camera_mode is not None)
-
-    def __getattr__(self, name):  # scenario, projector, operator, ground_truth, renderer, ...
-        return getattr(self.sim, name)
-
-    def close(self) -> None:
-        try:
-            self.camera.stop()
-        finally:
-            self.sim.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int | None = None,

@@ -37,6 +37,7 @@ import numpy as np
 from drivers.errors import DeviceError
 from drivers.frame_stamp import FrameStamp, encode_stamp
 from drivers.opencv_camera import FrameTiming, OpenCVCamera
+from drivers.sim._driver_rig import SimDriverRig
 
 CONTROL_MODES = ("honour", "ignore")
 
@@ -312,7 +313,7 @@ class SimStreamCamera(OpenCVCamera):
         return f
 
 
-class SimUvcRig:
+class SimUvcRig(SimDriverRig):
     """A simulated rig whose camera is the OpenCV driver on the simulated camera's live stream."""
 
     kind = "sim-uvc"
@@ -322,23 +323,8 @@ class SimUvcRig:
         self.stream = SimCameraStream(sim_rig.camera, controls=controls, jpeg_quality=jpeg_quality)
         self.camera = SimStreamCamera(self.stream, sim_rig.clock)
 
-    def __getattr__(self, name):  # scenario, projector, operator, ground_truth, renderer, ...
-        return getattr(self.sim, name)
-
-    def close(self) -> None:
-        try:
-            self.camera.stop()
-        finally:
-            try:
-                self.stream.close()
-            finally:
-                self.sim.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
+    def _close_feed(self) -> None:
+        self.stream.close()
 
 
 def open_sim_uvc_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", faults=(),
