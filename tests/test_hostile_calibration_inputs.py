@@ -165,7 +165,7 @@ def nothing_runs(monkeypatch):
         raise ProcamError("REACHED: the file was not refused first")
 
     monkeypatch.setattr(calib.detection.detect, "detect_session", never)
-    monkeypatch.setattr(app.station.setup, "open_rig", never)
+    monkeypatch.setattr(app.station.setup, "open_requested_rig", never)
 
 
 COMMANDS = ("calibrate", "report", "verify", "recalibrate")
