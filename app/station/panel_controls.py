@@ -65,16 +65,19 @@ class ControlsMixin:
         # every websocket reaching here passed the gate: the panel's own Origin (or the secret), and the
         # access code when one is needed; a browser without the code never gets this far
         ctl = ClientControls(client, unlocked=True)
-        with self._lock:
-            self._clients[client.client_id] = ctl
         view_whole_rig(self.server, client)  # framed from the start, not only once calibrated
         self.seat.join(client.client_id)
         self._build_controls(ctl)
+        # the refresh loop sees a browser only once all its controls exist: a refresh of half-built controls
+        # would disable (for a watching browser) only those built so far and remember it as done
+        with self._lock:
+            if self.seat.connected(client.client_id):  # not gone while its controls were being built
+                self._clients[client.client_id] = ctl
 
     def _on_disconnect(self, client) -> None:
+        self.seat.leave(client.client_id)  # first: a browser still being built then never joins _clients
         with self._lock:
             self._clients.pop(client.client_id, None)
-        self.seat.leave(client.client_id)
 
     def _build_controls(self, ctl: ClientControls) -> None:
         g = ctl.client.gui
@@ -508,8 +511,8 @@ class ControlsMixin:
         drives = self.seat.drives(cid)
         if self._cached(ctl, "who", self.seat.roster(cid)):
             h["who"].content = ctl.cache["who"]
-        if self._cached(ctl, "drives", drives):
+        if self._cached(ctl, "drives", (drives, len(h))):  # controls added later get the same state
             h["take"].visible = not drives
-            for name, handle in h.items():
+            for name, handle in list(h.items()):
                 if name != "take" and hasattr(handle, "disabled"):
                     handle.disabled = not drives

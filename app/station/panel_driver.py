@@ -57,6 +57,10 @@ class DriverSeat:
         self._log(f"{name} took control" + (f" from {was}" if was else ""))
         return f"{name} drives now" + (f"; {was} watches" if was else "")
 
+    def connected(self, client_id: int) -> bool:
+        with self._lock:
+            return client_id in self._names
+
     def drives(self, client_id: int) -> bool:
         return self.driver == client_id
 
