@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from _station_helpers import run_procam
+from _station_helpers import assert_within_its_uncertainty, run_procam
 from drivers.base import CameraDriver, ExposureControl
 from drivers.errors import DeviceDisconnected, DeviceError, ExposureUnsupported
 from drivers.exposure import frames_after_change
@@ -377,14 +377,9 @@ def test_a_whole_session_runs_through_the_opencv_driver(tmp_path):
     assert settings["driver"] == "opencv" and settings["frame_timing"] == "stamp"
     assert settings["timing"]["frame_times"] == "device clock"  # the stamps carry the rig's own clock
     assert settings["auto_exposure"] is False and settings["response"]["source"] == "measured"
-    from calib.models.result import CalibrationResult
-    from calib.quality.metrics import compare
-
-    m = compare(CalibrationResult.load_json(out / "calibration.json"),
-                CalibrationResult.load_json(out / "ground_truth.json"))
-    # a frame from the wrong image costs mm and px; a short live-quality session scatters by itself up to
-    # about 1 px in projector K (see the RealSense path's test), so K gets 1.5 px
-    assert m.distance < 0.5 and m.angle_deg < 0.05 and m.proj_k_px < 1.5
+    # every capture's frame is the right image (the frame-truth test above); its accuracy is what one short
+    # live-quality session's own uncertainty allows
+    assert_within_its_uncertainty(out)
     assert json.loads((out / "verification.json").read_text())["passed"] is True
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pyrealsense2 as rs
 import pytest
 
-from _station_helpers import run_procam, tick_until_projector_captures
+from _station_helpers import assert_within_its_uncertainty, run_procam, tick_until_projector_captures
 from drivers.base import ExposureControl
 from drivers.errors import DeviceDisconnected
 from drivers.factory import RIG_KINDS, open_rig
@@ -214,15 +214,9 @@ def test_a_whole_session_runs_through_the_realsense_driver(tmp_path):
     assert man["state"]["rig_request"]["kind"] == "sim-realsense"
     settings = man["rig"]["camera_settings"]
     assert settings["driver"] == "realsense" and settings["emitter_enabled"] is False
-    from calib.models.result import CalibrationResult
-    from calib.quality.metrics import compare
-
-    m = compare(CalibrationResult.load_json(out / "calibration.json"),
-                CalibrationResult.load_json(out / "ground_truth.json"))
     # a frame from the wrong image or a dropped exposure setting costs mm and px; one short live-quality
-    # session on the photometric renderer scatters by itself up to about 1 px in projector K (1.008 px seen
-    # once in a fresh-clone CI run; single seeds of `procam bench accuracy` reach 1.85 px), so K gets 1.5 px
-    assert m.distance < 0.5 and m.angle_deg < 0.05 and m.proj_k_px < 1.5
+    # session on the photometric renderer scatters by itself as far as its own uncertainty says
+    assert_within_its_uncertainty(out)
     assert json.loads((out / "verification.json").read_text())["passed"] is True
     # `procam verify` sets the camera as the session recorded it (as the station's exposure search records it)
     # (one refresh period at 60 Hz, which the D455's 100 us steps cannot hit exactly; the lowest gain)

@@ -156,6 +156,10 @@ class StationPanel(ControlsMixin):
         self._plane_s = 0.0
         self._report_key = None
         self.report_lock = threading.Lock()  # one report.html written at a time (auto and Download)
+        # viser runs each click's callback in a thread pool: without this, a click handled while the one
+        # before it is still running sees the state before it (Move board refused just after the mirror
+        # method was chosen) and the earlier action's "done" overwrites the later one's line
+        self.action_lock = threading.Lock()
         self.server.gui.configure_theme(control_width="large", show_share_button=False)
         self.server.gui.main_panel.dock_right()  # viser 1.1's replacement of control_layout="fixed"
         self.server.scene.set_up_direction("-y")

@@ -293,6 +293,10 @@ class ControlsMixin:
 
     def _handler(self, ctl: ClientControls, name: str, fn):
         def on_click(event):
+            with self.action_lock:  # one action at a time, in the order the browser sent them
+                run(event)
+
+        def run(event):
             if not self._allowed(ctl, event):
                 return
             label = ctl.handles[name].label
