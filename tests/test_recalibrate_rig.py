@@ -161,15 +161,15 @@ def test_scripted_operator_is_prompted_through_check_and_remeasure(tmp_path):
                               mirror_board=None, units=None, serial=None, projector_screen=None, settle_s=None,
                               max_captures=None, workers=2)
     said = []
-    kind, ctx = prepare(args, said.append)
-    rig = ctx["open"]()
+    ready = prepare(args, said.append)
+    rig = ready.open_rig()
     prompts = []
 
     def operator(text):
         prompts.append((text, len(machine.manifest.captures)))
 
     try:
-        store, machine, station = open_recalibration(args, kind, rig, ctx, said.append)
+        store, machine, station = open_recalibration(args, ready, rig, said.append)
         out = run_recalibration(prev, station, machine, log=said.append, prompt=operator,
                                 verify=rig_verify_fn(rig, d))
     finally:
@@ -251,11 +251,11 @@ def test_station_checklist_prompts_the_operator_on_sim_realsense(tmp_path):
                               scenario=None, seed=None, quality=None, sim_latency_ms=None, sim_bump="none", board=None,
                               mirror_board=None, units=None, serial=None, projector_screen=None, settle_s=None,
                               max_captures=None, workers=2)
-    kind, ctx = prepare(args, lambda text: None)
-    rig = ctx["open"]()
+    ready = prepare(args, lambda text: None)
+    rig = ready.open_rig()
     panel = None
     try:
-        store, machine, station = open_recalibration(args, kind, rig, ctx, lambda text: None)
+        store, machine, station = open_recalibration(args, ready, rig, lambda text: None)
         panel = StationPanel(station, "127.0.0.1", 0)
         rp = RecalibrationPanel(panel, prev, verify=rig_verify_fn(rig, d))
         shown = []

@@ -1,8 +1,9 @@
-"""Options shared by `procam session` and `procam station`: the simulated rig, the capture plan and
-the real rig's devices and boards (a private module: not a sub-command)."""
+"""Options shared by the commands that open a rig (`procam session`, `procam station`, `procam
+recalibrate`): the rig, the simulated rig, the real rig's devices and boards, each declared once as an
+argument group (evo's parent parsers; a private module: not a sub-command)."""
 
 from app.commands import _types
-from calib.models.vocab import RigKind, choices
+from calib.models.vocab import LengthUnit, RenderQuality, RigKind, choices
 
 #: the capture plan's ranges: a plan outside them is either empty or a session that never ends
 POSES_PER_POSITION = (1, 100)
@@ -23,19 +24,68 @@ def add_camera_option(p) -> None:
                         "the backend reports; FFmpeg says 25 for any MJPEG stream)")
 
 
-def add_rig_options(p) -> None:
+# ---- the option groups: each option declared once, for every command that opens a rig ----------------------
+# `previous`: the command continues an earlier calibration (procam recalibrate), whose session supplies
+# the defaults the other commands take from the scenario or the board flags.
+
+def add_rig_choice(p, previous: bool = False) -> None:
+    """--rig: which rig to open."""
     p.add_argument("--rig", choices=RIG_CHOICES, default=None,
-                   help="rig to use (default: realsense when one is connected, else sim; sim-realsense: the "
-                        "simulated rig with its camera through the RealSense driver and librealsense; uvc: any "
-                        "camera OpenCV opens (--camera); sim-uvc: the simulated camera as a live MJPEG stream read "
-                        "through the OpenCV driver)")
-    add_camera_option(p)
-    p.add_argument("--scenario", default=None, help="simulated rig scenario (default nonoverlap-136)")
-    p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default 0)")
-    p.add_argument("--quality", default=None, help="simulated rendering quality (default live)")
-    add_sim_latency_option(p)
-    add_sim_faults_option(p)
-    add_sim_bump_option(p)
+                   help="rig to use (default: realsense when one is connected, else sim" +
+                        ("; with --resume the stopped one's" if previous else "") +
+                        "; sim-realsense: the simulated rig with its camera through the RealSense driver and "
+                        "librealsense; uvc: any camera OpenCV opens (--camera); sim-uvc: the simulated camera as a "
+                        "live MJPEG stream read through the OpenCV driver)")
+
+
+def add_sim_rig_options(p, previous: bool = False) -> None:
+    """The simulated rig: its scenario, seed, rendering and hardware behaviour (latency, faults, a bump)."""
+    g = p.add_argument_group("simulated rig (--rig sim, sim-realsense, sim-uvc)")
+    from_prev = "PREVIOUS's, else " if previous else ""
+    g.add_argument("--scenario", default=None, help=f"scenario (default {from_prev}nonoverlap-136)")
+    g.add_argument("--seed", type=_types.seed, default=None, help=f"seed (default {from_prev}0)")
+    g.add_argument("--quality", choices=choices(RenderQuality), default=None, help="rendering quality (default live)")
+    add_sim_latency_option(g)
+    add_sim_faults_option(g)
+    add_sim_bump_option(g)
+
+
+def add_device_options(p) -> None:
+    """The real rig's devices: the camera (RealSense or any OpenCV camera) and the projector's screen."""
+    g = p.add_argument_group("real rig (--rig realsense, uvc)")
+    g.add_argument("--serial", default=None, help="RealSense serial number (default: the first one)")
+    g.add_argument("--camera-mode", type=_types.camera_mode, default=None, metavar="WxH@FPS",
+                   help="RealSense rigs: the colour mode, one the camera lists (an unlisted one is refused with the "
+                        "list; default 1280x800@30, or the fastest mode of that size the USB link offers)")
+    add_camera_option(g)
+    g.add_argument("--projector-screen", type=_types.screen, default=None,
+                   help="screen the projector is connected to, from `procam devices` (default: the non-primary one "
+                        "of two screens; required with more)")
+    g.add_argument("--settle-s", type=_types.seconds, default=None,
+                   help="projector latency to wait after each image, seconds")
+
+
+def add_board_options(p, previous: bool = False) -> None:
+    """The boards of a real rig (the simulated rig's are its scenario's)."""
+    g = p.add_argument_group("boards")
+    if previous:
+        g.add_argument("--board", default=None,
+                       help="projector board COLSxROWS:DICT:SQUARE[:MARKER], only when PREVIOUS is a calibration.json "
+                            "without its session.json (else the boards are PREVIOUS's)")
+    else:
+        g.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
+    g.add_argument("--mirror-board", default=None, help="mirror board spec, as --board (default: --board)")
+    g.add_argument("--units", choices=choices(LengthUnit), default=None if previous else LengthUnit.MM,
+                   help="unit of the --board lengths (default " + ("PREVIOUS's)" if previous else "mm)"))
+
+
+def add_workers_option(p) -> None:
+    p.add_argument("--workers", type=_types.workers, default=2, help="detection threads (default 2)")
+
+
+def add_rig_options(p) -> None:
+    """`procam session` and `procam station`: the rig, the capture plan and the calibration's choices."""
+    add_rig_choice(p)
     p.add_argument("--poses-per-position", type=_types.int_range(*POSES_PER_POSITION), default=None,
                    help="board poses per pattern position, %d to %d (default 4)" % POSES_PER_POSITION)
     p.add_argument("--mirror-captures", type=_types.int_range(*MIRROR_CAPTURES), default=None,
@@ -43,26 +93,17 @@ def add_rig_options(p) -> None:
                         "recordings)" % MIRROR_CAPTURES)
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
-    p.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
-    p.add_argument("--mirror-board", default=None, help="real rig: mirror board spec (default: --board)")
     p.add_argument("--board-thickness", type=_types.float_range(0.0, 1000.0), default=None, metavar="T",
                    help="real-mirror: height of the board's printed face above the mirror, board units "
                         "(default: the scenario's on the simulated rig, else 0)")
-    p.add_argument("--units", default="mm", help="real rig: unit of the board lengths (default mm)")
     p.add_argument("--direct", action="store_true", help="real rig: camera sees the board directly (no mirror)")
-    p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
-    p.add_argument("--camera-mode", type=_types.camera_mode, default=None, metavar="WxH@FPS",
-                   help="RealSense rigs: the colour mode, one the camera lists (an unlisted one is refused with the "
-                        "list; default 1280x800@30, or the fastest mode of that size the USB link offers)")
-    p.add_argument("--projector-screen", type=_types.screen, default=None,
-                   help="real rig: screen the projector is connected to, from `procam devices` (default: the non-primary one of two screens; required with more)")
-    p.add_argument("--settle-s", type=_types.seconds, default=None,
-                   help="real rig: projector latency to wait after each image (seconds)")
-    p.add_argument("--workers", type=_types.workers, default=2,
-                   help="detection threads for the calibration (default 2)")
+    add_workers_option(p)
     p.add_argument("--method", default=None,
                    help="calibration method (default: the calibration core's default; 'paper' is the method of "
                         "Vanherck et al.)")
+    add_sim_rig_options(p)
+    add_device_options(p)
+    add_board_options(p)
 
 
 def add_sim_latency_option(p) -> None:

@@ -4,14 +4,14 @@ moved, compare with before (docs/RECALIBRATION.md)."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from app.commands import _types
 from app.commands._rig_options import (
-    RIG_CHOICES, add_camera_option, add_sim_bump_option, add_sim_faults_option, add_sim_latency_option,
+    add_board_options, add_device_options, add_rig_choice, add_sim_rig_options, add_workers_option,
 )
 from calib.formats import session_files
-from calib.models.vocab import RenderQuality, choices
 
 NAME = "recalibrate"
 HELP = "on-site recalibration: check what moved since PREVIOUS, re-measure only that, compare"
@@ -34,33 +34,16 @@ def add_arguments(p) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the recalibration in DIR where it stopped (Ctrl-C, closed input, crash): its "
                         "captures are kept; PREVIOUS must be the calibration it started from")
-    p.add_argument("--rig", choices=RIG_CHOICES, default=None,
-                   help="rig to use (default: realsense when one is connected, else sim; with --resume the "
-                        "stopped recalibration's)")
+    add_rig_choice(p, previous=True)
     p.add_argument("--auto", action="store_true",
                    help="simulated rig: the simulated operator moves the board with no prompts (without it the "
                         "command tells the technician each step and waits for Enter)")
-    p.add_argument("--scenario", default=None, help="simulated rig scenario (default: PREVIOUS's, else nonoverlap-136)")
-    p.add_argument("--seed", type=_types.seed, default=None, help="simulated rig seed (default: PREVIOUS's, else 0)")
-    p.add_argument("--quality", choices=choices(RenderQuality), default=None,
-                   help="simulated rendering quality (default live)")
-    add_sim_latency_option(p)
-    add_sim_faults_option(p)
-    add_sim_bump_option(p)
-    p.add_argument("--board", default=None,
-                   help="projector board COLSxROWS:DICT:SQUARE[:MARKER], only when PREVIOUS is a calibration.json "
-                        "without its session.json (else the boards are PREVIOUS's)")
-    p.add_argument("--mirror-board", default=None, help="mirror board spec, with --board (default: --board)")
-    p.add_argument("--units", default=None, help="unit of the --board lengths (default: PREVIOUS's)")
-    p.add_argument("--serial", default=None, help="real rig: RealSense serial number (default: the first one)")
-    add_camera_option(p)
-    p.add_argument("--projector-screen", type=_types.screen, default=None,
-                   help="real rig: screen the projector is connected to, from `procam devices`")
-    p.add_argument("--settle-s", type=_types.seconds, default=None,
-                   help="real rig: projector latency to wait after each image (seconds)")
     p.add_argument("--max-captures", type=_types.int_range(4, 1000), default=None, metavar="N",
                    help="give up (exit 1) when the re-estimate needs more than N captures in all (default 24)")
-    p.add_argument("--workers", type=_types.workers, default=2, help="detection threads (default 2)")
+    add_workers_option(p)
+    add_sim_rig_options(p, previous=True)
+    add_device_options(p)
+    add_board_options(p, previous=True)
 
 
 #: exit status of a recalibration stopped part-way by a closed input (Ctrl-C: 130); the folder is resumable
@@ -98,15 +81,17 @@ def run_live(args, log):
     exit status of a recalibration stopped part-way (the command's message says how to resume)."""
     from app.recalibration import RecalibrationStopped, run_recalibration
 
-    kind, ctx = prepare(args, log)
-    rig = ctx["open"]()
+    from app.recalibration import rig_verify_fn
+
+    ready = prepare(args, log)
+    rig = ready.open_rig()
     try:
-        store, machine, station = open_recalibration(args, kind, rig, ctx, log)
-        prompt = None if (args.auto and ctx["simulated"]) else terminal_prompt
+        store, machine, station = open_recalibration(args, ready, rig, log)
+        prompt = None if (args.auto and ready.simulated) else terminal_prompt
 
         def work():
-            return run_recalibration(ctx["src"], station, machine, log=log, max_captures=ctx["max_captures"],
-                                     workers=args.workers, verify=ctx["verify"](rig, store.folder), prompt=prompt,
+            return run_recalibration(ready.src, station, machine, log=log, max_captures=ready.max_captures,
+                                     workers=args.workers, verify=rig_verify_fn(rig, store.folder), prompt=prompt,
                                      resume=args.resume)
 
         from app.station.setup import run_on_rig as on_rig
@@ -140,14 +125,31 @@ def terminal_prompt(text: str) -> None:
         raise RecalibrationStopped("the input closed while waiting for the board")
 
 
-def prepare(args, log):
+@dataclass(frozen=True)
+class Prepared:
+    """What `prepare` checked before any device is opened, and how to open the rig."""
+
+    kind: str  # the rig kind (RigKind's value)
+    src: Path  # PREVIOUS's calibration.json
+    previous: object  # its CalibrationResult
+    specs: object  # PREVIOUS's boards (app.recalibration.previous_board_specs), None on resume
+    req: object  # the RigRequest
+    simulated: bool
+    max_captures: int
+    rig_options: dict  # drivers.factory.open_rig's device options
+
+    def open_rig(self):
+        from app.station.setup import open_requested_rig
+
+        return open_requested_rig(self.req, **self.rig_options)
+
+
+def prepare(args, log) -> Prepared:
     """Everything checked before a device is opened: PREVIOUS, the folder (new, or the stopped
     recalibration to resume, with the same PREVIOUS), the boards of PREVIOUS and the rig to open."""
     from app.commands.session import rig_options
-    from app.recalibration import (
-        DEFAULT_MAX_CAPTURES, check_resumed_previous, load_previous, previous_board_specs, rig_verify_fn,
-    )
-    from app.station.setup import DEFAULT_SCENARIO, RigRequest, open_requested_rig, resume_request
+    from app.recalibration import DEFAULT_MAX_CAPTURES, check_resumed_previous, load_previous, previous_board_specs
+    from app.station.setup import DEFAULT_SCENARIO, RigRequest, resume_request
     from calib.errors import SessionError
     from drivers.factory import default_rig_kind, is_simulated
 
@@ -177,9 +179,7 @@ def prepare(args, log):
         check_output_folder(folder, "--out", inputs=[args.previous])  # never inside a session, PREVIOUS's or another's
         kind = args.rig or default_rig_kind()
     simulated = is_simulated(kind)
-    max_caps = args.max_captures or DEFAULT_MAX_CAPTURES
-    if max_caps < 4:
-        raise SessionError(f"--max-captures must be at least 4 (the check's captures), got {max_caps}")
+    max_caps = args.max_captures or DEFAULT_MAX_CAPTURES  # at least 4 (the check's captures): --max-captures' type
     specs = None
     if not args.resume:
         specs = previous_board_specs(args.previous, previous, args.board, args.mirror_board, args.units, simulated)
@@ -190,12 +190,10 @@ def prepare(args, log):
         req = RigRequest(kind, args.scenario or (rr.get("scenario") if from_prev else None) or DEFAULT_SCENARIO,
                          args.seed if args.seed is not None else (rr.get("seed") if from_prev else None) or 0,
                          args.quality or "live")
-    return kind, {"src": src, "previous": previous, "specs": specs, "req": req, "simulated": simulated,
-                  "max_captures": max_caps, "verify": rig_verify_fn,
-                  "open": lambda: open_requested_rig(req, **rig_options(args, kind))}
+    return Prepared(kind, src, previous, specs, req, simulated, max_caps, rig_options(args, kind))
 
 
-def open_recalibration(args, kind: str, rig, ctx, log):
+def open_recalibration(args, ready: Prepared, rig, log):
     """(store, machine, station) of the recalibration on the opened rig: a new session folder with
     PREVIOUS's boards, or the stopped one (its captures kept), after checking the rig is PREVIOUS's."""
     from app.recalibration import RECALIBRATION_PLAN, RecalibrationMachine, RecalibrationStation, check_rig_matches
@@ -203,8 +201,8 @@ def open_recalibration(args, kind: str, rig, ctx, log):
     from app.station.station import StationOptions
     from calib.formats.session import SessionStore
 
-    req = ctx["req"]
-    check_rig_matches(ctx["previous"], ctx["specs"], rig, req.scenario)
+    req = ready.req
+    check_rig_matches(ready.previous, ready.specs, rig, req.scenario)
     plan = RECALIBRATION_PLAN
     folder = Path(args.out)
     if args.resume:
@@ -215,12 +213,12 @@ def open_recalibration(args, kind: str, rig, ctx, log):
         log(f"resuming the recalibration in {folder}: {len(store.manifest.captures)} captures on disk (mirror "
             f"{c['mirror']}, projector {c['projector']}), step '{machine.state}'")
     else:
-        kw = {} if ctx["simulated"] or ctx["specs"] is None else ctx["specs"].manifest_kw()
+        kw = {} if ready.simulated or ready.specs is None else ready.specs.manifest_kw()
         store = create_session(folder, rig, req, plan, **kw)
         machine = RecalibrationMachine(store, plan)
     machine.persist()
     opts = StationOptions(auto=True, follow_operator=True)
-    if not ctx["simulated"]:  # a person needs time, and a pose too close to another is never kept
+    if not ready.simulated:  # a person needs time, and a pose too close to another is never kept
         opts.max_frames_per_target = 10**9
         opts.stuck_frames = 10**9
     station = RecalibrationStation(rig, machine, opts, log=log)

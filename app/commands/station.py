@@ -133,19 +133,19 @@ def run_recalibration_mode(args, kind: str, defaulted: bool) -> int:
     rargs = argparse.Namespace(**vars(args))
     rargs.previous, rargs.out, rargs.resume = args.recalibrate, args.resume or args.session, bool(args.resume)
     rargs.max_captures = None
-    kind, ctx = prepare(rargs, print)  # every check before a device is opened
-    rig = ctx["open"]()
+    ready = prepare(rargs, print)  # every check before a device is opened
+    rig = ready.open_rig()
     try:
-        store, machine, station = open_recalibration(rargs, kind, rig, ctx, lambda text: None)
+        store, machine, station = open_recalibration(rargs, ready, rig, lambda text: None)
     except BaseException:
         close = getattr(rig, "close", None)
         if callable(close):
             close()
         raise
-    req = ctx["req"]
+    req = ready.req
     code = new_access_code() if needs_access_code(args.host) else None
     panel = StationPanel(station, args.host, args.port, code, rig_note(req, defaulted))
-    RecalibrationPanel(panel, ctx["src"], verify=rig_verify_fn(rig, store.folder), workers=args.workers,
+    RecalibrationPanel(panel, ready.src, verify=rig_verify_fn(rig, store.folder), workers=args.workers,
                        resume=rargs.resume)
     rc = serve(args, rig, store, station, panel, code, station.start_preview)  # the flow ticks the station
     if not (Path(store.folder) / RECALIBRATION_FILE).exists():
