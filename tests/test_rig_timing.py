@@ -13,7 +13,7 @@ from _station_helpers import tick_until_projector_captures
 from app.station.machine import Plan
 from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
 from app.station.station import Station, StationOptions
-from app.verification import _Grabber, verify
+from app.verification import Grabber, verify
 from calib.models.observations import STEP_PROJECTOR
 from drivers.exposure import MAX_FRAMES, search_exposure
 from drivers.settle import apply_timing
@@ -282,7 +282,7 @@ def test_grabber_takes_the_first_frame_after_the_image_became_visible():
     rig.operator.request_pose("verification", None, 0)
     apply_timing(rig.camera, rig.projector)
     assert rig.projector.settle_s >= 0.12
-    g = _Grabber(rig.camera, rig.projector)
+    g = Grabber(rig.camera, rig.projector)
     W, H = rig.projector.size
     for v in (255, 0, 128, 255):
         g.grab(np.full((H, W), v, np.uint8))

@@ -16,10 +16,14 @@ Frames: a pusher thread takes frames from the simulated camera and hands them to
 their frame numbers, in the global_time domain (host system clock, ms, at the start of readout) with
 `actual_exposure`, `frame_timestamp` and `sensor_timestamp` metadata, so the driver's exposure_start_s
 estimate is exercised as on hardware. Under the no-metadata fault a frame carries none of them and is
-stamped in the system_time domain at its arrival, as librealsense does without metadata. The simulated camera renders lazily, so the pusher renders only
-what the driver will hand out: it pushes while a caller waits in get_frame (the camera class below
-tells it), no faster than the stream's frame rate, and always the newest frame the simulated camera
-has delivered (as the driver's capture thread, draining a streaming camera, always holds the newest).
+stamped in the system_time domain at its arrival, as librealsense does without metadata. The simulated
+camera renders lazily, so the pusher renders only what the driver will hand out: it pushes while a
+caller waits in get_frame for a frame the driver cannot hand out yet (the camera class below tells it
+what each caller asks for), one frame at a time (the next only once the driver's capture thread has
+taken the last one, accepted or dropped, so how many frames are rendered does not depend on how
+fast the machine runs the threads), no faster than the stream's frame rate, and always the newest
+frame the simulated camera has delivered (as the driver's capture thread, draining a streaming
+camera, always holds the newest).
 
 Options: every option the driver writes is stored by librealsense; before each frame the pusher
 forwards changes to the simulated camera when it implements drivers.base.ExposureControl
@@ -36,9 +40,11 @@ from typing import Any
 
 import numpy as np
 
+from drivers._frames import wait_latest
+from drivers._realsense_lib import COLOUR_EXPOSURE_UNIT_US, _rs
 from drivers.base import ExposureControl
 from drivers.errors import DeviceError
-from drivers.realsense import COLOUR_EXPOSURE_UNIT_US, RealSenseCamera, _rs
+from drivers.realsense import RealSenseCamera
 from drivers.sim._driver_rig import SimDriverRig
 
 #: D455 colour sensor controls: (min, max, step, default) in the device's own units.
@@ -318,14 +324,16 @@ class SimRealSenseDevice:
 
 
 class SimRealSenseCamera(RealSenseCamera):
-    """The real driver, unchanged, plus one thing the emulation needs: while a caller waits in
-    get_frame the pusher is told to deliver frames (the simulated camera renders only on demand)."""
+    """The real driver, unchanged, plus what the emulation needs: the pusher is told what the callers
+    waiting in get_frame ask for (the simulated camera renders only on demand), and when the driver's
+    capture thread has taken a frame."""
 
     def __init__(self, device: SimRealSenseDevice, fps: int | None = None, **kw):
         w, h = device.sim_camera.size
         super().__init__(device.serial, w, h, device.fps if fps is None else fps, context=device, **kw)
         self.sim_device = device
-        self._waiting = 0
+        self._requests: list[tuple[int | None, float | None]] = []  # (newer_than, not_before_s) of each waiting caller
+        self._taken = 0  # frames the capture thread has dealt with (accepted, held or dropped)
         self._want = threading.Condition()
         self._pusher_stop = threading.Event()
         self._pusher: threading.Thread | None = None
@@ -356,8 +364,9 @@ class SimRealSenseCamera(RealSenseCamera):
 
     def get_frame(self, timeout_s: float = 2.0, newer_than: int | None = None,
                   not_before_s: float | None = None):
+        request = (newer_than, not_before_s)
         with self._want:
-            self._waiting += 1
+            self._requests.append(request)
             self._want.notify_all()
         try:
             f = super().get_frame(timeout_s, newer_than=newer_than, not_before_s=not_before_s)
@@ -365,7 +374,34 @@ class SimRealSenseCamera(RealSenseCamera):
             return f
         finally:
             with self._want:
-                self._waiting -= 1
+                self._requests.remove(request)
+
+    def _accept(self, f) -> None:
+        try:
+            super()._accept(f)
+        finally:
+            with self._want:
+                self._taken += 1
+                self._want.notify_all()
+
+    def _wanted(self) -> bool:
+        """Whether a caller waits in get_frame for a frame the driver does not have yet (asked with a
+        deadline already passed, the driver's own wait says whether it could hand one out now)."""
+        with self._want:
+            requests = list(self._requests)
+        for newer_than, not_before_s in requests:
+            try:
+                if wait_latest(self, self._who, time.monotonic(), newer_than, not_before_s, self._fresh) is None:
+                    return True
+            except DeviceError:
+                continue  # that caller's wait ends with this error: no frame reaches it
+        return False
+
+    def _taken_or_lost(self, taken: int, stop: threading.Event) -> bool:
+        """The frame pushed after `taken` frames has been dealt with by the capture thread, or never
+        will be: the stream stopped, the device went away or the capture failed."""
+        return (self._taken > taken or stop.is_set() or not self.running or not self.sim_device.present
+                or self._disconnected or self._thread_error is not None)
 
     def _push_loop(self, stop: threading.Event) -> None:
         dev = self.sim_device
@@ -375,15 +411,17 @@ class SimRealSenseCamera(RealSenseCamera):
         next_at = 0.0
         while not stop.is_set():
             with self._want:
-                if self._waiting == 0:
+                if not self._wanted():
+                    # woken by a new caller or a frame taken; checked again now and then for a frame going stale
                     self._want.wait(0.1)
                     continue
             if not dev.present or not self.running:
-                time.sleep(0.02)
+                stop.wait(0.02)
                 continue
             delay = next_at - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            if delay > 0:  # no faster than the stream's rate; meanwhile the caller may have what it needs
+                stop.wait(delay)
+                continue
             try:
                 settings = dev.forward_options()
                 started = getattr(sim, "running", True)
@@ -397,22 +435,25 @@ class SimRealSenseCamera(RealSenseCamera):
                     f = sim.get_frame(2.0, newer_than=last_number)
                 exposure_us = float(f.meta.get("exposure_us") or settings["exposure_us"])
                 start_s = f.exposure_start_s if f.exposure_start_s is not None else t_request
-                before = self.stats.accepted
+                with self._want:
+                    taken = self._taken
                 if not dev.push(f, exposure_us, start_s):  # stalled: nothing reaches the driver
                     last_number = f.frame_number
-                    time.sleep(period)
+                    stop.wait(period)
                     continue
             except Exception as e:  # noqa: BLE001 - the driver reports a stalled stream as a timeout
                 self.push_error = e
-                time.sleep(0.05)
+                stop.wait(0.05)
                 continue
             last_number = f.frame_number
             self.pushed += 1
             next_at = max(next_at + period, time.monotonic())
-            # let the driver's capture thread take it before deciding whether more is wanted
-            deadline = time.monotonic() + 0.5
-            while self.stats.accepted == before and time.monotonic() < deadline and not stop.is_set():
-                time.sleep(0.001)
+            # what is wanted next depends on what the driver made of this frame: wait until its capture
+            # thread has taken it (accepted, held after a reset, or dropped as late), however long that
+            # takes; a frame pushed as the stream goes is never taken, and the wait ends with the stream
+            with self._want:
+                while not self._taken_or_lost(taken, stop):
+                    self._want.wait(0.05)
 
 
 class SimRealSenseRig(SimDriverRig):
