@@ -51,7 +51,7 @@ from calib.quality.metrics import compare, distortion_error_over_image  # noqa: 
 from calib.synthetic import SyntheticSession, observe  # noqa: E402
 from drivers.sim.render import PlacedBoard, Renderer, SceneState  # noqa: E402
 from drivers.sim.scenarios import get_scenario  # noqa: E402
-from drivers.sim.structured import render_sequence, true_projector_px  # noqa: E402
+from drivers.sim.structured import placement_poses, render_sequence, true_projector_px  # noqa: E402
 
 ARMS = {
     "circles": None,
@@ -62,23 +62,9 @@ ARMS = {
     "sl-grid-4steps": (StructuredLightSpec(32, 4), BoardPoints.BLANK_GRID),
     "sl-grid-64px": (StructuredLightSpec(64, 8), BoardPoints.BLANK_GRID),
 }
-POSITION_ORDER = (0, 2, 4, 6, 8, 1, 3, 5, 7, 9, 10, 11, 12)
-
-
 def placements(sc, n: int) -> list[tuple[int, np.ndarray]]:
     poses = sc.projector_poses
-    per = sc.per_position
-    order = [p for p in POSITION_ORDER if p < sc.pattern.positions]
-    out = []
-    k = 0
-    while len(out) < n:
-        for p in order:
-            if len(out) < n and p * per + k < len(poses):
-                out.append(poses[p * per + k])
-        k += 1
-        if k >= per:
-            break
-    return out
+    return [poses[p * sc.per_position + k] for p, k in placement_poses(sc, n)]
 
 
 def mirror_views(sc, seed: int):

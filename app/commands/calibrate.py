@@ -175,6 +175,7 @@ def run(args) -> int:
     kept = verified_and_unchanged(session, out, result)
     write_result(result, out, keep_json=kept)
     print(format_summary(result))
+    print(f"placements: {session_placements(session)}")
     print(f"\nkept {out}: the result is the one it holds (to {SAME_TOL:g}), so {VERIFICATION_NAME} still verifies it"
           if kept else f"\nwrote {out}")
     print("\n".join(f"wrote {p}" for p in exports))
@@ -186,6 +187,14 @@ def run(args) -> int:
     from app.commands._quality import EXIT_LOW_QUALITY, report_low_quality
 
     return EXIT_LOW_QUALITY if report_low_quality(result) else 0
+
+
+def session_placements(session) -> int:
+    """How many positions the operator put the board in for the session's captures."""
+    from calib.formats.session import SessionStore
+    from calib.formats.session_captures import placements
+
+    return placements(SessionStore.open(session).manifest.captures)
 
 
 def write_result(result, out: Path, keep_json: bool = False) -> None:

@@ -2,7 +2,9 @@
 
 Writes DIR as a live capture would (session.json + images/*.png, via calib.formats.session.SessionStore), plus
 DIR/ground_truth.json (the true calibration, CalibrationResult schema) and DIR/scene.json (the full
-scene: devices, mirror rectangle, board poses per capture, render settings).
+scene: devices, mirror rectangle, board poses per capture, render settings). With `--projector-pattern
+structured` the projector step is a few placements (`--placements`), each the structured-light sequence
+(calib.models.structured_light) rendered while the board stands still, stored as one structured capture.
 """
 
 from __future__ import annotations
@@ -15,15 +17,21 @@ import numpy as np
 
 from app.commands import _types
 from calib.formats import session_files
-from calib.models.vocab import RenderQuality, choices
+from calib.models.structured_light import StructuredLightSpec
+from calib.models.vocab import PatternKind, RenderQuality, choices
 
 NAME = "simulate"
 HELP = "render a capture session of a simulated rig (with ground truth), or --list the scenarios"
 DESCRIPTION = (
     "Renders every capture of the paper's protocol (mirror calibration, then 13 pattern positions x 4 "
     "board poses) for a named simulated rig and writes a session folder in the format live captures use, "
-    "plus ground_truth.json and scene.json. `procam simulate --list` lists the scenarios."
+    "plus ground_truth.json and scene.json. With --projector-pattern structured the projector step is "
+    "--placements board placements, each showing the structured-light sequence. `procam simulate --list` "
+    "lists the scenarios."
 )
+#: what --projector-pattern offers: the scenario's own pattern, or the structured-light sequence
+PROJECTOR_PATTERNS = (PatternKind.CIRCLES.value, PatternKind.STRUCTURED.value)
+DEFAULT_PLACEMENTS = 6
 
 
 def _scenario_default(name: str):
@@ -52,6 +60,11 @@ def add_arguments(p) -> None:
                         f"{_scenario_default('per_position')} as in the paper)")
     p.add_argument("--mirror-count", type=_types.int_range(1, 500), default=None, metavar="N",
                    help=f"mirror-calibration captures (default: the scenario's, {_scenario_default('mirror_count')})")
+    p.add_argument("--projector-pattern", choices=PROJECTOR_PATTERNS, default=PatternKind.CIRCLES.value,
+                   help="the projector step: the scenario's circle grid at every pose (default), or structured: "
+                        "the structured-light sequence at a few placements (--placements)")
+    p.add_argument("--placements", type=_types.int_range(1, 52), default=None, metavar="N",
+                   help=f"projector placements with --projector-pattern structured (default {DEFAULT_PLACEMENTS})")
     p.add_argument("--workers", type=_types.workers, default=2, help="render processes (default %(default)s)")
     p.add_argument("--force", action="store_true", help="write into DIR even if it holds a session")
     p.add_argument("--no-progress", action="store_true",
@@ -93,31 +106,55 @@ def run(args) -> int:
         changes["render"] = replace(scenario.render, **settings)
     if changes:
         scenario = replace(scenario, **changes)
+    structured = args.projector_pattern == PatternKind.STRUCTURED.value
+    if args.placements is not None and not structured:
+        raise SpecError("--placements counts structured-light placements: give it with --projector-pattern structured")
+    placements = (args.placements or DEFAULT_PLACEMENTS) if structured else None
     simulate_session(scenario, args.out, quality=args.quality, workers=args.workers, force=args.force,
-                     progress=not args.no_progress)
+                     progress=not args.no_progress, structured_placements=placements)
     print(f"wrote {args.out}: session.json, images/, ground_truth.json, scene.json")
     return 0
 
 
 # ---- the work ------------------------------------------------------------------------------------------
-def capture_plan(scenario) -> list[dict]:
-    """Every capture of a session, in order: mirror calibration first, then the projector step."""
+def capture_plan(scenario, structured_placements: int | None = None) -> list[dict]:
+    """Every capture of a session, in order: mirror calibration first, then the projector step (with
+    `structured_placements`, that many of the scenario's poses, each a structured-light capture). Each
+    capture is a placement of its own (`key`)."""
     jobs = []
     if scenario.mirror_method is not None:
         step = "mirror-real-virtual" if scenario.mirror_method == "real-virtual" else "mirror-real-mirror"
         for k in range(len(scenario.mirror_poses)):
             jobs.append({"step": step, "position": None, "index": k})
-    count: dict[int, int] = {}
-    for pos, _ in scenario.projector_poses:
-        k = count.get(pos, 0)
-        count[pos] = k + 1
-        jobs.append({"step": "projector", "position": pos, "index": k})
+    if structured_placements is not None:
+        from drivers.sim.structured import placement_poses
+
+        jobs += [{"step": "projector", "position": pos, "index": k, "structured": True}
+                 for pos, k in placement_poses(scenario, structured_placements)]
+    else:
+        count: dict[int, int] = {}
+        for pos, _ in scenario.projector_poses:
+            k = count.get(pos, 0)
+            count[pos] = k + 1
+            jobs.append({"step": "projector", "position": pos, "index": k})
     for i, j in enumerate(jobs):
         j["key"] = i
     return jobs
 
 
 _worker_rig = None
+#: the sequence a structured simulated session shows (the default: docs/STRUCTURED_LIGHT.md)
+STRUCTURED_SPEC = StructuredLightSpec()
+#: a structured capture's frames draw their noise from keys FRAME_KEY_BASE * (1 + capture key) + frame
+FRAME_KEY_BASE = 1000
+
+
+def _single_channel(image: np.ndarray) -> np.ndarray:
+    """The simulator's grey camera image as one channel: a third of the bytes to send between processes
+    (the session stores it so anyway)."""
+    if image.ndim == 3 and np.array_equal(image[..., 0], image[..., 1]) and np.array_equal(image[..., 1], image[..., 2]):
+        return np.ascontiguousarray(image[..., 0])
+    return image
 
 
 def _init_worker(scenario, quality):
@@ -129,11 +166,19 @@ def _init_worker(scenario, quality):
 
 
 def _render_job(job: dict):
-    """Place the board, show the pattern (or black), render: (key, image, T_cam_board, points or None)."""
+    """Place the board, show the pattern (or black), render: (key, image, T_cam_board, points or None); a
+    structured job's image is the list of its sequence's frames."""
     rig = _worker_rig
     sc = rig.scenario
     W, H = sc.rig.projector.size
     rig.operator.request_pose(job["step"], job["position"], job["index"])
+    if job.get("structured"):
+        frames = []
+        for f, img in enumerate(STRUCTURED_SPEC.images(W, H)):
+            rig.projector.show(img)
+            # one noise draw per frame, none shared with another capture's
+            frames.append(_single_channel(rig.render_still(FRAME_KEY_BASE * (1 + job["key"]) + f)))
+        return job["key"], frames, rig.board.T_cam_board.copy(), None
     pts = None
     if job["step"] == "projector":
         img, pts = sc.pattern.render(W, H, job["position"])
@@ -145,19 +190,21 @@ def _render_job(job: dict):
 
 
 def simulate_session(scenario, out, quality: str = "session", workers: int = 2, force: bool = False,
-                     progress: bool = True):
-    """Render the scenario's session into folder `out`; returns the SessionStore."""
+                     progress: bool = True, structured_placements: int | None = None):
+    """Render the scenario's session into folder `out` (its projector step `structured_placements`
+    structured-light captures when given); returns the SessionStore."""
     from calib.formats.session import RigInfo, SessionManifest, SessionStore
     from drivers.sim.rig import SimRig
 
     out = Path(out)
-    jobs = capture_plan(scenario)
+    jobs = capture_plan(scenario, structured_placements)
     probe = SimRig(scenario, quality, ideal=True)
     rig = scenario.rig
     manifest = SessionManifest(
         rig=RigInfo(rig.camera.size, rig.projector.size, rig.view, probe.camera.settings(), "sim"),
         projector_board=scenario.projector_board,
-        pattern=scenario.pattern,
+        pattern=scenario.pattern if structured_placements is None else replace(scenario.pattern,
+                                                                              kind=PatternKind.STRUCTURED.value),
         mirror_board=scenario.mirror_board if scenario.mirror_method else None,
         mirror_method=scenario.mirror_method,
         board_thickness=float(scenario.board_thickness_mm) if scenario.mirror_method == "real-mirror" else 0.0,
@@ -178,11 +225,15 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
         while next_key in results:
             key, image, T, pts = results.pop(next_key)
             job = jobs[key]
-            cap = store.add_capture(job["step"], image, job["position"], pts,
-                                    meta={"sim_pose_index": job["index"]})
+            meta = {"sim_pose_index": job["index"]}
+            if job.get("structured"):
+                meta["sim_pattern_position"] = job["position"]
+                cap = store.add_structured_capture(image, STRUCTURED_SPEC, placement=key, meta=meta)
+            else:
+                cap = store.add_capture(job["step"], image, job["position"], pts, meta=meta, placement=key)
             scene_caps.append({"id": cap.id, "step": job["step"], "image": cap.image,
                                "pattern_position": job["position"], "pose_index": job["index"],
-                               "T_cam_board": T.tolist()})
+                               "T_cam_board": T.tolist(), **({"frames": list(cap.frames)} if cap.frames else {})})
             next_key += 1
             tick(next_key, len(jobs))
 

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from calib.detection import cache as detect_cache
+from calib.detection import structured_session
 from calib.detection.response import CameraResponse, recorded_response
 from calib.errors import SessionError
 from calib.formats.fileio import read_regular
@@ -1004,6 +1005,8 @@ def _run_job(job: _Job, seen: dict | None = None):
     holds a valid result for exactly these bytes, or `seen` ({(SHA-1, step, mirrored): result}, shared
     by the jobs of one run) holds the result of a byte-identical image detected for the same step."""
     digest = None
+    if isinstance(job, structured_session.StructuredJob):
+        return job.run()
     if job.refused is not None:
         return job.capture_id, DetectionFailure(job.refused), None
     try:
@@ -1075,6 +1078,8 @@ _CACHE_LOCK = threading.Lock()
 
 def _job_for(store, c, old: dict, cache_on: bool):
     """(_Job, job key or None) of capture `c` of a SessionStore; `old` its detections.json entries."""
+    if c.structured:
+        return structured_session.job_for(store, c), None
     m = store.manifest
     board = m.projector_board if c.step == STEP_PROJECTOR else (m.mirror_board or m.projector_board)
     flip = m.rig.view == VIEW_MIRROR and c.step == STEP_PROJECTOR
@@ -1187,7 +1192,8 @@ def detect_session(store, workers: int = 2, progress=None, cache: str = "use") -
             skipped.append(Skipped(c.id, c.image, res.reason))
         elif c.step == STEP_PROJECTOR:
             board, pts = res
-            pviews.append(ProjectorView(c.id, board, pts, c.pattern_points_px, c.pattern_position))
+            pviews.append(structured_session.projector_view(c, board, pts) if c.structured else
+                          ProjectorView(c.id, board, pts, c.pattern_points_px, c.pattern_position))
         else:
             mviews.append(res)
     return SessionObservations(

@@ -28,7 +28,6 @@ Entry point: `decode_sequence(images, spec, projector_size) -> DecodedMap`.
 from __future__ import annotations
 
 import enum
-import warnings
 from dataclasses import dataclass
 from types import MappingProxyType
 
@@ -199,8 +198,10 @@ def _valid_median3(c: np.ndarray, ok: np.ndarray) -> np.ndarray:
     p = np.pad(v, 1, constant_values=np.nan)
     H, W = v.shape
     stack = np.stack([p[i : i + H, j : j + W] for i in range(3) for j in range(3)])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods: handled below
-        med = np.nanmedian(stack, axis=0)
-    out[y0:y1, x0:x1] = np.where(np.isfinite(med), med, out[y0:y1, x0:x1])
+    # an all-NaN neighbourhood keeps the pixel's own value; filled first, since nanmedian warns about it
+    # (and silencing warnings is not thread-safe: captures are decoded in detection threads)
+    has = np.isfinite(stack).any(axis=0)
+    stack[:, ~has] = 0.0
+    med = np.nanmedian(stack, axis=0)
+    out[y0:y1, x0:x1] = np.where(has, med, out[y0:y1, x0:x1])
     return out

@@ -11,7 +11,8 @@ session.json (format "procam-session", version 1):
     any of the units (converted to the session's on load)
   pattern: PatternSpec dict
   mirror_method: "real-virtual" | "real-mirror" | null; board_thickness: number (board units)
-  captures: [{id, step, image, pattern_position?, pattern_points_px?, meta?}, ...]
+  captures: [{id, step, image, pattern_position?, pattern_points_px?, placement?, meta?}, ...], a
+    structured-light capture with pattern_kind, structured_light and frames (calib.formats.session_captures)
   state: object the station uses to resume (current step, position, ...); the types of the fields it
          reads are checked at load (STATE_FIELDS), other keys are kept as they are
 
@@ -41,6 +42,7 @@ from calib.errors import FormatError, SessionError, UnsafeFileError
 from calib.formats import session_files
 from calib.formats.fileio import (MANIFEST_MAX_BYTES, atomic_write_bytes, parse_json, read_regular,
                                   remove_stale_temporaries)
+from calib.formats.session_captures import IMAGE_RE, Capture, capture_from_dict, typed
 from calib.formats.session_lock import SessionLock
 from calib.formats.session_lock import acquire as _acquire_lock
 from calib.models.boards import CharucoSpec
@@ -58,12 +60,6 @@ MAX_IMAGE_SIDE = 100_000  # pixels: a width or height above this is a corrupt fi
 MANIFEST_KEYS = ("format", "version", "rig", "projector_board", "mirror_board", "pattern", "mirror_method",
                  "board_thickness", "captures", "state")
 UNKNOWN_MAX_BYTES = 64 * 1024
-
-#: the only form a capture's `id` may take: it is printed, named in reports and matched against the cache,
-#: so no separators, spaces or control characters
-CAPTURE_ID_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
-#: the only form a capture's `image` may take: a PNG file directly in the images folder
-IMAGE_RE = re.compile(r"images/[A-Za-z0-9_][A-Za-z0-9_.-]{0,200}\.png")
 
 _NUMBER = (int, float)
 #: the `state` fields the station reads on resume, with their types (None: may be null); other keys are kept
@@ -94,26 +90,6 @@ class RigInfo:
             "camera_settings": self.camera_settings,
             "driver": self.driver,
         }
-
-
-@dataclass(frozen=True, eq=False)
-class Capture:
-    id: str
-    step: str
-    image: str  # path relative to the session folder
-    pattern_position: int | None = None
-    pattern_points_px: np.ndarray | None = None  # projector pixels of the shown pattern points
-    meta: dict = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        d = {"id": self.id, "step": self.step, "image": self.image}
-        if self.pattern_position is not None:
-            d["pattern_position"] = int(self.pattern_position)
-        if self.pattern_points_px is not None:
-            d["pattern_points_px"] = np.asarray(self.pattern_points_px, float).tolist()
-        if self.meta:
-            d["meta"] = self.meta
-        return d
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,61 +189,15 @@ class SessionManifest:
         caps = need(d, "captures", "", list)
         captures, seen = [], set()
         for i, c in enumerate(caps):
-            where = f"captures[{i}]."
-            cid = need(c, "id", where, str)
-            if not CAPTURE_ID_RE.fullmatch(cid):
-                raise FormatError(path, f"{where}id", f"must be 1 to 64 letters, digits, '-', '_' or '.' (not "
-                                  f"starting with '-' or '.'), got {cid[:40]!r}")
-            if cid in seen:
-                raise FormatError(path, f"{where}id", f"duplicate capture id '{cid}'")
-            seen.add(cid)
-            step = need(c, "step", where, str)
-            if step not in STEPS:
-                raise FormatError(path, f"{where}step", f"must be one of {STEPS}, got '{step}'")
-            image = need(c, "image", where, str)
-            if not IMAGE_RE.fullmatch(image):
-                raise FormatError(path, f"{where}image", f"must name a file in the session's images folder "
-                                                         f"(images/NAME.png), got {image[:80]!r}")
-            pos = c.get("pattern_position")
-            if pos is not None and (not isinstance(pos, int) or isinstance(pos, bool)):
-                raise FormatError(path, f"{where}pattern_position", "must be an integer")
-            if pos is not None and not 0 <= pos < pattern.positions:
-                raise FormatError(path, f"{where}pattern_position",
-                                  f"is {pos}, the pattern has positions 0..{pattern.positions - 1}")
-            pts = c.get("pattern_points_px")
-            if step == STEP_PROJECTOR and pts is None:
-                raise FormatError(path, f"{where}pattern_points_px", "missing (projector captures need the shown points)")
-            if pts is not None:
-                try:
-                    pts = np.array(pts, float).reshape(-1, 2)
-                except (TypeError, ValueError):
-                    raise FormatError(path, f"{where}pattern_points_px", "must be a list of [x, y] pairs") from None
-                if len(pts) != pattern.n_points:
-                    raise FormatError(path, f"{where}pattern_points_px",
-                                      f"has {len(pts)} points, the pattern has {pattern.n_points}")
-                pw, ph = sizes[1]
-                if np.any(np.abs(pts - (pw / 2, ph / 2)) > (1.5 * pw, 1.5 * ph)):
-                    raise FormatError(path, f"{where}pattern_points_px",
-                                      f"has points far outside the {pw}x{ph} projector image")
-            meta = c.get("meta", {})
-            if not isinstance(meta, dict):
-                raise FormatError(path, f"{where}meta", "must be an object")
-            if "pose_index" in meta and not _typed(meta["pose_index"], (int,)):
-                raise FormatError(path, f"{where}meta.pose_index", "must be an integer")
-            captures.append(Capture(cid, step, image, pos, pts, meta))
+            cap = capture_from_dict(c, i, pattern, sizes[1], path)
+            if cap.id in seen:
+                raise FormatError(path, f"captures[{i}].id", f"duplicate capture id '{cap.id}'")
+            seen.add(cap.id)
+            captures.append(cap)
         state = d.get("state")
         state = {} if state is None else state
         _check_state(state, path)
         return cls(rig_info, pboard, pattern, mboard, method, float(thickness), tuple(captures), state)
-
-
-def _typed(value, types: tuple) -> bool:
-    """`value` is one of `types` (None in `types` allows null; a bool is not an int or float)."""
-    if value is None:
-        return None in types
-    if isinstance(value, bool):
-        return bool in types
-    return isinstance(value, tuple(t for t in types if t is not None))
 
 
 _TYPE_WORDS = {str: "a string", int: "an integer", float: "a number", bool: "true or false", dict: "an object",
@@ -276,7 +206,7 @@ _TYPE_WORDS = {str: "a string", int: "an integer", float: "a number", bool: "tru
 
 def _check_fields(obj: dict, fields: dict, where: str, path) -> None:
     for key, types in fields.items():
-        if key in obj and not _typed(obj[key], types):
+        if key in obj and not typed(obj[key], types):
             names = " or ".join(_TYPE_WORDS[t] for t in types if not (t is int and float in types))
             raise FormatError(path, f"{where}{key}", f"must be {names}, got {json.dumps(obj[key])[:40]}")
 
@@ -296,7 +226,7 @@ def _check_state(state, path) -> None:
     if isinstance(state.get("rig_request"), dict):
         _check_fields(state["rig_request"], _RIG_REQUEST_FIELDS, "state.rig_request.", path)
     for key, value in (state.get("plan") or {}).items():
-        if not _typed(value, (int,)) or value < 0 or (key == "poses_per_position" and value < 1):
+        if not typed(value, (int,)) or value < 0 or (key == "poses_per_position" and value < 1):
             raise FormatError(path, f"state.plan.{key}", "must be a whole number >= 0 (poses_per_position >= 1)")
 
 
@@ -469,28 +399,49 @@ class SessionStore:
             raise SessionError(f"{d} is not a folder")
         return d
 
-    def next_id(self, step: str) -> str:
-        prefix = {"projector": "p", "mirror-real-virtual": "mrv", "mirror-real-mirror": "mrm"}[step]
+    def next_id(self, step: str, structured: bool = False) -> str:
+        prefix = "s" if structured else {"projector": "p", "mirror-real-virtual": "mrv", "mirror-real-mirror": "mrm"}[step]
         used = [int(m.group(1)) for c in self._manifest.captures if (m := re.fullmatch(prefix + r"(\d+)", c.id))]
-        taken = {p.stem for p in (self.folder / IMAGES_DIR).glob(prefix + "*.png")}
+        # a structured capture's frames are ID-fNN.png
+        taken = {p.stem.split("-f")[0] for p in (self.folder / IMAGES_DIR).glob(prefix + "*.png")}
         n = max(used, default=-1) + 1
         while f"{prefix}{n:04d}" in taken:  # never overwrite an orphan image of a crashed write
             n += 1
         return f"{prefix}{n:04d}"
 
+    def _write_png(self, cid: str, rel: str, image: np.ndarray) -> None:
+        ok, buf = cv2.imencode(".png", _storage_form(image))
+        if not ok:
+            raise SessionError(f"could not encode capture {cid} as PNG")
+        atomic_write_bytes(self.folder / rel, buf.tobytes())
+
     def add_capture(self, step: str, image: np.ndarray, pattern_position: int | None = None,
-                    pattern_points_px: np.ndarray | None = None, meta: dict | None = None) -> Capture:
+                    pattern_points_px: np.ndarray | None = None, meta: dict | None = None,
+                    placement: int | None = None) -> Capture:
         """Write the image, then the manifest naming it. Returns the capture once both are on disk."""
         self._ensure_lock()
         self._images_dir()
         cid = self.next_id(step)
         rel = f"{IMAGES_DIR}/{cid}.png"
-        ok, buf = cv2.imencode(".png", _storage_form(image))
-        if not ok:
-            raise SessionError(f"could not encode capture {cid} as PNG")
-        atomic_write_bytes(self.folder / rel, buf.tobytes())
+        self._write_png(cid, rel, image)
         cap = Capture(cid, step, rel, pattern_position,
-                      None if pattern_points_px is None else np.asarray(pattern_points_px, float), meta or {})
+                      None if pattern_points_px is None else np.asarray(pattern_points_px, float), meta or {},
+                      placement)
+        self._write_manifest(replace(self._manifest, captures=self._manifest.captures + (cap,)))
+        return cap
+
+    def add_structured_capture(self, images, spec, placement: int | None = None,
+                               meta: dict | None = None) -> Capture:
+        """A structured-light projector capture (calib.models.structured_light.StructuredLightSpec `spec`):
+        every frame of `images` written first, then the manifest naming them."""
+        self._ensure_lock()
+        self._images_dir()
+        cid = self.next_id(STEP_PROJECTOR, structured=True)
+        frames = tuple(f"{IMAGES_DIR}/{cid}-f{k:02d}.png" for k in range(len(images)))
+        for rel, image in zip(frames, images, strict=True):
+            self._write_png(cid, rel, image)
+        cap = Capture(cid, STEP_PROJECTOR, frames[0], meta=meta or {}, placement=placement, structured_light=spec,
+                      frames=frames)
         self._write_manifest(replace(self._manifest, captures=self._manifest.captures + (cap,)))
         return cap
 
@@ -502,14 +453,14 @@ class SessionStore:
         if not match:
             raise SessionError(f"no capture '{capture_id}' in this session")
         self._write_manifest(replace(self._manifest, captures=tuple(c for c in caps if c.id != capture_id)))
-        rel = match[0].image
         d = self.folder / IMAGES_DIR
-        if not IMAGE_RE.fullmatch(rel) or not self._inside(d):
-            return  # not a file of this folder's own images folder: left alone
-        try:
-            os.unlink(self.folder / rel)  # unlink never follows a link
-        except (FileNotFoundError, IsADirectoryError, PermissionError):
-            pass
+        for rel in match[0].frames or (match[0].image,):
+            if not IMAGE_RE.fullmatch(rel) or not self._inside(d):
+                continue  # not a file of this folder's own images folder: left alone
+            try:
+                os.unlink(self.folder / rel)  # unlink never follows a link
+            except (FileNotFoundError, IsADirectoryError, PermissionError):
+                pass
 
     # ---- reading --------------------------------------------------------------------------------
     def _inside(self, path: Path) -> bool:
@@ -522,12 +473,16 @@ class SessionStore:
     def image_path(self, capture: Capture) -> Path:
         """The capture's image file; SessionError when its path, links followed, leads out of the session
         folder (said the same whether or not anything exists there)."""
-        if not IMAGE_RE.fullmatch(capture.image):
-            raise SessionError(f"capture '{capture.id}': image path {capture.image[:80]!r} is not in the session's "
+        return self.file_path(capture, capture.image)
+
+    def file_path(self, capture: Capture, rel: str) -> Path:
+        """File `rel` (its image or one of its frames) of `capture`, checked as image_path checks."""
+        if not IMAGE_RE.fullmatch(rel):
+            raise SessionError(f"capture '{capture.id}': image path {rel[:80]!r} is not in the session's "
                                f"images folder; refused")
-        path = self.folder / capture.image
+        path = self.folder / rel
         if not self._inside(path):
-            raise SessionError(f"capture '{capture.id}': image {capture.image} is a link leading out of the session "
+            raise SessionError(f"capture '{capture.id}': image {rel} is a link leading out of the session "
                                f"folder; refused")
         return path
 

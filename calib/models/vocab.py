@@ -81,6 +81,9 @@ class PatternKind(enum.StrEnum):
 
     CIRCLES = "circles"
     CHESSBOARD = "chessboard"
+    #: a coded sequence per board placement (docs/STRUCTURED_LIGHT.md); the calibration reads its points
+    #: as points (no circle model)
+    STRUCTURED = "structured"
 
 
 class CalibrationMethod(enum.StrEnum):

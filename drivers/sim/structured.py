@@ -3,7 +3,8 @@ coordinates every camera pixel sees (the ground truth decoding is measured again
 
 `render_sequence` renders each frame of a calib.models.structured_light.StructuredLightSpec onto a
 board that stands still, with the renderer's photometric effects (defocus, gamma, black level,
-vignetting, blur, noise). `true_projector_px` traces camera pixels to the board (through the mirror when
+vignetting, blur, noise). `placement_poses` picks a few of a scenario's projector poses for a structured
+session. `true_projector_px` traces camera pixels to the board (through the mirror when
 the rig has one) and projects the hit points into the projector, its distortion included.
 """
 
@@ -40,3 +41,20 @@ def true_projector_px(renderer: Renderer, layout: BoardLayout, T_cam_board: np.n
     q = renderer.projector.project(transform_points(renderer.T_proj_cam @ T, Xb))
     q[~ok] = np.nan
     return q
+
+
+#: the pattern positions' order when only a few placements are taken: the corners and centre first
+#: (calib.models.pattern's positions), so a few placements still spread over the projector's image
+POSITION_ORDER = (0, 2, 4, 6, 8, 1, 3, 5, 7, 9, 10, 11, 12)
+
+
+def placement_poses(scenario, n: int) -> list[tuple[int, int]]:
+    """(pattern position, pose index in that position) of `n` of the scenario's scripted projector poses:
+    one pose of each position in POSITION_ORDER, then the next pose of each, ..."""
+    per = scenario.per_position
+    order = [p for p in POSITION_ORDER if p < scenario.pattern.positions]
+    n_poses = len(scenario.projector_poses)
+    out = []
+    for k in range(per):
+        out += [(p, k) for p in order if p * per + k < n_poses]
+    return out[:n]
