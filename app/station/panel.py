@@ -82,7 +82,7 @@ from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane
 from app.station.panel_uncertainty import DEVICES as UNCERTAINTY_DEVICES
 from app.station.panel_uncertainty import INTRO as UNCERTAINTY_INTRO
 from app.station.panel_uncertainty import uncertainty_image, uncertainty_text
-from app.station.station import rate_of
+from app.station.frame_source import rate_of
 from app.words import plural
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from calib.quality.coverage import GRID_COLUMNS, coverage_fraction
@@ -419,10 +419,10 @@ class StationPanel(ControlsMixin):
     def alert_text(self) -> str:
         """The banner over the panel when the capture loop failed: restarted, or stopped for good."""
         st = self.station
-        stopped = getattr(st, "loop_stopped", None)
+        stopped = st.frames.loop_stopped
         if stopped:
             return f"**The capture loop stopped.** {stopped}"
-        errors = getattr(st, "loop_errors", [])
+        errors = st.frames.loop_errors
         if errors and time.monotonic() - errors[-1].time_s < 20.0:
             e = errors[-1]
             return (f"**The capture loop failed and was restarted** ({e.summary}). The traceback is in the Log "
@@ -495,7 +495,7 @@ class StationPanel(ControlsMixin):
         box drawn over it (RGB), and a key that changes when any of them does; None when there is no
         frame yet or the key is `unless_key` (nothing new to draw)."""
         st = self.station
-        frame = st.preview
+        frame = st.frames.preview
         live = st.live
         if frame is None and live is None:
             return None
@@ -541,7 +541,7 @@ class StationPanel(ControlsMixin):
         m, st = self.machine, self.station
         if m.result is None or m.busy:
             return
-        frame = st.preview
+        frame = st.frames.preview
         for obj, checks in ((m.report, getattr(m.report, "checks", None)), (st.pixel_check, None)):
             if obj is None or id(obj) in self._predicted:
                 continue
@@ -694,7 +694,7 @@ class StationPanel(ControlsMixin):
 
     def _notify_loop_errors(self) -> None:
         """A toast in every browser for each unexpected error of the capture loop."""
-        errors = list(getattr(self.station, "loop_errors", []))
+        errors = list(self.station.frames.loop_errors)
         new, self._loop_errors_seen = errors[self._loop_errors_seen:], len(errors)
         for e in new[-3:]:
             for ctl in list(self._clients.values()):
@@ -739,9 +739,10 @@ class StationPanel(ControlsMixin):
                         self.image_updates += 1
                         self._image_times.append(time.monotonic())
                         del self._image_times[:-60]
+                        frames = self.station.frames
                         self._set(self.h_live, "content",
-                                  f"Live: {rate_text(self.image_rate)} updates/s, camera {rate_text(self.station.preview_fps)} "
-                                  f"frames/s, detection {rate_text(self.station.detection_fps)}/s. {LEGEND}")
+                                  f"Live: {rate_text(self.image_rate)} updates/s, camera {rate_text(frames.preview_fps)} "
+                                  f"frames/s, detection {rate_text(frames.detection_fps)}/s. {LEGEND}")
                         if self.h_plane is not None and t0 - self._plane_s >= 1.0 / PLANE_RATE_HZ:
                             self._plane_s = t0
                             self.h_plane.image = img

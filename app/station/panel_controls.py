@@ -188,7 +188,7 @@ class ControlsMixin:
             def _(event):
                 if self._allowed(ctl, event):
                     st.options.follow_operator = bool(h["follow"].value)
-                    st._requested = None
+                    st.operator.forget()
                     self._log_action(ctl, f"set the simulated operator {'on' if h['follow'].value else 'off'}")
 
         if self.mode_controls is not None:
