@@ -413,7 +413,7 @@ def test_the_operator_sees_a_loop_failure_in_the_browser(tmp_path):
     real_tick, failed = st._tick, []
 
     def failing_tick():
-        if panel._clients and not failed:  # once, when the browser is there
+        if panel.controls.clients and not failed:  # once, when the browser is there
             failed.append(1)
             raise ZeroDivisionError("injected for the test")
         return real_tick()
