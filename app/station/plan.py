@@ -31,7 +31,7 @@ class Plan:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "Plan":
+    def from_dict(cls, d: dict | None) -> Plan:
         d = d or {}
         return cls(**{k: int(v) for k, v in d.items() if k in cls.__dataclass_fields__})
 
@@ -48,7 +48,7 @@ class Target:
         return {"step": self.step, "pattern_position": self.pattern_position, "pose_index": self.pose_index}
 
     @classmethod
-    def from_dict(cls, d) -> "Target | None":
+    def from_dict(cls, d) -> Target | None:
         if not isinstance(d, dict) or "step" not in d:
             return None
         pos = d.get("pattern_position")

@@ -5,27 +5,6 @@ operator for the target's pose when the station leads the operator, detect what 
 auto-capture, and write a capture when it says so. `procam session --auto` calls `tick()` in a loop;
 `procam station` calls it from a background thread while the panel shows `live` and calls the
 operator's actions (which go through the SessionMachine, so refusals carry their reasons).
-
-`Station` wires its collaborators, each with one job (the modules are app.station's):
-
-- `machine` (machine.SessionMachine): the session's steps, targets and refusals; it writes the captures
-  and runs calibration and verification. The station never decides what is allowed.
-- `frames` (frame_source.FrameSource): the camera's frames (a preview thread keeps the newest), the
-  timing rule saying which count after a change, the camera's problems, the frame rates, and the
-  supervised capture loop of `procam station`.
-- `operator` (auto_operator.AutoOperator): asks the rig's operator for each target's pose (the simulated
-  one moves the board), for another pose when auto-capture keeps none, and with `--auto` takes the
-  guideline's next step itself.
-- `autocap` (autocapture.AutoCapture): per frame, whether the board is still and in a new pose.
-- `captures` (capture_writer.CaptureWriter): writes a kept frame with its record, then detects it in the
-  background as calibration will.
-- `activities` (activity.Activities): what runs now and what the last actions came to; `light_watch`
-  (projector_light.ProjectorLightWatch): whether the pattern still reaches the camera; the rig check
-  (rig_check.RigChecker) and the operator's words (wording) are run and asked by the station.
-
-What stays here: the projector's image (pattern or black, and from when it is visible), one frame's
-work (`tick`), the capture button, and the long actions (calibrate, verify, check a pixel: inline when
-headless, in a worker thread under the panel).
 """
 
 from __future__ import annotations
@@ -90,6 +69,28 @@ class LiveView:
 
 
 class Station:
+    """Wires its collaborators, each with one job (the modules are app.station's):
+
+    - `machine` (machine.SessionMachine): the session's steps, targets and refusals; it writes the captures
+      and runs calibration and verification. The station never decides what is allowed.
+    - `frames` (frame_source.FrameSource): the camera's frames (a preview thread keeps the newest), the
+      timing rule saying which count after a change, the camera's problems, the frame rates, and the
+      supervised capture loop of `procam station`.
+    - `operator` (auto_operator.AutoOperator): asks the rig's operator for each target's pose (the simulated
+      one moves the board), for another pose when auto-capture keeps none, and with `--auto` takes the
+      guideline's next step itself.
+    - `autocap` (autocapture.AutoCapture): per frame, whether the board is still and in a new pose.
+    - `captures` (capture_writer.CaptureWriter): writes a kept frame with its record, then detects it in the
+      background as calibration will.
+    - `activities` (activity.Activities): what runs now and what the last actions came to; `light_watch`
+      (projector_light.ProjectorLightWatch): whether the pattern still reaches the camera; the rig check
+      (rig_check.RigChecker) and the operator's words (wording) are run and asked by the station.
+
+    What stays here: the projector's image (pattern or black, and from when it is visible), one frame's
+    work (`tick`), the capture button, and the long actions (calibrate, verify, check a pixel: inline when
+    headless, in a worker thread under the panel).
+    """
+
     def __init__(self, rig, machine: SessionMachine, options: StationOptions | None = None,
                  log: Callable[[str], None] | None = None):
         self.rig = rig
