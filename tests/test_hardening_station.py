@@ -300,8 +300,8 @@ def test_button_presses_during_the_loop_do_not_kill_it(tmp_path):
         frame = st.live.frame_number
         assert frame > frame0 + 5  # the loop detected frames all along the presses
         wait_for(lambda: st.live.frame_number > frame + 2, what="the loop going on after the presses")
-        assert unexpected == [] and st.loop_errors == [] and st.loop_stopped is None
-        assert st._loop_thread.is_alive()
+        assert unexpected == [] and st.frames.loop_errors == [] and st.frames.loop_stopped is None
+        assert st.frames.loop_thread.is_alive()
         h = st.autocap.history()
         assert len(h) <= st.options.autocapture.still_frames
         assert all(isinstance(x, BoardObservation) for x in h)
@@ -315,7 +315,7 @@ def test_button_presses_during_the_loop_do_not_kill_it(tmp_path):
 def test_an_unexpected_error_is_logged_shown_and_the_loop_restarts(tmp_path, caplog):
     caplog.set_level(logging.ERROR, logger="procam.station")
     st = sim_station(tmp_path, auto_capture=False)
-    st.loop_backoff_s = (0.05, 0.2)
+    st.frames.loop_backoff_s = (0.05, 0.2)
     m = st.machine
     st.check_rig()
     m.start_session()
@@ -333,10 +333,10 @@ def test_an_unexpected_error_is_logged_shown_and_the_loop_restarts(tmp_path, cap
     st.start_loop()
     panel.start()
     try:
-        wait_for(lambda: len(st.loop_errors) == 2, what="two loop errors")
+        wait_for(lambda: len(st.frames.loop_errors) == 2, what="two loop errors")
         frame = st.live.frame_number if st.live else -1
         wait_for(lambda: st.live is not None and st.live.frame_number > frame + 3, what="frames after the errors")
-        assert st._loop_thread.is_alive() and st.loop_stopped is None
+        assert st.frames.loop_thread.is_alive() and st.frames.loop_stopped is None
         # logged with the traceback: the panel's log tab and the process log
         failed = [e.text for e in m.events if e.text.startswith("capture loop failed")]
         assert len(failed) == 2 and "Traceback" in failed[0] and "IndexError: injected for the test" in failed[0]
@@ -354,8 +354,8 @@ def test_an_unexpected_error_is_logged_shown_and_the_loop_restarts(tmp_path, cap
 
 def test_a_loop_failing_again_and_again_stops_with_a_clear_banner(tmp_path):
     st = sim_station(tmp_path)
-    st.loop_backoff_s = (0.01, 0.02)
-    st.loop_give_up = (4, 60.0)
+    st.frames.loop_backoff_s = (0.01, 0.02)
+    st.frames.loop_give_up = (4, 60.0)
 
     def broken():
         raise KeyError("always")
@@ -364,9 +364,9 @@ def test_a_loop_failing_again_and_again_stops_with_a_clear_banner(tmp_path):
     panel = StationPanel(st, "127.0.0.1", 0)
     st.start_loop()
     try:
-        wait_for(lambda: st.loop_stopped is not None, what="the loop giving up")
-        st._loop_thread.join(5.0)
-        assert not st._loop_thread.is_alive() and len(st.loop_errors) == 4
+        wait_for(lambda: st.frames.loop_stopped is not None, what="the loop giving up")
+        st.frames.loop_thread.join(5.0)
+        assert not st.frames.loop_thread.is_alive() and len(st.frames.loop_errors) == 4
         panel.refresh()
         assert "The capture loop stopped" in panel.h_alert.content and "--resume" in panel.h_alert.content
         assert "restart the station" in st.instruction()
@@ -409,11 +409,11 @@ def test_the_operator_sees_a_loop_failure_in_the_browser(tmp_path):
     from tests._station_helpers import launch_chromium
 
     st = sim_station(tmp_path)
-    st.loop_backoff_s = (0.05, 0.2)
+    st.frames.loop_backoff_s = (0.05, 0.2)
     real_tick, failed = st._tick, []
 
     def failing_tick():
-        if panel._clients and not failed:  # once, when the browser is there
+        if panel.controls.clients and not failed:  # once, when the browser is there
             failed.append(1)
             raise ZeroDivisionError("injected for the test")
         return real_tick()
@@ -436,7 +436,7 @@ def test_the_operator_sees_a_loop_failure_in_the_browser(tmp_path):
             expect(page.get_by_text(re.compile(r"Traceback \(most recent call last\)")).first).to_be_visible()
             page.screenshot(path=str(tmp_path / "loop.png"))
             browser.close()
-        assert st._loop_thread.is_alive() and len(st.loop_errors) == 1
+        assert st.frames.loop_thread.is_alive() and len(st.frames.loop_errors) == 1
     finally:
         st.stop_loop()
         panel.stop()

@@ -110,9 +110,9 @@ def test_verified_pixels_are_labelled_beside_their_strokes_with_a_unit():
 
 
 def test_a_manual_capture_of_a_pose_auto_capture_refused_says_so():
-    from app.station.panel_controls import ControlsMixin
+    from app.station.panel_controls import PanelControls
 
-    said = ControlsMixin._describe_outcome(None, "capture", SimpleNamespace(id="p0004", meta={"similar_to": "p0003"}))
+    said = PanelControls._describe_outcome(None, "capture", SimpleNamespace(id="p0004", meta={"similar_to": "p0003"}))
     assert said.startswith("p0004 written to the session") and "close to p0003; taken as you asked" in said
-    plain = ControlsMixin._describe_outcome(None, "capture", SimpleNamespace(id="p0005", meta={}))
+    plain = PanelControls._describe_outcome(None, "capture", SimpleNamespace(id="p0005", meta={}))
     assert plain == "p0005 written to the session"

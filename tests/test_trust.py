@@ -280,7 +280,8 @@ def test_cli_normal_session_passes(empty_session, monkeypatch, capsys):
 def test_station_shows_the_reasons_and_keeps_no_result(tmp_path):
     """The station's calibration step: the failure and its reasons reach the machine's error (what the
     panel and the instruction line show) and its log; calibration.json is not written."""
-    from app.station.machine import CALIBRATION, Plan, RigCheck, SessionMachine, _keep_rejected
+    from app.station.machine import CALIBRATION, Plan, RigCheck, SessionMachine
+    from app.station.session_calibration import keep_rejected
     from tests._station_helpers import TINY, make_store
 
     def calibrate_fn(folder, camera_intrinsics, progress=None):  # the pipeline, on a degenerate session
@@ -304,7 +305,7 @@ def test_station_shows_the_reasons_and_keeps_no_result(tmp_path):
     assert m.result is None and not (folder / "calibration.json").exists()
     assert json.loads((folder / "calibration.rejected.json").read_text())["diagnostics"]["trust"]["passed"] is False
     assert any("calibration failed" in e.text and "RMS" in e.text for e in m.events)
-    assert _keep_rejected(folder, lambda: 7) == 7
+    assert keep_rejected(folder, lambda: 7) == 7
 
 
 # ---- end to end: a rendered session, made degenerate the way the issue found it -----------------------

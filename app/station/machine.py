@@ -11,116 +11,42 @@ a killed process resumes where it stopped (`SessionMachine.from_store`).
 
 The machine does not talk to devices: captured images are handed to `record_capture`, and the
 calibration and verification work is done by the callables given at construction.
+
+Its parts, each in its own module of app.station (their names are importable from here too): the steps
+and actions (`session_steps`: STATES, STATE_TITLES, ACTIONS, ActionRefused), the capture plan and the
+target (`plan`), when each action is possible (`action_rules`: one Rule per action, its guard) and the
+calibration's files (`session_calibration`: calibration.json and its exports, a rejected result kept
+apart, the default calibration).
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from transitions import Machine, MachineError
 
+from app.station.action_rules import FILE_CHECKED, RULES, Rule
 from app.station.operator_files import checked_intrinsics, copy_into_session
-from app.words import plural
+from app.station.plan import Plan, Target
+from app.station.session_calibration import CALIBRATION_FILE, default_calibrate, keep_rejected, write_calibration
+from app.station.session_steps import CAPTURE_STATES  # noqa: F401 (app/recalibration.py imports it from here)
+from app.station.session_steps import (
+    ACTIONS, CALIBRATION, CHECK_RIG, DONE, MIRROR_CAPTURE, PROJECTOR_CAPTURE, STATE_TITLES, STATES,
+    VERIFICATION, ActionRefused, mirror_step,
+)
 from calib.errors import FormatError, ProcamError
 from calib.formats import session_files
-from calib.formats.session import MIRROR_METHODS, Capture, SessionStore
+from calib.formats.session import Capture, SessionStore
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
 from calib.models.result import CalibrationResult
 
-CHECK_RIG = "check_rig"
-MIRROR_CAPTURE = "mirror_capture"
-PROJECTOR_CAPTURE = "projector_capture"
-CALIBRATION = "calibration"
-VERIFICATION = "verification"
-DONE = "done"
-STATES = (CHECK_RIG, MIRROR_CAPTURE, PROJECTOR_CAPTURE, CALIBRATION, VERIFICATION, DONE)
-CAPTURE_STATES = (MIRROR_CAPTURE, PROJECTOR_CAPTURE)
-
-STATE_TITLES = {
-    CHECK_RIG: "Check the rig",
-    MIRROR_CAPTURE: "Mirror capture",
-    PROJECTOR_CAPTURE: "Projector capture",
-    CALIBRATION: "Calibration",
-    VERIFICATION: "Verification",
-    DONE: "Done",
-}
-
-ACTIONS = ("start", "choose_mirror_method", "set_board_thickness", "capture", "delete", "retake", "proceed", "back",
-           "skip_camera", "use_camera_calibration", "calibrate", "verify", "finish")
-
 _OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake", "mirror_method",
                    "camera_intrinsics", "plan", "calibrated", "result_stale", "verified", "updated_unix_s")
-
-CALIBRATION_FILE = session_files.CALIBRATION
-CALIBRATION_REJECTED = "calibration.rejected.json"  # an untrusted result, for diagnosis only
-
-
-def mirror_step(method: str) -> str:
-    return {"real-virtual": STEP_REAL_VIRTUAL, "real-mirror": STEP_REAL_MIRROR}[method]
-
-
-class ActionRefused(ProcamError):
-    """An operator action that is not possible now; `reason` says why and what to do instead."""
-
-    def __init__(self, action: str, reason: str):
-        self.action = action
-        self.reason = reason
-        super().__init__(f"cannot {action.replace('_', ' ')}: {reason}")
-
-
-@dataclass(frozen=True)
-class Plan:
-    """How many captures each step asks for. The projector step takes `poses_per_position` board poses
-    at each of the pattern's positions (PatternSpec.positions)."""
-
-    poses_per_position: int = 4
-    real_virtual_captures: int = 14
-    real_mirror_captures: int = 14
-    min_real_virtual: int = 3
-    # real-mirror: at least 3 placements of the board on the mirror (each capture a new place and angle):
-    # one placement leaves the mirror's normal resting on a single board's tilt (docs/JOINT.md, measured
-    # by benchmarks/real_mirror_placements.py).
-    min_real_mirror: int = 3
-    min_projector_captures: int = 6
-
-    def mirror_captures(self, method: str) -> int:
-        return self.real_virtual_captures if method == "real-virtual" else self.real_mirror_captures
-
-    def min_mirror(self, method: str) -> int:
-        need = self.min_real_virtual if method == "real-virtual" else self.min_real_mirror
-        return min(need, self.mirror_captures(method))  # a plan asking for fewer captures needs only those
-
-    def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> "Plan":
-        d = d or {}
-        return cls(**{k: int(v) for k, v in d.items() if k in cls.__dataclass_fields__})
-
-
-@dataclass(frozen=True)
-class Target:
-    """The capture the station asks for next: which step, at which pattern position, which pose."""
-
-    step: str
-    pattern_position: int | None
-    pose_index: int
-
-    def to_dict(self) -> dict:
-        return {"step": self.step, "pattern_position": self.pattern_position, "pose_index": self.pose_index}
-
-    @classmethod
-    def from_dict(cls, d) -> "Target | None":
-        if not isinstance(d, dict) or "step" not in d:
-            return None
-        pos = d.get("pattern_position")
-        return cls(str(d["step"]), None if pos is None else int(pos), int(d.get("pose_index", 0)))
 
 
 @dataclass(frozen=True)
@@ -151,22 +77,8 @@ def load_intrinsics(path, camera_size: tuple[int, int] | None = None) -> CameraM
     return cam
 
 
-_FILE_CHECKED = object()  # why_not("skip_camera", _FILE_CHECKED): the file was read and checked already
-
 CalibrateFn = Callable[[Path, "str | None", "Callable | None"], CalibrationResult]
 VerifyFn = Callable[[CalibrationResult], object]
-
-
-def write_calibration(folder, result: CalibrationResult, log) -> None:
-    """calibration.json and the default exports (calib.export.registry.DEFAULTS) in the session folder."""
-    from calib.export.registry import DEFAULTS, write_exports
-
-    result.save_json(Path(folder) / CALIBRATION_FILE)
-    try:
-        for warning in write_exports(result, DEFAULTS, Path(folder), Path(CALIBRATION_FILE).stem):
-            log(f"export: {warning}")
-    except Exception as e:  # noqa: BLE001 - the exports are a convenience; the JSON is the result
-        log(f"export of {', '.join(DEFAULTS)} failed: {e}")
 
 
 class SessionMachine:
@@ -339,135 +251,25 @@ class SessionMachine:
 
         Whether the current state allows an action comes from the transition table (transitions'
         `may_<trigger>`, conditions included) for the actions that move the machine, and from
-        `_RULES[action].where` for those that stay in their state; each action's domain checks are one
+        `RULES[action].where` (app.station.action_rules) for those that stay in their state; each action's domain checks are one
         small guard."""
         if action not in ACTIONS:
             return f"unknown action '{action}'"
         if self.busy:
             return f"the station is busy ({self.busy}); wait until it finishes"
-        rule = _RULES[action]
+        rule = RULES[action]
         for check in (rule.before, self._state_refusal(rule), rule.guard):
             reason = check(self, arg) if check is not None else None
             if reason is not None:
                 return reason
         return None
 
-    def _state_refusal(self, rule: "_Rule"):
+    def _state_refusal(self, rule: Rule):
         if isinstance(rule.where, str):
             allowed = getattr(self, f"may_{rule.where}")()
         else:
             allowed = self.state in rule.where
         return None if allowed else (lambda m, _arg: rule.refused(m))
-
-    @property
-    def _title(self) -> str:
-        return STATE_TITLES[self.state]
-
-    def _guard_start(self, _arg) -> str | None:
-        if not self.rig_checks:
-            return "the rig has not been checked yet"
-        bad = [c for c in self.rig_checks if not c.ok]
-        if bad:
-            return "the rig check failed: " + "; ".join(f"{c.name}: {c.detail}" for c in bad)
-        return None
-
-    def _guard_mirror_method(self, arg) -> str | None:
-        if arg is not None and arg not in MIRROR_METHODS:
-            return f"unknown mirror method '{arg}' (one of {', '.join(MIRROR_METHODS)})"
-        if self.manifest.mirror_board is None:
-            return "the session has no mirror board; it cannot calibrate the mirror"
-        if arg is not None and arg != self.mirror_method:
-            others = self.mirror_captures()
-            if others:
-                return (f"{plural(len(others), self.mirror_method + ' capture')} taken; delete them first to "
-                        f"switch to {arg}")
-        return None
-
-    def _guard_thickness(self, arg) -> str | None:
-        if arg is None:
-            return None
-        try:
-            v = float(arg)
-        except (TypeError, ValueError):
-            return f"the board thickness must be a number ({self.manifest.units}), got '{arg}'"
-        if not v >= 0:
-            return f"the board thickness must be 0 or more ({self.manifest.units}), got {arg}"
-        return None
-
-    def _guard_capture(self, _arg) -> str | None:
-        if self.state == MIRROR_CAPTURE and self.mirror_method is None:
-            return "choose the mirror method (real-virtual or real-mirror) first"
-        if self.target is not None:
-            return None
-        if self.state == MIRROR_CAPTURE:
-            return (f"all {self.mirror_total} mirror captures are taken; press 'Next step', or delete or "
-                    "retake a capture")
-        return f"all {self.projector_total} projector captures are taken; calibrate, or delete or retake a capture"
-
-    def _guard_capture_id(self, arg) -> str | None:
-        if arg is None:
-            return "choose a capture first"
-        if not any(c.id == arg for c in self.manifest.captures):
-            return f"there is no capture '{arg}' in this session"
-        return None
-
-    def _guard_retake(self, arg) -> str | None:
-        reason = self._guard_capture_id(arg)
-        if reason is None:
-            cap = next(c for c in self.manifest.captures if c.id == arg)
-            if cap.step != STEP_PROJECTOR and self.direct:
-                return "this rig has no mirror step; delete the capture instead"
-        return reason
-
-    def _guard_proceed(self, _arg) -> str | None:
-        if self.state == MIRROR_CAPTURE:
-            if self.mirror_method is None:
-                return "choose the mirror method and take the mirror captures first"
-            n = len(self.captures_of(mirror_step(self.mirror_method)))
-            need = self.plan.min_mirror(self.mirror_method)
-            return f"take at least {need} {self.mirror_method} captures first ({n} so far)" if n < need else None
-        if self.target is not None:  # the projector step, not complete
-            n = len(self.captures_of(STEP_PROJECTOR))
-            return (f"{n} of {self.projector_total} projector captures are taken; finish them, or "
-                    "press Calibrate to calibrate with what is there")
-        return None
-
-    def _guard_skip_camera(self, arg) -> str | None:
-        if arg is _FILE_CHECKED:
-            return None
-        if not arg:
-            return "give the path of an intrinsics file (a calibration.json or a camera JSON)"
-        try:
-            checked_intrinsics(arg, self.manifest.rig.camera_size)
-        except ProcamError as e:
-            return str(e)
-        return None
-
-    def _guard_calibrate(self, _arg) -> str | None:
-        n = len(self.captures_of(STEP_PROJECTOR))
-        if n < self.plan.min_projector_captures:
-            return f"take at least {self.plan.min_projector_captures} projector captures first ({n} so far)"
-        if self.direct:
-            return None
-        if self.mirror_method is None:
-            return "the mirror has no captures yet; go back to the mirror step"
-        m = len(self.captures_of(mirror_step(self.mirror_method)))
-        need = self.plan.min_mirror(self.mirror_method)
-        if m < need:
-            return f"the mirror step needs at least {need} {self.mirror_method} captures ({m} so far)"
-        return None
-
-    def _guard_verify(self, _arg) -> str | None:
-        if self.result is None:
-            return "calibrate first"
-        if self.result_stale:
-            return "the captures or the camera model changed since the last calibration; calibrate again"
-        return None
-
-    def _guard_finish(self, _arg) -> str | None:
-        if self.state == VERIFICATION:
-            return "run the verification first" if self.report is None else None
-        return "calibrate first" if self.result is None or self.result_stale else None  # a rig without verification
 
     def available(self) -> dict[str, str | None]:
         """Every action with None (possible) or the reason it is refused."""
@@ -611,7 +413,7 @@ class SessionMachine:
                 data = checked_intrinsics(path, self.manifest.rig.camera_size)
             except ProcamError as e:
                 raise ActionRefused("skip_camera", str(e)) from None
-            self._refuse("skip_camera", _FILE_CHECKED)
+            self._refuse("skip_camera", FILE_CHECKED)
             self.camera_intrinsics = copy_into_session(self.store.folder, path, data)
             self._mark_stale()
             self._log(f"camera intrinsics from {str(path).strip()}, copied into the session as "
@@ -658,7 +460,7 @@ class SessionMachine:
             self.report = None
             self._log(f"calibrating {len(self.manifest.captures)} captures"
                       + (" with the given camera intrinsics" if self.camera_intrinsics else ""))
-        result = self._run_busy(lambda: _keep_rejected(self.store.folder, lambda: self._calibrate_fn(
+        result = self._run_busy(lambda: keep_rejected(self.store.folder, lambda: self._calibrate_fn(
             self.store.folder, self.intrinsics_path, progress)), "calibration_error", "calibration failed")
         with self._lock:
             write_calibration(self.store.folder, result, self._log)
@@ -765,105 +567,3 @@ class SessionMachine:
             self.on_event(text)
 
 
-@dataclass(frozen=True)
-class _Rule:
-    """When an operator action is possible. `where`: a trigger of the transition table (the table and
-    its conditions decide) or the states an action that moves nothing is possible in; `refused`: the
-    reason when the state does not allow it; `before`: a check that comes before the state's (what no
-    step can change); `guard`: the action's own checks once the state allows it."""
-
-    where: "str | tuple[str, ...]"
-    refused: Callable[[SessionMachine], str]
-    guard: "Callable[[SessionMachine, object], str | None] | None" = None
-    before: "Callable[[SessionMachine, object], str | None] | None" = None
-
-
-_BEFORE_VERIFICATION = (CHECK_RIG, MIRROR_CAPTURE, PROJECTOR_CAPTURE, CALIBRATION)
-
-
-def _captures_frozen(m: SessionMachine) -> str:
-    return f"captures cannot change during {m._title}; go back to the calibration step first"
-
-
-def _no_mirror(m: SessionMachine, _arg) -> str | None:
-    return "this rig views the board directly (overlapping): there is no mirror to calibrate" if m.direct else None
-
-
-def _no_verifier(m: SessionMachine, _arg) -> str | None:
-    return "verification is not available in this installation" if m._verify_fn is None else None
-
-
-def _proceed_refused(m: SessionMachine) -> str:
-    nxt = {CHECK_RIG: "Start", CALIBRATION: "Verify", VERIFICATION: "Finish"}.get(m.state)
-    return f"use '{nxt}' to leave the {m._title} step" if nxt else "the session is complete"
-
-
-def _finish_refused(m: SessionMachine) -> str:
-    if m.state == CALIBRATION:
-        return "verify the calibration first"
-    if m.state == DONE:
-        return "the session is already complete"
-    return f"the session ends after calibration and verification (now: {m._title})"
-
-
-def _camera_frozen(_m: SessionMachine) -> str:
-    return "the camera model cannot change now; go back to the calibration step first"
-
-
-_RULES: dict[str, _Rule] = {
-    "start": _Rule("ev_start", lambda m: "the rig check is already done; go back to it first",
-                   SessionMachine._guard_start),
-    "choose_mirror_method": _Rule(
-        (CHECK_RIG, MIRROR_CAPTURE),
-        lambda m: f"the mirror method is chosen in the mirror step (now: {m._title}); go back first",
-        SessionMachine._guard_mirror_method, before=_no_mirror),
-    "set_board_thickness": _Rule(
-        _BEFORE_VERIFICATION,
-        lambda m: "the board thickness cannot change now; go back to the calibration step first",
-        SessionMachine._guard_thickness),
-    "capture": _Rule(
-        CAPTURE_STATES,
-        lambda m: f"nothing is captured in the {m._title} step; go back to a capture step to add captures",
-        SessionMachine._guard_capture),
-    "delete": _Rule(_BEFORE_VERIFICATION, _captures_frozen, SessionMachine._guard_capture_id),
-    "retake": _Rule("ev_retake",
-                    lambda m: "finish the rig check first" if m.state == CHECK_RIG else _captures_frozen(m),
-                    SessionMachine._guard_retake),
-    "proceed": _Rule("ev_proceed", _proceed_refused, SessionMachine._guard_proceed),
-    "back": _Rule("ev_back", lambda m: "this is the first step"),
-    "skip_camera": _Rule(_BEFORE_VERIFICATION, _camera_frozen, SessionMachine._guard_skip_camera),
-    "use_camera_calibration": _Rule(
-        _BEFORE_VERIFICATION, _camera_frozen,
-        lambda m, _arg: "the camera is already calibrated from the captures" if m.camera_intrinsics is None else None),
-    "calibrate": _Rule("ev_calibrate", lambda m: f"calibration comes after the captures (now: {m._title})",
-                       SessionMachine._guard_calibrate),
-    "verify": _Rule("ev_verify", lambda m: f"verification comes after calibration (now: {m._title})",
-                    SessionMachine._guard_verify, before=_no_verifier),
-    "finish": _Rule("ev_finish", _finish_refused, SessionMachine._guard_finish),
-}
-assert set(_RULES) == set(ACTIONS), "every operator action has its rule"
-
-
-def _keep_rejected(folder, work):
-    """work(); a calibration the trust check rejects (calib.quality.trust) is kept as calibration.rejected.json
-    for diagnosis (never as calibration.json) before the error goes on to the panel with its reasons."""
-    from calib.errors import UntrustedCalibration
-
-    try:
-        return work()
-    except UntrustedCalibration as e:
-        if e.result is not None:
-            try:
-                e.result.save_json(Path(folder) / CALIBRATION_REJECTED)
-            except OSError:
-                pass  # the diagnosis file is a convenience; the error itself still reaches the operator
-        raise
-
-
-def default_calibrate(folder, camera_intrinsics, progress=None, workers: int = 2,
-                      method: str | None = None) -> CalibrationResult:
-    """The calibration core's pipeline on the session folder (its default method unless given)."""
-    from calib.pipeline import calibrate_session
-
-    kw = {} if method is None else {"method": method}
-    return calibrate_session(folder, camera_intrinsics=camera_intrinsics, workers=workers, progress=progress, **kw)

@@ -7,7 +7,8 @@ with detections, verified pixels and where to hold the board next, the coverage 
 bars with their targets, all captures with thumbnails, and a log; and the 3D view of the rig
 (server.scene), where the camera image can be clicked to check a pixel once calibrated.
 
-Per browser (client.gui): the operator's controls, organised by step (app/station/panel_controls.py).
+Per browser (client.gui): the operator's controls, organised by step (app/station/panel_controls.py's
+PanelControls, given what it uses of the panel as a PanelContext).
 Who may connect at all is decided before the websocket opens (app/station/access.py, hooked into viser
 by app/station/_origin.py): only pages the panel served itself (their Origin), and served on a network
 only browsers that gave the access code; a browser without it gets a page asking for the code.
@@ -17,7 +18,8 @@ banner shows when the capture loop failed (restarted) or stopped.
 
 Detection runs in the station's own threads; the panel only draws (app/station/panel_live.py): the live
 image is redrawn from each new frame with the newest detection, up to IMAGE_RATE_HZ times a second.
-Guidance: app/station/panel_guidance.py; results and downloads: app/station/panel_results.py; the
+Guidance: app/station/panel_guidance.py; results and downloads: app/station/panel_results.py; the status
+in words (checklist, results' summary, log, banners): app/station/panel_status.py; the
 projection-uncertainty heat maps: app/station/panel_uncertainty.py; the 3D view: app/station/panel_scene.py.
 """
 
@@ -27,28 +29,26 @@ import html
 import logging
 import threading
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
+from app.station import panel_status
 from app.station._origin import start_viser_server
 from app.station.access import LOOPBACK_HOSTS, WILDCARD_HOSTS, AccessGate, new_access_code  # noqa: F401
-from app.station.activity import RIG_FINDINGS, activities_text
-from app.station.verdict import verdict_text
+from app.station.activity import activities_text
 from app.station.autocapture import PoseFeatures, diversity_bars
+from app.station.frame_source import rate_of
 from app.station.machine import (
     CALIBRATION,
     CAPTURE_STATES,
-    CHECK_RIG,
     DONE,
     MIRROR_CAPTURE,
     PROJECTOR_CAPTURE,
     STATE_TITLES,
-    STATES,
     VERIFICATION,
 )
-from app.station.panel_controls import ClientControls, ControlsMixin  # noqa: F401
+from app.station.panel_controls import PanelContext, PanelControls
 from app.station.panel_driver import DriverSeat
 from app.station.panel_guidance import (
     camera_coverage_image,
@@ -71,7 +71,6 @@ from app.station.panel_live import (
 from app.station.panel_results import (
     REPORT_MISSING,
     captures_html,
-    check_passes,
     files_text,
     folder_stamp,
     parameters_text,
@@ -82,13 +81,10 @@ from app.station.panel_scene import IMAGE_PLANE_NAME, SCENE_LEGEND, camera_plane
 from app.station.panel_uncertainty import DEVICES as UNCERTAINTY_DEVICES
 from app.station.panel_uncertainty import INTRO as UNCERTAINTY_INTRO
 from app.station.panel_uncertainty import uncertainty_image, uncertainty_text
-from app.station.station import rate_of
-from app.words import plural
-from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
+from calib.models.observations import STEP_PROJECTOR
 from calib.quality.coverage import GRID_COLUMNS, coverage_fraction
 
 LIVE_WIDTH = 640
-LOG_EVENTS = 200  # events the Log tab shows (scrollable), as many as the session machine keeps
 IMAGE_RATE_HZ = 25.0  # most live-image updates per second (one per new camera frame)
 PLANE_RATE_HZ = 4.0  # updates per second of the clickable camera image in the 3D view
 
@@ -121,7 +117,7 @@ def heartbeat_html(beat: int) -> str:
             f"font-weight:bold;border-radius:4px;opacity:1'>{html.escape(DISCONNECT_TEXT)}</div>")
 
 
-class StationPanel(ControlsMixin):
+class StationPanel:
     def __init__(self, station, host: str = "127.0.0.1", port: int = 8080, access_code: str | None = None,
                  rig_note: str = "", verbose: bool = False, gate: AccessGate | None = None):
         self.station = station
@@ -134,9 +130,7 @@ class StationPanel(ControlsMixin):
         # the gate answers every request before viser does (Origin, access code, throttle)
         self.server = start_viser_server(self.gate, host=host, port=port, label="procam station", verbose=verbose)
         self.port = self.server.get_port()
-        self._clients: dict[int, ClientControls] = {}
         self.seat = DriverSeat(self.machine.log)  # one browser drives, the others watch
-        self.mode_controls = None  # a mode's own controls in place of the steps' (panel_recal.py)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -156,10 +150,8 @@ class StationPanel(ControlsMixin):
         self._plane_s = 0.0
         self._report_key = None
         self.report_lock = threading.Lock()  # one report.html written at a time (auto and Download)
-        # viser runs each click's callback in a thread pool: without this, a click handled while the one
-        # before it is still running sees the state before it (Move board refused just after the mirror
-        # method was chosen) and the earlier action's "done" overwrites the later one's line
-        self.action_lock = threading.Lock()
+        self.controls = PanelControls(PanelContext(station, self.server, self.seat, self._lock, self.report_lock,
+                                                   self.refresh, self.bars_now, self.click_camera))
         self.server.gui.configure_theme(control_width="large", show_share_button=False)
         self.server.gui.main_panel.dock_right()  # viser 1.1's replacement of control_layout="fixed"
         self.server.scene.set_up_direction("-y")
@@ -168,8 +160,8 @@ class StationPanel(ControlsMixin):
         ic.position = (-1.0, -1.6, -1.1)
         ic.look_at = (0.35, 0.1, 0.5)
         self._build_global()
-        self.server.on_client_connect(self._on_connect)
-        self.server.on_client_disconnect(self._on_disconnect)
+        self.server.on_client_connect(self.controls.on_connect)
+        self.server.on_client_disconnect(self.controls.on_disconnect)
 
     def _access_log(self, text: str) -> None:
         """Refused origins and wrong codes: the panel's log tab and the process log."""
@@ -260,141 +252,12 @@ class StationPanel(ControlsMixin):
             self._global_cache[key] = value
             setattr(handle, attr, value)
 
-    # ---- text -------------------------------------------------------------------------------------
+    # ---- text (app/station/panel_status.py) ---------------------------------------------------------
     def checklist(self) -> str:
-        m = self.machine
-        s = m.state
-        idx = STATES.index(s)
-        c = m.counts()
+        return panel_status.checklist(self.machine)
 
-        def mark(state):
-            i = STATES.index(state)
-            if state == CALIBRATION and m.result is not None and not m.result_stale and s != CALIBRATION:
-                return "✔"
-            if i < idx:
-                return "✔"
-            return "▶" if i == idx else "○"
-
-        checks = "; ".join(f"{ch.name} " + ("FAILED: " + ch.detail if not ch.ok else
-                                            f"ok ({ch.detail})" if ch.name in RIG_FINDINGS else "ok")
-                           for ch in m.rig_checks)
-        lines = ["**Checklist**", ""]
-        lines.append(f"- {mark(CHECK_RIG)} **Check the rig**" + (f": {checks}" if checks else ": not checked yet"))
-        if m.direct:
-            lines.append("- ✔ **Mirror capture**: none needed (direct view)")
-        else:
-            method = m.mirror_method or "method not chosen"
-            lines.append(f"- {mark(MIRROR_CAPTURE)} **Mirror capture** ({method}): "
-                         f"**{c['mirror']} / {c['mirror_total'] or '?'}** captures")
-        lines.append(f"- {mark(PROJECTOR_CAPTURE)} **Projector capture**: **{c['projector']} / {c['projector_total']}** "
-                     f"captures, {c['positions_done']} / {c['positions']} pattern positions complete")
-        cam = (f"camera from `{Path(m.camera_intrinsics).name}` (given)" if m.camera_intrinsics
-               else "camera from the captures")
-        cal = "done" if m.result is not None and not m.result_stale else (
-            "out of date: re-run" if m.result is not None else "not run")
-        if m.busy == "calibrating":
-            cal = "running"
-        lines.append(f"- {mark(CALIBRATION)} **Calibration** ({cam}, mirror, projector): {cal}")
-        ver = "not run"
-        if m.busy == "verifying":
-            ver = "running"
-        elif m.report is not None:
-            ver = "passed" if getattr(m.report, "passed", False) else "FAILED"
-        elif m.why_not("verify") == "verification is not available in this installation":
-            ver = "not available"
-        lines.append(f"- {mark(VERIFICATION)} **Verification**: {ver}")
-        lines.append(f"- {mark(DONE)} **Done**")
-        return "\n".join(lines)
-
-    def results_summary(self) -> str:
-        """The top of the results: the calibration's RMS (px), the pose of the projector and the mirror
-        with their 1-sigma, and the verification's verdict."""
-        m = self.machine
-        r = m.result
-        if r is None:
-            if m.calibration_error:
-                return f"**Calibration failed:** {m.calibration_error}"
-            return "No calibration yet."
-        u = r.uncertainty or {}
-        lines = [verdict_text(r, m.manifest.rig.view == VIEW_MIRROR)]
-        if m.result_stale:
-            lines.append("**Out of date:** the captures or the camera model changed; re-run the calibration.\n")
-        rms = ", ".join(f"{k} {v:.3f} px" for k, v in r.rms.items() if isinstance(v, (int, float)))
-        lines.append(f"**Calibration** ({r.method}, lengths in {r.units}). RMS reprojection error: {rms}")
-        t = r.T_cam_proj[:3, 3]
-        ang = float(np.degrees(np.arccos(np.clip((np.trace(r.T_cam_proj[:3, :3]) - 1) / 2, -1, 1))))
-        tu = (u.get("T_cam_proj") or {}) if isinstance(u.get("T_cam_proj"), dict) else {}
-        t_pm = f" (± {tu['t_total']:.2f} {r.units})" if isinstance(tu.get("t_total"), (int, float)) else ""
-        r_pm = f" (± {tu['rot_total_deg']:.3f} deg)" if isinstance(tu.get("rot_total_deg"), (int, float)) else ""
-        lines.append(f"\nProjector in the camera frame: [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}] {r.units}{t_pm}, "
-                     f"rotated {ang:.2f} deg{r_pm}")
-        if r.mirror is not None:
-            n = r.mirror.normal
-            mu = u.get("mirror") if isinstance(u.get("mirror"), dict) else {}
-            extra = ""
-            if isinstance(mu.get("d"), (int, float)) and isinstance(mu.get("normal_deg"), (int, float)):
-                extra = f" (± {mu['d']:.2f} {r.units}, normal ± {mu['normal_deg']:.3f} deg)"
-            lines.append(f"\nMirror: normal [{n[0]:.4f}, {n[1]:.4f}, {n[2]:.4f}] (unit vector), "
-                         f"d {r.mirror.d:.2f} {r.units}{extra}")
-        if r.skipped:
-            lines.append(f"\nSkipped {plural(len(r.skipped), 'capture')}: " + "; ".join(
-                f"{s.get('capture_id', '?')}: {s.get('reason', '')}" for s in list(r.skipped)[:5]))
-        rep = m.report
-        if rep is not None:
-            verdict = "PASSED" if getattr(rep, "passed", False) else "FAILED"
-            summary = rep.summary() if hasattr(rep, "summary") else ""
-            lines.append(f"\n**Verification {verdict}** (threshold {getattr(rep, 'threshold_px', float('nan')):.2f} "
-                         f"projector px): {summary}")
-        elif m.verification_error:
-            lines.append(f"\n**Verification could not run:** {m.verification_error}")
-        pc = self.station.pixel_check
-        if pc is not None:
-            lines.append(f"\nLast pixel check: {self.pixel_check_verdict(pc)}")
-        return "\n".join(lines)
-
-    def results_text(self) -> str:
-        """Everything the results show, as one text (the summary, parameters, worst views)."""
-        r = self.machine.result
-        if r is None:
-            return self.results_summary()
-        return "\n\n".join([self.results_summary(), parameters_text(r, bool(self.machine.camera_intrinsics)),
-                            worst_views_text(r)])
-
-    def pixel_check_verdict(self, pc) -> str:
-        thr, factor = self.verdict_threshold()
-        ok = check_passes(pc, thr, factor)
-        if not pc.ok:
-            return f"{pc.label()} (no verdict)"
-        return f"{pc.label()}: **{'pass' if ok else 'FAIL'}** (limit {factor * thr:.2f} projector px)"
-
-    def checks_text(self) -> str:
-        """The verified pixels drawn on the live image, in words: distance and verdict of each."""
-        m, st = self.machine, self.station
-        if m.state not in (CALIBRATION, VERIFICATION, DONE):
-            return ""
-        thr, factor = self.verdict_threshold()
-        lines = []
-        checks = list(getattr(m.report, "checks", None) or []) if m.report is not None else []
-        if checks:
-            lines.append(f"**Verified pixels** (each passes within {factor * thr:.2f} projector px):")
-            lines.append("")
-            for c in checks:
-                ok = check_passes(c, thr, factor)
-                lines.append(f"- {c.label()}: **{'pass' if ok else 'FAIL'}**" if c.ok else f"- {c.label()}")
-        if st.pixel_check is not None:
-            lines.append("")
-            lines.append(f"**Pixel check** {self.pixel_check_verdict(st.pixel_check)}")
-        return "\n".join(lines)
-
-    def verdict_threshold(self) -> tuple[float, float]:
-        """(threshold, worst factor) of the verdict: the report's, else the verification's defaults."""
-        rep = self.machine.report
-        try:
-            from app.verification import DEFAULT_THRESHOLD_PX, WORST_FACTOR
-        except ImportError:
-            DEFAULT_THRESHOLD_PX, WORST_FACTOR = 1.5, 2.0
-        thr = getattr(rep, "threshold_px", None) if rep is not None else None
-        return float(thr if isinstance(thr, (int, float)) else DEFAULT_THRESHOLD_PX), float(WORST_FACTOR)
+    def log_text(self, n: int = panel_status.LOG_EVENTS) -> str:
+        return panel_status.log_text(self.machine, n)
 
     def captures_html(self) -> str:
         m = self.machine
@@ -404,34 +267,6 @@ class StationPanel(ControlsMixin):
                 if isinstance(pv, dict) and "capture_id" in pv:
                     per_view[pv["capture_id"]] = pv.get("rms_px")
         return captures_html(m.manifest.captures, m.store, per_view, self._thumbs)
-
-    def log_text(self, n: int = LOG_EVENTS) -> str:
-        evs = self.machine.events[-n:]
-        if not evs:
-            return "Nothing yet."
-        lines = [f"{plural(len(evs), 'event')}, newest first (the last {n} are kept here; scroll for older ones)", ""]
-        for e in reversed(evs):
-            head, _, rest = e.text.partition("\n")
-            lines.append(f"- {time.strftime('%H:%M:%S', time.localtime(e.time_s))} {head}")
-            if rest.strip():  # a traceback: kept as it is, in a code block under its line
-                lines.append("")
-                lines.append("  ```")
-                lines += ["  " + ln for ln in rest.rstrip().splitlines()]
-                lines.append("  ```")
-        return "\n".join(lines)
-
-    def alert_text(self) -> str:
-        """The banner over the panel when the capture loop failed: restarted, or stopped for good."""
-        st = self.station
-        stopped = getattr(st, "loop_stopped", None)
-        if stopped:
-            return f"**The capture loop stopped.** {stopped}"
-        errors = getattr(st, "loop_errors", [])
-        if errors and time.monotonic() - errors[-1].time_s < 20.0:
-            e = errors[-1]
-            return (f"**The capture loop failed and was restarted** ({e.summary}). The traceback is in the Log "
-                    "tab; if it keeps failing, restart the station with --resume.")
-        return ""
 
     # ---- guidance ---------------------------------------------------------------------------------
     def step_features(self) -> list:
@@ -499,7 +334,7 @@ class StationPanel(ControlsMixin):
         box drawn over it (RGB), and a key that changes when any of them does; None when there is no
         frame yet or the key is `unless_key` (nothing new to draw)."""
         st = self.station
-        frame = st.preview
+        frame = st.frames.preview
         live = st.live
         if frame is None and live is None:
             return None
@@ -527,12 +362,12 @@ class StationPanel(ControlsMixin):
             draw_suggestion(small, self.suggestion)
         footer = ""
         if rep is not None or pc is not None:
-            thr, factor = self.verdict_threshold()
+            thr, factor = panel_status.verdict_threshold(m.report)
             if rep is not None:
                 draw_checks(small, rep.checks, s, thr, factor, self._predicted.get(id(rep)))
             if pc is not None:
                 draw_checks(small, [pc], s, thr, factor, self._predicted.get(id(pc)))
-                footer = "pixel check " + self.pixel_check_verdict(pc).replace("**", "")
+                footer = "pixel check " + panel_status.pixel_check_verdict(m.report, pc).replace("**", "")
         draw_banner(small, self._banner(det, dec), (80, 230, 80) if dec is not None and dec.capture else (240, 240, 240))
         draw_banner(small, footer, (240, 240, 240), top=False)
         if time.monotonic() - st.last_capture_s < 0.8:  # flash green: captured
@@ -545,7 +380,7 @@ class StationPanel(ControlsMixin):
         m, st = self.machine, self.station
         if m.result is None or m.busy:
             return
-        frame = st.preview
+        frame = st.frames.preview
         for obj, checks in ((m.report, getattr(m.report, "checks", None)), (st.pixel_check, None)):
             if obj is None or id(obj) in self._predicted:
                 continue
@@ -590,7 +425,7 @@ class StationPanel(ControlsMixin):
         update_rig(self.server, m.manifest, m.result, self.station.camera_model)
         if m.result is not None and self._plane_key != id(m.result):
             self._plane_key = id(m.result)
-            for ctl in list(self._clients.values()):  # calibrated: show every browser the rig as it is now
+            for ctl in list(self.controls.clients.values()):  # calibrated: show every browser the rig as it is now
                 try:
                     view_whole_rig(self.server, ctl.client)
                 except Exception:  # a browser that went away
@@ -599,23 +434,12 @@ class StationPanel(ControlsMixin):
             self.h_plane = self.server.scene.add_image(IMAGE_PLANE_NAME, np.zeros((8, 8, 3), np.uint8), w, h,
                                                        format="jpeg", jpeg_quality=70, position=tuple(centre),
                                                        wxyz=wxyz, cast_shadow=False)
-            self.h_plane.on_click(self.on_image_click)
+            self.h_plane.on_click(self.controls.on_image_click)
 
     # ---- refresh loops --------------------------------------------------------------------------------
     def step_line(self) -> str:
         """The current step, its progress and what to do: the first thing an operator reads."""
-        m = self.machine
-        steps = [x for x in STATES if not (m.direct and x == MIRROR_CAPTURE)]
-        k = steps.index(m.state) + 1 if m.state in steps else 0
-        c = m.counts()
-        progress = ""
-        if m.state == MIRROR_CAPTURE and m.mirror_method:
-            progress = f": {c['mirror']} of {c['mirror_total']} captures"
-        elif m.state == PROJECTOR_CAPTURE:
-            progress = (f": {c['projector']} of {c['projector_total']} captures, {c['positions_done']} of "
-                        f"{c['positions']} pattern positions complete")
-        return (f"#### Step {k} of {len(steps)}: {STATE_TITLES[m.state]}{progress}\n\n"
-                f"**Next:** {self.station.instruction()}")
+        return panel_status.step_line(self.machine, self.station.instruction())
 
     def refresh(self) -> None:
         """Bring every status element (and every browser's controls) up to date."""
@@ -629,7 +453,7 @@ class StationPanel(ControlsMixin):
             r = m.result
             self._set(self.h_results_folder, "visible", r is not None or bool(m.calibration_error)
                       or m.busy == "calibrating")
-            self._set(self.h_results, "content", self.results_summary())
+            self._set(self.h_results, "content", panel_status.results_summary(m, st.pixel_check))
             self._set(self.h_params, "content", parameters_text(r, bool(m.camera_intrinsics)) if r else "")
             self._set(self.h_worst, "content", worst_views_text(r) if r else "")
             self._update_uncertainty(r)
@@ -642,7 +466,7 @@ class StationPanel(ControlsMixin):
                 self._global_cache["caps"] = caps_key
                 self._set(self.h_caps, "content", self.captures_html())
             self._set(self.h_log, "content", self.log_text())
-            alert = self.alert_text()
+            alert = panel_status.alert_text(st.frames)
             self._set(self.h_alert, "content", alert or " ")
             self._set(self.h_alert, "visible", bool(alert))
             self._notify_loop_errors()
@@ -655,13 +479,8 @@ class StationPanel(ControlsMixin):
             self._auto_report()
             if m.retake_target is None and st.autocap.avoided:  # the retaken slot is filled: the rule is spent
                 st.autocap.forget_avoided()
-            self._set(self.h_checks, "content", self.checks_text())
-            for ctl in list(self._clients.values()):
-                if ctl.unlocked:
-                    try:
-                        self._refresh_controls(ctl)
-                    except Exception:  # a browser that went away mid-update
-                        pass
+            self._set(self.h_checks, "content", panel_status.checks_text(m, st.pixel_check))
+            self.controls.refresh_all()
             self.update_scene()
 
     def _update_uncertainty(self, r) -> None:
@@ -698,10 +517,10 @@ class StationPanel(ControlsMixin):
 
     def _notify_loop_errors(self) -> None:
         """A toast in every browser for each unexpected error of the capture loop."""
-        errors = list(getattr(self.station, "loop_errors", []))
+        errors = list(self.station.frames.loop_errors)
         new, self._loop_errors_seen = errors[self._loop_errors_seen:], len(errors)
         for e in new[-3:]:
-            for ctl in list(self._clients.values()):
+            for ctl in list(self.controls.clients.values()):
                 try:
                     ctl.client.add_notification("Capture loop failed", f"{e.summary}. It restarts; the "
                                                 "traceback is in the Log tab.", auto_close_seconds=10.0, color="red")
@@ -743,9 +562,10 @@ class StationPanel(ControlsMixin):
                         self.image_updates += 1
                         self._image_times.append(time.monotonic())
                         del self._image_times[:-60]
+                        frames = self.station.frames
                         self._set(self.h_live, "content",
-                                  f"Live: {rate_text(self.image_rate)} updates/s, camera {rate_text(self.station.preview_fps)} "
-                                  f"frames/s, detection {rate_text(self.station.detection_fps)}/s. {LEGEND}")
+                                  f"Live: {rate_text(self.image_rate)} updates/s, camera {rate_text(frames.preview_fps)} "
+                                  f"frames/s, detection {rate_text(frames.detection_fps)}/s. {LEGEND}")
                         if self.h_plane is not None and t0 - self._plane_s >= 1.0 / PLANE_RATE_HZ:
                             self._plane_s = t0
                             self.h_plane.image = img

@@ -4,12 +4,15 @@ action goes through the session machine, so a refusal carries its reason; refusa
 show in the message line under "Next:" and as a notification that stays in view while scrolling.
 
 Also the Download button (a zip of the results) and the click on the camera image in the 3D view that
-checks a pixel. Mixed into StationPanel (app/station/panel.py).
+checks a pixel. StationPanel (app/station/panel.py) owns one `PanelControls`, built with a `PanelContext`:
+what the controls use of the panel, passed in, so they reach nothing of the panel's own.
 """
 
 from __future__ import annotations
 
+import threading
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,7 +26,7 @@ from app.station.machine import (
     VERIFICATION,
     ActionRefused,
 )
-from app.station.panel_driver import TAKE_CONTROL
+from app.station.panel_driver import TAKE_CONTROL, DriverSeat
 from app.station.panel_guidance import unmet_targets
 from app.station.panel_results import (
     EXPORTS_ALL, export_choices, export_names, results_zip, write_report_if_available,
@@ -57,27 +60,62 @@ class ClientControls:
     cache: dict = field(default_factory=dict)
 
 
-class ControlsMixin:
-    """The per-browser half of StationPanel (needs self.machine, self.station, self.server, self._lock,
-    self._clients, self.refresh, self.bars_now)."""
+@dataclass(frozen=True)
+class PanelContext:
+    """What the per-browser controls use of their panel."""
 
-    def _on_connect(self, client) -> None:
+    station: object  # app.station.station.Station: its machine, actions, options and activities
+    server: object  # the viser server (its scene: the views a button frames)
+    seat: DriverSeat  # which browser drives; the others watch
+    lock: threading.RLock  # the panel's: a browser joins between two refreshes, never during one
+    report_lock: threading.Lock  # one report.html written at a time (the panel's own and the Download's)
+    refresh: Callable[[], None]  # bring every status element and every browser up to date
+    bars_now: Callable[[], list]  # the current step's diversity bars (panel_guidance)
+    click_camera: Callable[[], object]  # the camera model of the clickable image in the 3D view
+
+
+class PanelControls:
+    """The per-browser half of the panel: every browser's controls (`clients`), and a mode's own
+    controls in place of the steps' when one is set (`mode`, app/station/panel_recal.py)."""
+
+    def __init__(self, ctx: PanelContext):
+        self.ctx = ctx
+        self.station = ctx.station
+        self.machine = ctx.station.machine
+        self.seat = ctx.seat
+        self.clients: dict[int, ClientControls] = {}
+        self.mode = None
+        # viser runs each click's callback in a thread pool: without this, a click handled while the one
+        # before it is still running sees the state before it (Move board refused just after the mirror
+        # method was chosen) and the earlier action's "done" overwrites the later one's line
+        self.action_lock = threading.Lock()
+
+    def refresh_all(self) -> None:
+        """Every connected browser's controls up to date (the panel's refresh, under its lock)."""
+        for ctl in list(self.clients.values()):
+            if ctl.unlocked:
+                try:
+                    self.refresh_controls(ctl)
+                except Exception:  # a browser that went away mid-update
+                    pass
+
+    def on_connect(self, client) -> None:
         # every websocket reaching here passed the gate: the panel's own Origin (or the secret), and the
         # access code when one is needed; a browser without the code never gets this far
         ctl = ClientControls(client, unlocked=True)
-        view_whole_rig(self.server, client)  # framed from the start, not only once calibrated
+        view_whole_rig(self.ctx.server, client)  # framed from the start, not only once calibrated
         self.seat.join(client.client_id)
         self._build_controls(ctl)
         # the refresh loop sees a browser only once all its controls exist: a refresh of half-built controls
         # would disable (for a watching browser) only those built so far and remember it as done
-        with self._lock:
+        with self.ctx.lock:
             if self.seat.connected(client.client_id):  # not gone while its controls were being built
-                self._clients[client.client_id] = ctl
+                self.clients[client.client_id] = ctl
 
-    def _on_disconnect(self, client) -> None:
+    def on_disconnect(self, client) -> None:
         self.seat.leave(client.client_id)  # first: a browser still being built then never joins _clients
-        with self._lock:
-            self._clients.pop(client.client_id, None)
+        with self.ctx.lock:
+            self.clients.pop(client.client_id, None)
 
     def _build_controls(self, ctl: ClientControls) -> None:
         g = ctl.client.gui
@@ -170,7 +208,7 @@ class ControlsMixin:
         }
         for name, fn in actions.items():
             if name in h:
-                h[name].on_click(self._handler(ctl, name, fn))
+                h[name].on_click(self.handler(ctl, name, fn))
 
         @h["auto_capture"].on_update
         def _(event):
@@ -181,19 +219,19 @@ class ControlsMixin:
         @h["show_all"].on_update
         def _(event):
             if self._allowed(ctl, event):
-                self._refresh_controls(ctl)
+                self.refresh_controls(ctl)
 
         if "follow" in h:
             @h["follow"].on_update
             def _(event):
                 if self._allowed(ctl, event):
                     st.options.follow_operator = bool(h["follow"].value)
-                    st._requested = None
+                    st.operator.forget()
                     self._log_action(ctl, f"set the simulated operator {'on' if h['follow'].value else 'off'}")
 
-        if self.mode_controls is not None:
-            self.mode_controls.build(ctl)
-        self._refresh_controls(ctl)
+        if self.mode is not None:
+            self.mode.build(ctl)
+        self.refresh_controls(ctl)
 
     def _allowed(self, ctl: ClientControls, event) -> bool:
         """Only the driving browser acts (the others' controls are disabled; this catches a stale click)."""
@@ -206,7 +244,7 @@ class ControlsMixin:
         if event.client_id != ctl.client.client_id:
             return
         self._message(ctl, f"**{TAKE_CONTROL}:** {self.seat.take(event.client_id)}")
-        self.refresh()
+        self.ctx.refresh()
 
     def _selected(self, value):
         if not value or value == "(none)":
@@ -254,7 +292,7 @@ class ControlsMixin:
         acts = self.station.activities
         with acts.running(DOWNLOAD_NAME, "writing report.html") as act:
             folder = Path(m.store.folder)
-            with self.report_lock:
+            with self.ctx.report_lock:
                 _, why = write_report_if_available(folder)
             note = f" (no report.html: {why})" if why else ""
             acts.progress(DOWNLOAD_NAME, "packing the result files", log=False)
@@ -267,15 +305,15 @@ class ControlsMixin:
         return act.outcome
 
     def _view(self, ctl: ClientControls, camera: bool) -> str:
-        view_from_camera(ctl.client, self.click_camera())
+        view_from_camera(ctl.client, self.ctx.click_camera())
         return "the 3D view looks from the camera; click on the image to check a pixel"
 
     def on_image_click(self, event) -> None:
         """A click on the camera image in the 3D view: check that pixel (operators only)."""
-        ctl = self._clients.get(event.client_id)
+        ctl = self.clients.get(event.client_id)
         if ctl is None or not ctl.unlocked or not self.seat.drives(event.client_id):
             return
-        px = click_to_pixel(self.click_camera(), event)
+        px = click_to_pixel(self.ctx.click_camera(), event)
         if px is None:
             self._message(ctl, "**Check pixel:** the click is outside the camera image", error=True)
             return
@@ -289,9 +327,9 @@ class ControlsMixin:
             self._message(ctl, f"**Check pixel failed:** {e}", error=True)
         else:
             self._message(ctl, f"**Check pixel:** {out}")
-        self.refresh()
+        self.ctx.refresh()
 
-    def _handler(self, ctl: ClientControls, name: str, fn):
+    def handler(self, ctl: ClientControls, name: str, fn):
         def on_click(event):
             with self.action_lock:  # one action at a time, in the order the browser sent them
                 run(event)
@@ -324,7 +362,7 @@ class ControlsMixin:
                 ctl.cache["follow"] = (act_name, self._describe_extra(name))
                 ctl.cache.pop("followed", None)
                 self._follow(ctl)
-            self.refresh()
+            self.ctx.refresh()
 
         return on_click
 
@@ -343,7 +381,7 @@ class ControlsMixin:
             return
         running = act.status is Status.RUNNING
         text = act.text() + (follow[1] if running else "")
-        if self._cached(ctl, "follow_text", text):
+        if self.cached(ctl, "follow_text", text):
             ctl.handles["message"].content = text
         said = ctl.cache.get("followed")
         if said == (act.seq, act.status) or (running and said is not None):
@@ -355,7 +393,7 @@ class ControlsMixin:
     def _describe_extra(self, name) -> str:
         """What to know while a long action runs (said with its "running" line only)."""
         if name == "calibrate":
-            unmet = [b for b in self.bars_now() if not b.met]
+            unmet = [b for b in self.ctx.bars_now() if not b.met]
             return (" Diversity targets not met yet: " + ", ".join(f"{b.name} ({b.fraction * 100:.0f}%)" for b in unmet)
                     + " (the note under the button says more).") if unmet else ""
         if name == "verify":
@@ -450,22 +488,22 @@ class ControlsMixin:
             "view_camera": None if m.result is not None else "the camera image is clickable once calibrated",
         }
 
-    def _cached(self, ctl: ClientControls, key, value) -> bool:
+    def cached(self, ctl: ClientControls, key, value) -> bool:
         """True when `value` differs from the last one sent to this browser under `key` (and remember it)."""
         if ctl.cache.get(key) == value:
             return False
         ctl.cache[key] = value
         return True
 
-    def _refresh_controls(self, ctl: ClientControls) -> None:
+    def refresh_controls(self, ctl: ClientControls) -> None:
         h = ctl.handles
         if not h:
             return
         m = self.machine
         self._refresh_seat(ctl)
         refusals = self._refusals()
-        rec = self._recommended() if self.mode_controls is None else self.mode_controls.recommended()
-        unmet = unmet_targets(self.bars_now()) if m.state in (PROJECTOR_CAPTURE, CALIBRATION) else []
+        rec = self._recommended() if self.mode is None else self.mode.recommended()
+        unmet = unmet_targets(self.ctx.bars_now()) if m.state in (PROJECTOR_CAPTURE, CALIBRATION) else []
         for name, reason in refusals.items():
             b = h.get(name)
             if b is None:
@@ -476,46 +514,46 @@ class ControlsMixin:
             hint = reason[:1].upper() + reason[1:] if reason else None
             if name == "calibrate" and unmet:
                 hint = ((hint + ". ") if hint else "Possible now. ") + "Targets not met yet: " + "; ".join(unmet)
-            if self._cached(ctl, (name, "color"), colour):
+            if self.cached(ctl, (name, "color"), colour):
                 b.color = colour
-            if self._cached(ctl, (name, "hint"), hint):
+            if self.cached(ctl, (name, "hint"), hint):
                 b.hint = hint
         note = ""
         if refusals["calibrate"]:
             note = f"Not possible now: {refusals['calibrate']}."
         elif unmet:
             note = "Possible now. Diversity targets not met yet: " + "; ".join(unmet) + "."
-        if self._cached(ctl, "calibrate_note", note):
+        if self.cached(ctl, "calibrate_note", note):
             h["calibrate_note"].content = note
-        if self._cached(ctl, "download_visible", m.result is not None):
+        if self.cached(ctl, "download_visible", m.result is not None):
             h["download"].visible = h["exports"].visible = m.result is not None
-        if self._cached(ctl, "cal_label", "Re-run calibration" if m.result is not None else "Calibrate"):
+        if self.cached(ctl, "cal_label", "Re-run calibration" if m.result is not None else "Calibrate"):
             h["calibrate"].label = ctl.cache["cal_label"]
         shown = set(STEP_FOLDERS.get(m.state, ())) if not h["show_all"].value else set(ctl.folders)
         for key, folder in ctl.folders.items():
-            if self._cached(ctl, ("folder", key), key in shown):
+            if self.cached(ctl, ("folder", key), key in shown):
                 folder.visible = key in shown
         ids = self._capture_ids() or ["(none)"]
         old = ctl.cache.get("ids")
-        if self._cached(ctl, "ids", ids):
+        if self.cached(ctl, "ids", ids):
             cur = h["which"].value
             h["which"].options = ids
             # the newest capture unless the operator picked another one that still exists
             keep = cur in ids and old is not None and cur != old[0]
             h["which"].value = cur if keep else ids[0]
-        if "follow" in h and self._cached(ctl, "follow_operator", bool(self.station.options.follow_operator)):
+        if "follow" in h and self.cached(ctl, "follow_operator", bool(self.station.options.follow_operator)):
             h["follow"].value = ctl.cache["follow_operator"]
         self._follow(ctl)
-        if self.mode_controls is not None:
-            self.mode_controls.refresh(ctl)
+        if self.mode is not None:
+            self.mode.refresh(ctl)
 
     def _refresh_seat(self, ctl: ClientControls) -> None:
         """Who is connected; a watching browser's controls disabled, with Take control shown instead."""
         h, cid = ctl.handles, ctl.client.client_id
         drives = self.seat.drives(cid)
-        if self._cached(ctl, "who", self.seat.roster(cid)):
+        if self.cached(ctl, "who", self.seat.roster(cid)):
             h["who"].content = ctl.cache["who"]
-        if self._cached(ctl, "drives", (drives, len(h))):  # controls added later get the same state
+        if self.cached(ctl, "drives", (drives, len(h))):  # controls added later get the same state
             h["take"].visible = not drives
             for name, handle in list(h.items()):
                 if name != "take" and hasattr(handle, "disabled"):

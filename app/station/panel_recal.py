@@ -84,7 +84,7 @@ class RecalibrationPanel:
         panel.step_line = lambda: ("**Recalibration mode**: follow the *Recalibration* checklist above; its "
                                    "next action is the highlighted button.")
         panel.checklist = lambda: ""
-        panel.mode_controls = self
+        panel.controls.mode = self
 
     # ---- per browser: the mode's controls in place of the steps' (panel_controls.py calls these) ---------
     def build(self, ctl) -> None:
@@ -93,10 +93,10 @@ class RecalibrationPanel:
         h["recal_accept"] = g.add_button(self.accept_label(), order=1.3, color="green", visible=False)
         h["steps"].visible = False
         for name, fn in (("recal_start", self.start_check), ("recal_accept", self.accept)):
-            h[name].on_click(self.panel._handler(ctl, name, fn))
+            h[name].on_click(self.panel.controls.handler(ctl, name, fn))
 
     def refresh(self, ctl) -> None:
-        h, cached = ctl.handles, self.panel._cached
+        h, cached = ctl.handles, self.panel.controls.cached
         for name, shown in (("recal_start", self.stage == "ready"), ("recal_accept", self.stage == "verdict")):
             if cached(ctl, (name, "visible"), shown):
                 h[name].visible = shown

@@ -69,7 +69,7 @@ class RigChecker:
             note = note() if callable(note) else None
             if note:
                 checks.append(RigCheck("camera link", True, note))
-            self.station._last_frame = max(self.station._last_frame, f.frame_number)
+            self.station.frames.seen(f.frame_number)
         except DeviceError as e:
             checks.append(RigCheck("camera", False, str(e)))
         try:
@@ -124,7 +124,7 @@ class RigChecker:
                 self.station.rig.operator.move_out()
             self.station._show(self.station._black())
             self.station._shown = ("black",)
-            self.station._changed()
+            self.station.frames.changed()
             if settings != recorded:
                 self.station.machine.store.update(rig=_replace(man.rig, camera_settings=settings))
             try:
@@ -149,7 +149,7 @@ class RigChecker:
                         cam.get_frame(timeout_s=self.station.options.frame_timeout_s)) else ASSUMED_TIMING
                     applied, f = apply_exposure(cam, *recorded_exposure(recorded), self.station.options.frame_timeout_s,
                                                 timing=self.station._change_timing)
-                    self.station._last_frame = max(self.station._last_frame, f.frame_number)
+                    self.station.frames.seen(f.frame_number)
                     detail = f"recorded {applied['exposure_us']:g} us, gain {applied['gain']:g} re-applied"
                 else:
                     from drivers.exposure import search_exposure
@@ -281,6 +281,6 @@ class RigChecker:
         try:
             _, f = apply_exposure(cam, settings["exposure_us"], settings["gain"], self.station.options.frame_timeout_s,
                                   timing=self.station._change_timing)
-            self.station._last_frame = max(self.station._last_frame, f.frame_number)
+            self.station.frames.seen(f.frame_number)
         except (DeviceError, ProcamError, KeyError) as e:
             _log.warning("could not restore the exposure after measuring the response: %s", e)

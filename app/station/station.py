@@ -12,67 +12,31 @@ from __future__ import annotations
 import logging
 import threading
 import time
-import traceback
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
 from app.station import wording
 from app.station.activity import CHECK_RIG_NAME, Activities, activity_name, outcome_text, rig_findings
+from app.station.auto_operator import AutoOperator
 from app.station.autocapture import (
-    AutoCapture,
-    AutoCaptureSettings,
-    Decision,
-    LiveDetection,
-    PoseFeatures,
-    approximate_camera,
-    detect_for_step,
+    AutoCapture, AutoCaptureSettings, Decision, LiveDetection, PoseFeatures, approximate_camera, detect_for_step,
 )
+from app.station.capture_writer import CaptureWriter
+from app.station.frame_source import FrameSource
 from app.station.machine import (
-    CALIBRATION,
-    CAPTURE_STATES,
-    CHECK_RIG,
-    MIRROR_CAPTURE,
-    PROJECTOR_CAPTURE,
-    VERIFICATION,
-    ActionRefused,
-    RigCheck,
-    SessionMachine,
-    Target,
+    ACTIONS, CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, ActionRefused, RigCheck, SessionMachine, Target,
 )
 from app.station.projector_light import BACK_MESSAGE as LIGHT_BACK, LOST_MESSAGE as LIGHT_LOST, ProjectorLightWatch
 from app.station.rig_check import RigChecker
-from calib.detection.detect import DetectionFailure, detect_capture
-from calib.errors import ProcamError, SessionError
+from calib.errors import ProcamError
 from calib.models.observations import STEP_PROJECTOR
 from drivers.base import Frame
 from drivers.clock import clock_of
-from drivers.errors import DeviceDisconnected, DeviceError, StreamReset
-
+from drivers.errors import DeviceError
 
 _log = logging.getLogger("procam.station")
-
-
-@dataclass(frozen=True)
-class LoopError:
-    """An unexpected error of the capture loop (it was restarted)."""
-
-    time_s: float  # time.monotonic()
-    summary: str
-    traceback: str
-
-
-def rate_of(times, window_s: float = 2.0, longest_s: float = 10.0) -> float:
-    """Events per second of a list of time.monotonic() stamps, over the last `window_s` seconds or, when
-    events come slower (a starved machine), over the span of the last three (up to `longest_s`): a slow
-    but live source reads as slow, not as 0."""
-    stamps = list(times)
-    now = time.monotonic()
-    if len(stamps) >= 3:
-        window_s = min(longest_s, max(window_s, now - stamps[-3]))
-    return sum(1 for t in stamps if now - t <= window_s) / window_s
 
 
 @dataclass
@@ -105,6 +69,28 @@ class LiveView:
 
 
 class Station:
+    """Wires its collaborators, each with one job (the modules are app.station's):
+
+    - `machine` (machine.SessionMachine): the session's steps, targets and refusals; it writes the captures
+      and runs calibration and verification. The station never decides what is allowed.
+    - `frames` (frame_source.FrameSource): the camera's frames (a preview thread keeps the newest), the
+      timing rule saying which count after a change, the camera's problems, the frame rates, and the
+      supervised capture loop of `procam station`.
+    - `operator` (auto_operator.AutoOperator): asks the rig's operator for each target's pose (the simulated
+      one moves the board), for another pose when auto-capture keeps none, and with `--auto` takes the
+      guideline's next step itself.
+    - `autocap` (autocapture.AutoCapture): per frame, whether the board is still and in a new pose.
+    - `captures` (capture_writer.CaptureWriter): writes a kept frame with its record, then detects it in the
+      background as calibration will.
+    - `activities` (activity.Activities): what runs now and what the last actions came to; `light_watch`
+      (projector_light.ProjectorLightWatch): whether the pattern still reaches the camera; the rig check
+      (rig_check.RigChecker) and the operator's words (wording) are run and asked by the station.
+
+    What stays here: the projector's image (pattern or black, and from when it is visible), one frame's
+    work (`tick`), the capture button, and the long actions (calibrate, verify, check a pixel: inline when
+    headless, in a worker thread under the panel).
+    """
+
     def __init__(self, rig, machine: SessionMachine, options: StationOptions | None = None,
                  log: Callable[[str], None] | None = None):
         self.rig = rig
@@ -127,44 +113,28 @@ class Station:
             factory = None
         self.camera_model = approximate_camera(tuple(cam.size), factory)
         self.autocap = AutoCapture(self.options.autocapture)
+        self.frames = FrameSource(cam, self.clock, self.options, machine, self.log, on_change=self._start_over)
+        self.operator = AutoOperator(self)
+        self.captures = CaptureWriter(machine, self.log)
         self.live: LiveView | None = None
-        self.operator_says: str = ""
-        self.device_problem: str | None = None
         self._shown = None
         self.shown_ticket = 0  # the projector ticket of the image the station shows now
-        self._requested: Target | None = None
         self._autocap_target = object()
-        self._last_frame = -1
-        self._min_frame = -1
-        self._min_start_s = -1e18  # frames exposed before this host time show an old projector image or pose
-        self._frames_on_target = 0
-        self._similar_frames = 0
-        self._failing_frames = 0
-        self._tick_times: list[float] = []
         self._pattern_cache: dict[int, np.ndarray] = {}
         self._worker: threading.Thread | None = None
         self._worker_error: str | None = None
-        self._stop = threading.Event()
-        self._loop_thread: threading.Thread | None = None
-        self.loop_errors: list[LoopError] = []  # unexpected errors of the capture loop (supervised)
-        self.loop_stopped: str | None = None  # why the capture loop stopped for good (None: running)
-        self._grab_thread: threading.Thread | None = None
-        self._frame_cond = threading.Condition()
-        self.preview = None  # newest camera frame (preview thread)
-        self._preview_times: list[float] = []
-        self._operator_index = 0
-        self._variant = 0  # auto mode: how many times the operator was asked for another pose
         self.started_s = time.monotonic()
         self.last_capture_s = -1e9
-        self.problem: str | None = None  # the last error of the background loop (not a device's)
-        # every capture is detected once, in the background, as calibration will (detections.json)
-        self._detector = ThreadPoolExecutor(max_workers=1, thread_name_prefix="station-detect")
-        self._detecting: list[Future] = []
         self.pixel_check = None  # the last live epipolar check (app.verification.PixelCheck)
         self._change_timing = None  # how the camera confirms a changed setting (drivers.exposure.ChangeTiming)
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
         self.light_watch = ProjectorLightWatch()  # the projector's image still reaching the camera
+
+    @property
+    def device_problem(self) -> str | None:
+        """What is wrong with the camera or the projector now (None: nothing)."""
+        return self.frames.device_problem
 
     # ---- devices --------------------------------------------------------------------------------
     @property
@@ -188,15 +158,10 @@ class Station:
         self.shown_ticket = ticket
         return self.rig.projector.wait_presented(ticket, timeout_s=self.options.frame_timeout_s)
 
-    def _changed(self, visible_s: float | None = None) -> None:
-        """The projector image (visible from `visible_s`) or the board (now) changed: frames exposed
-        before no longer count."""
-        self._min_frame = self._last_frame + self.options.settle_frames
-        self._min_start_s = max(self._min_start_s, self.clock.now() if visible_s is None else float(visible_s))
+    def _start_over(self) -> None:
+        """The frames before now no longer count (FrameSource.changed): judge the next ones afresh."""
         self.autocap.reset()
-        self._frames_on_target = 0
-        self._similar_frames = 0
-        self._failing_frames = 0
+        self.operator.start_over()
 
     def check_rig(self) -> list[RigCheck]:
         """Camera streaming, projector window presenting, board and pattern specs usable; an activity
@@ -219,141 +184,22 @@ class Station:
             return
         visible = self._show(self.pattern_image(want[1]) if want[0] == "pattern" else self._black())
         self._shown = want
-        self._changed(visible)
+        self.frames.changed(visible)
 
     def request_pose(self, target: Target | None = None) -> str:
         """Ask the operator for the target's board pose (on the simulated rig: the board moves)."""
-        target = target or self.machine.target
-        if target is None:
-            raise ActionRefused("move the board", "no capture is asked for now")
-        if target != self._requested and self._requested is not None:
-            self._variant = 0
-        index = target.pose_index + 100 * self._variant  # a variant: another pose for the same slot
-        text = self.rig.operator.request_pose(target.step, target.pattern_position, index)
-        self.operator_says = text or ""
-        self._requested = target
-        self._operator_index = index
-        self._changed()
-        return self.operator_says
+        return self.operator.request_pose(target)
 
     def retake_pose(self, target: Target, avoid: PoseFeatures | None, label: str) -> str | None:
         """After a retake: auto-capture must see a pose other than the deleted one (`avoid`); a simulated
         operator is asked for another pose for the same slot (a variant), as a person would move."""
         self.autocap.avoid(label, avoid)
-        if not self.is_sim:
-            return None
-        self._requested = target
-        self._variant += 1
-        index = target.pose_index + 100 * self._variant
-        self.operator_says = self.rig.operator.request_pose(target.step, target.pattern_position, index) or ""
-        self._operator_index = index
-        self._changed()
-        return self.operator_says
-
-    def _camera_lost(self, e: DeviceError) -> None:
-        """A camera error: say so in the panel; a disconnected device is reopened when it comes back."""
-        self.device_problem = f"camera: {e}; waiting for it to come back"
-        reconnect = getattr(self.rig.camera, "reconnect", None)
-        if isinstance(e, StreamReset):  # the driver reset a stalled stream: frames come again
-            self.machine.log(f"camera: {e}")
-            self.device_problem = None
-            self._changed()
-        elif isinstance(e, DeviceDisconnected) and callable(reconnect):
-            try:
-                reconnect(timeout_s=2.0)
-                self.device_problem = None
-                self.machine.log("camera reconnected")
-                self._changed()
-            except DeviceError:
-                pass
-        else:
-            time.sleep(0.2)
-
-    def accepts(self, frame: Frame) -> bool:
-        """The timing rule: a frame counts only if its exposure started at or after the moment the
-        projector's image (and the board's pose) became what the station asked for; a camera that cannot
-        time its frames skips `settle_frames` frames instead."""
-        if frame.exposure_start_s is not None:
-            return frame.exposure_start_s >= self._min_start_s
-        return frame.frame_number > self._min_frame
-
-    def _grab(self):
-        """The next frame for detection: from the preview thread when it runs, else from the camera."""
-        if self._grab_thread is not None:
-            with self._frame_cond:
-                self._frame_cond.wait_for(lambda: (self.preview is not None and self.preview.frame_number >
-                                                   self._last_frame) or self._stop.is_set(), timeout=1.0)
-                frame = self.preview
-            if frame is None or frame.frame_number <= self._last_frame:
-                return None
-            self._last_frame = frame.frame_number
-            return frame
-        try:
-            frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
-                                              newer_than=self._last_frame if self._last_frame >= 0 else None)
-        except DeviceError as e:
-            self._camera_lost(e)
-            return None
-        self.device_problem = None
-        self._last_frame = frame.frame_number
-        return frame
-
-    def _grab_loop(self, max_fps: float) -> None:
-        """Preview thread: keep the newest camera frame (for the live image and for detection)."""
-        period = 1.0 / max_fps
-        last_n = -1
-        while not self._stop.is_set():
-            t0 = time.monotonic()
-            if self.machine.busy == "verifying":  # the verification owns the camera meanwhile
-                time.sleep(0.1)
-                continue
-            if self.machine.busy == "calibrating":  # leave the processor to the calibration
-                time.sleep(0.5)
-            try:
-                frame = self.rig.camera.get_frame(timeout_s=self.options.frame_timeout_s,
-                                                  newer_than=last_n if last_n >= 0 else None)
-            except DeviceError as e:
-                self._camera_lost(e)
-                continue
-            if self.device_problem and self.device_problem.startswith("camera"):
-                self.device_problem = None
-            last_n = frame.frame_number
-            with self._frame_cond:
-                self.preview = frame
-                self._preview_times.append(time.monotonic())
-                del self._preview_times[:-60]
-                self._frame_cond.notify_all()
-            time.sleep(max(0.0, period - (time.monotonic() - t0)))
-
-    @property
-    def preview_fps(self) -> float:
-        """Camera frames per second over the last two seconds."""
-        return rate_of(self._preview_times)
-
-    @property
-    def detection_fps(self) -> float:
-        """Frames detected per second over the last two seconds."""
-        return rate_of(self._tick_times)
-
-    def taken_for(self, target: Target | None) -> list[tuple[str, PoseFeatures]]:
-        """Features of the captured poses a new capture for `target` must differ from."""
-        if target is None:
-            return []
-        out = []
-        for c in self.machine.manifest.captures_of(target.step):
-            if target.step == STEP_PROJECTOR and c.pattern_position != target.pattern_position:
-                continue
-            f = PoseFeatures.from_dict(c.meta.get("pose")) if isinstance(c.meta.get("pose"), dict) else None
-            if f is not None:
-                out.append((c.id, f))
-        return out
+        return self.operator.retake(target)
 
     def tick(self) -> LiveView | None:
         view = self._tick()
         if view is not None:
-            self.problem = None
-            if self.device_problem and self._grab_thread is not None and self.preview_fps > 0:
-                self.device_problem = None  # frames flow again
+            self.frames.went_well()
         return view
 
     def _tick(self) -> LiveView | None:
@@ -365,133 +211,59 @@ class Station:
         target = m.target if state in CAPTURE_STATES and not m.busy else None
         try:
             self._sync_projector(state, target)
-            if target is not None and self.options.follow_operator and target != self._requested:
+            if self.operator.wants_pose(target):
                 self.request_pose(target)
         except DeviceError as e:
-            self.device_problem = f"projector: {e}"
+            self.frames.device_problem = f"projector: {e}"
             time.sleep(0.2)
             return None
         if target != self._autocap_target:
-            self.autocap.reset(self.taken_for(target))
+            self.autocap.reset(self.captures.taken_for(target))
             self._autocap_target = target
-            self._frames_on_target = 0
-            self._similar_frames = 0
-            self._failing_frames = 0
+            self.operator.start_over()
         if m.busy:
             time.sleep(0.2)  # leave the processor to the calibration; the live view slows down
-        frame = self._grab()
+        frame = self.frames.grab()
         if frame is None:
             return None
         now = self.clock.now()
         det, decision = None, None
-        accepted = self.accepts(frame)
+        accepted = self.frames.accepts(frame)
         if target is not None and accepted:  # a frame exposed before the last change is not even detected
             det = detect_for_step(frame.image, target.step, m.manifest, self.camera_model, frame.frame_number)
-            self._tick_times.append(time.monotonic())
-            del self._tick_times[:-60]
+            self.frames.detected()
             decision = self.autocap.update(det)
-            self._frames_on_target += 1
         if target is None or target.step != STEP_PROJECTOR:
             self.light_watch.reset()  # no pattern shown: no evidence (the hint clears with the step)
         elif det is not None:
             self._watch_light(self.light_watch.update(det, target))
-        self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, self.detection_fps,
+        self.live = LiveView(frame.image, frame.frame_number, now, det, decision, target, self.frames.detection_fps,
                              accepted, frame.exposure_start_s)
-        if decision is not None and target is not None:
-            take = decision.capture and self.options.auto_capture
-            if not take and self.options.auto:
-                similar = decision.still and det.ok and not decision.novel
-                failing = decision.still and not det.ok  # board still, but the frame is not usable
-                self._similar_frames = self._similar_frames + 1 if similar else 0
-                self._failing_frames = self._failing_frames + 1 if failing else 0
-                stuck = self._similar_frames >= self.options.stuck_frames or \
-                    self._failing_frames >= self.options.stuck_frames or \
-                    self._frames_on_target > self.options.max_frames_per_target
-                if stuck and self._variant < self.options.max_variants:
-                    self.log(f"no capture for this pose ({decision.message}); asking the operator for another pose")
-                    self._variant += 1
-                    self._requested = None
-                    self.request_pose(target)
-                elif stuck and similar:
-                    take = True  # the operator cannot do better: keep the pose it was asked for
-                    self.log(f"keeping a pose close to {decision.similar_to} (no other pose was found)")
-                elif stuck:
-                    raise SessionError(
-                        f"no usable frame for {target.step} (pattern position {target.pattern_position}, pose "
-                        f"{target.pose_index}) in {self._variant + 1} poses: {decision.message}")
-            if take:
-                try:
-                    self._capture(frame, det, decision, "auto")
-                except ActionRefused:
-                    pass  # the target changed under us (a button action); the next tick follows it
+        if decision is not None and target is not None and self.operator.judge(target, det, decision):
+            try:
+                self._capture(frame, det, decision, "auto")
+            except ActionRefused:
+                pass  # the target changed under us (a button action); the next tick follows it
         if self.options.auto:
             self._drive()
         return self.live
 
     def _capture(self, frame, det: LiveDetection, decision: Decision | None, how: str):
-        meta = {"how": how, "frame_number": int(frame.frame_number), "timestamp_ms": float(frame.timestamp_ms),
-                "projector_ticket": int(self.shown_ticket)}
-        if frame.exposure_start_s is not None:
-            meta["exposure_start_s"] = float(frame.exposure_start_s)
-        if det.features is not None:
-            meta["pose"] = det.features.to_dict()
-        if det.board is not None:
-            meta["corners"] = int(len(det.board.ids))
-            # the corners as detected live: the panel redraws the board poses with the calibrated camera
-            meta["board_ids"] = [int(i) for i in det.board.ids]
-            meta["board_px"] = np.round(np.asarray(det.board.corners_px, float), 3).tolist()
-        if det.virtual is not None:
-            meta["virtual_corners"] = int(len(det.virtual.ids))
-        if decision is not None and decision.motion_px is not None:
-            meta["motion_px"] = round(float(decision.motion_px), 4)
-        if decision is not None and decision.similar_to:
-            meta["similar_to"] = decision.similar_to
-        if self._requested == self.machine.target and self._requested is not None:
-            meta["operator_pose_index"] = int(self._operator_index)
-        cap = self.machine.record_capture(frame.image, meta)
+        cap = self.captures.write(frame, det, decision, how, self.shown_ticket,
+                                  self.operator.asked_index(self.machine.target))
         self.last_capture_s = time.monotonic()
-        self.log(f"captured {cap.id}: {self._describe(cap)}")
-        self._detect_in_background(cap.id)
-        self._changed()
+        self.frames.changed()
         return cap
-
-    def _detect_in_background(self, capture_id: str) -> None:
-        """Detect a new capture from its file exactly as calibration will (calib.detection.detect.detect_capture) in
-        a background thread, keeping the result in the session's detections.json. Calibrate then finds
-        every image already detected, and a capture that calibration would leave out is reported now,
-        while the operator can still retake it."""
-        store = self.machine.store
-
-        def work():
-            try:
-                result = detect_capture(store, capture_id)
-            except ProcamError:
-                return  # deleted before its turn
-            if isinstance(result, DetectionFailure) and any(c.id == capture_id for c in store.manifest.captures):
-                self.log(f"{capture_id}: {result.reason}; calibration will leave it out (retake it to replace it)")
-
-        self._detecting = [f for f in self._detecting if not f.done()] + [self._detector.submit(work)]
 
     def wait_for_detections(self, timeout_s: float | None = None) -> None:
         """Block until every capture taken so far has been detected in the background."""
-        for f in list(self._detecting):
-            f.result(timeout_s)
-
-    def _describe(self, cap) -> str:
-        m = self.machine
-        k = cap.meta.get("pose_index", 0) + 1
-        if cap.step == STEP_PROJECTOR:
-            c = m.counts()
-            return (f"pattern position {cap.pattern_position + 1}/{m.positions}, pose {k}/"
-                    f"{m.plan.poses_per_position} ({c['projector']}/{c['projector_total']})")
-        c = m.counts()
-        return f"{cap.step}, pose {k} ({c['mirror']}/{c['mirror_total']})"
+        self.captures.wait(timeout_s)
 
     def capture_now(self):
         """The operator's capture button: the newest frame, if what the step needs is detected in it."""
         live = self.live
         m = self.machine
-        if self.loop_stopped:
+        if self.frames.loop_stopped:
             raise ActionRefused("capture", "the capture loop stopped after repeated errors; restart the station")
         reason = m.why_not("capture")
         if reason:
@@ -500,59 +272,28 @@ class Station:
             raise ActionRefused("capture", "no camera frame for the current step yet; wait a moment")
         frame = Frame(live.image, live.frame_number, live.timestamp_s * 1000.0,
                       exposure_start_s=live.exposure_start_s)  # the frame detected on
-        if not self.accepts(frame):
+        if not self.frames.accepts(frame):
             raise ActionRefused("capture", "the projector or the board just changed; wait for a new frame")
         if not live.detection.ok:
             raise ActionRefused("capture", f"the current frame is not usable: {live.detection.failure}")
         return self._capture(frame, live.detection, live.decision, "button")
 
-    # ---- the station leads a whole session --------------------------------------------------------
-    def _default_mirror_method(self) -> str:
-        if self.options.mirror_method:
-            return self.options.mirror_method
-        sc = getattr(self.rig, "scenario", None)
-        method = getattr(sc, "mirror_method", None)
-        return method or "real-virtual"
-
     def _drive(self) -> None:
-        """Auto mode: take the step the guideline asks for next."""
-        m = self.machine
-        if m.busy or (self._worker is not None and self._worker.is_alive()):
-            return
-        s = m.state
-        if s == CHECK_RIG:
-            m.start_session(self.check_rig())  # (its findings are logged)
-        elif s == MIRROR_CAPTURE:
-            if m.mirror_method is None:
-                m.choose_mirror_method(self._default_mirror_method())
-            elif m.target is None:
-                m.proceed()
-        elif s == PROJECTOR_CAPTURE:
-            if m.target is None:
-                self.run_long("calibrate", self.calibrate)
-        elif s == CALIBRATION:
-            if m.result is not None and not m.result_stale:
-                if m.why_not("verify") is None:
-                    self.run_long("verify", self.verify)
-                elif m.why_not("finish") is None:
-                    m.finish()
-            elif m.calibration_error is None and m.why_not("calibrate") is None:
-                self.run_long("calibrate", self.calibrate)
-        elif s == VERIFICATION:
-            if m.why_not("finish") is None:
-                m.finish()
-            elif m.report is None and m.verification_error is None and m.why_not("verify") is None:
-                self.run_long("verify", self.verify)
+        """Auto mode: take the step the guideline asks for next (app.recalibration narrows it)."""
+        self.operator.drive()
 
     # ---- long actions -----------------------------------------------------------------------------
     background_long_actions = False
+
+    @property
+    def long_action_running(self) -> bool:
+        """A long action runs in its worker thread now."""
+        return self._worker is not None and self._worker.is_alive()
 
     def run_long(self, name: str, fn: Callable[[], object], action: str | None = None):
         """Calibration and verification: inline (headless) or in a worker thread (panel). A refused
         action (`action`, default `name` when it is one of the machine's) is refused here, before any
         thread starts, so the caller shows the reason."""
-        from app.station.machine import ACTIONS
-
         action = action or (name if name in ACTIONS else None)
         reason = self.machine.why_not(action) if action else (
             f"the station is busy ({self.machine.busy}); wait until it finishes" if self.machine.busy else None)
@@ -564,7 +305,7 @@ class Station:
                 out = fn()
                 act.outcome = outcome_text(name, out)
             return out
-        if self._worker is not None and self._worker.is_alive():
+        if self.long_action_running:
             raise ActionRefused(name, "another long action is running")
         self._worker_error = None
         self.activities.start(label)  # before the thread: whoever pressed the button sees it running
@@ -620,74 +361,26 @@ class Station:
     def start_preview(self, preview_fps: float = 20.0) -> None:
         """Keep the newest camera frame in a thread (the live image, its frame rate, and the frames
         `tick` detects on), whoever ticks the station."""
-        self._grab_thread = threading.Thread(target=self._grab_loop, args=(preview_fps,), name="station-preview",
-                                             daemon=True)
-        self._grab_thread.start()
+        self.frames.start_preview(preview_fps)
 
     def start_loop(self, preview_fps: float = 20.0) -> None:
         """Run the station in background threads: a preview thread keeping the newest frame and a
         station thread detecting and capturing on it (the panel only draws)."""
         self.background_long_actions = True
-        self.start_preview(preview_fps)
-
-        self._loop_thread = threading.Thread(target=self._supervised_loop, name="station-loop", daemon=True)
-        self._loop_thread.start()
-
-    # the capture loop's supervision: an unexpected error is logged with its traceback (the panel's log
-    # tab and the process log), shown, and the loop restarts after a back-off that doubles with each
-    # failure; `loop_give_up` failures within the window stop it for good with a clear message
-    loop_backoff_s: tuple[float, float] = (0.5, 8.0)  # first wait after an unexpected error, longest
-    loop_give_up: tuple[int, float] = (5, 60.0)  # this many unexpected errors in this many seconds: stop
-
-    def _supervised_loop(self) -> None:
-        failures: list[float] = []
-        wait_s = self.loop_backoff_s[0]
-        while not self._stop.is_set():
-            try:
-                self.tick()
-                wait_s = self.loop_backoff_s[0]
-            except DeviceError as e:
-                self.device_problem = str(e)
-                self.log(str(e))
-                time.sleep(0.5)
-            except ProcamError as e:  # e.g. auto mode could not go on: shown until the next good tick
-                self.problem = str(e)
-                self.log(str(e))
-                time.sleep(0.5)
-            except Exception as e:  # a bug: say so, with the traceback, and go on
-                now = time.monotonic()
-                failures = [t for t in failures if now - t <= self.loop_give_up[1]] + [now]
-                err = LoopError(now, f"{type(e).__name__}: {e}", traceback.format_exc())
-                self.loop_errors.append(err)
-                del self.loop_errors[:-50]
-                _log.error("procam station: the capture loop failed (%s)", err.summary, exc_info=True)
-                self.machine.log(f"capture loop failed: {err.summary}\n{err.traceback}")
-                if len(failures) >= self.loop_give_up[0]:
-                    self.loop_stopped = (
-                        f"It failed {len(failures)} times in {self.loop_give_up[1]:.0f} s (last: {err.summary}); "
-                        "no more captures are taken. Stop the station and restart it with --resume on the session "
-                        "folder (every acknowledged capture is in it), and report the traceback in the Log tab.")
-                    self.problem = "the capture loop stopped after repeated errors; restart the station with --resume"
-                    self.machine.log("capture loop stopped: " + self.loop_stopped)
-                    _log.error("procam station: the capture loop stopped: %s", self.loop_stopped)
-                    return
-                self.problem = f"the capture loop failed ({err.summary}); restarting it in {wait_s:g} s"
-                self._stop.wait(wait_s)
-                wait_s = min(self.loop_backoff_s[1], wait_s * 2.0)
+        self.frames.start_preview(preview_fps)
+        self.frames.start_loop(self.tick)
 
     def stop_loop(self, timeout_s: float = 5.0) -> None:
-        self._stop.set()
-        with self._frame_cond:
-            self._frame_cond.notify_all()
-        for t in (self._loop_thread, self._grab_thread, self._worker):
-            if t is not None:
-                t.join(timeout_s)
-        self._detector.shutdown(wait=True, cancel_futures=True)
+        self.frames.stop(timeout_s)
+        if self._worker is not None:
+            self._worker.join(timeout_s)
+        self.captures.close()
 
     # ---- what to do next ----------------------------------------------------------------------------
     def instruction(self) -> str:
         """What the person at the rig should do next, in plain words (app.station.wording)."""
-        return wording.instruction(self.machine, self.device_problem, self.problem, self.live_hint(self.live))
+        return wording.instruction(self.machine, self.frames.device_problem, self.frames.problem,
+                                   self.live_hint(self.live))
 
     def _watch_light(self, event: str | None) -> None:
         """Log an episode of a projector image that no longer reaches the camera, once when it begins and

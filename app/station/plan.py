@@ -1,0 +1,55 @@
+"""What a session asks for: the capture plan (how many captures each step takes) and the target (the
+one capture asked for next). Both are stored in session.json's `state`, so a resumed session keeps them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How many captures each step asks for. The projector step takes `poses_per_position` board poses
+    at each of the pattern's positions (PatternSpec.positions)."""
+
+    poses_per_position: int = 4
+    real_virtual_captures: int = 14
+    real_mirror_captures: int = 14
+    min_real_virtual: int = 3
+    # real-mirror: at least 3 placements of the board on the mirror (each capture a new place and angle):
+    # with one, the mirror's normal rests on a single board's tilt (docs/JOINT.md#several-real-mirror-placements)
+    min_real_mirror: int = 3
+    min_projector_captures: int = 6
+
+    def mirror_captures(self, method: str) -> int:
+        return self.real_virtual_captures if method == "real-virtual" else self.real_mirror_captures
+
+    def min_mirror(self, method: str) -> int:
+        need = self.min_real_virtual if method == "real-virtual" else self.min_real_mirror
+        return min(need, self.mirror_captures(method))  # a plan asking for fewer captures needs only those
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> Plan:
+        d = d or {}
+        return cls(**{k: int(v) for k, v in d.items() if k in cls.__dataclass_fields__})
+
+
+@dataclass(frozen=True)
+class Target:
+    """The capture the station asks for next: which step, at which pattern position, which pose."""
+
+    step: str
+    pattern_position: int | None
+    pose_index: int
+
+    def to_dict(self) -> dict:
+        return {"step": self.step, "pattern_position": self.pattern_position, "pose_index": self.pose_index}
+
+    @classmethod
+    def from_dict(cls, d) -> Target | None:
+        if not isinstance(d, dict) or "step" not in d:
+            return None
+        pos = d.get("pattern_position")
+        return cls(str(d["step"]), None if pos is None else int(pos), int(d.get("pose_index", 0)))
