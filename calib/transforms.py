@@ -171,3 +171,10 @@ def nearest_rotation(R: np.ndarray) -> np.ndarray:
     a product of many updates accumulates."""
     U, _, Vt = np.linalg.svd(np.asarray(R, float))
     return U @ Vt
+
+
+def rotvec_covariance(C_g: np.ndarray, g: np.ndarray | None = None) -> np.ndarray:
+    """The covariance of a rotation vector from C_g, the covariance of the Gibbs vector g (default 0, the
+    solvers' estimate): J C_g J^T with J = rotvec_gibbs_jacobian(g). Angles are reported in this form."""
+    J = rotvec_gibbs_jacobian(np.zeros(3) if g is None else g)
+    return J @ np.asarray(C_g, float) @ J.T
