@@ -76,20 +76,18 @@ def test_conic_model_explains_the_observed_centroids():
     """At the true parameters the conic model predicts biased observations 6x better than the point
     model; with the 32-point centroid correction (the lens distortions' curvature across a blob),
     over 50x better."""
-    from calib.joint.method import _update_centroid_correction
-
     kw = dict(pattern=BIG)
     obs = observations(circle_centroids=True, **kw)
     prob, _ = build_problem(obs, ground_truth(**kw), JointOptions(pattern_model="conic"), "5coef", "5coef")
     x = prob.x0()
     _, uv_conic = prob.predict(x, "conic")
     _, uv_point = prob.predict(x, "point")
-    rms_conic = np.sqrt(np.mean((uv_conic - prob.p["uv"]) ** 2))
-    rms_point = np.sqrt(np.mean((uv_point - prob.p["uv"]) ** 2))
+    rms_conic = np.sqrt(np.mean((uv_conic - prob.pattern.uv) ** 2))
+    rms_point = np.sqrt(np.mean((uv_point - prob.pattern.uv) ** 2))
     assert rms_point > 2e-3 and rms_conic < rms_point / 4
-    _update_centroid_correction(prob, x)
+    prob.update_centroid_correction(x)
     _, uv_corr = prob.predict(x, "conic")
-    assert np.sqrt(np.mean((uv_corr - prob.p["uv"]) ** 2)) < rms_point / 50
+    assert np.sqrt(np.mean((uv_corr - prob.pattern.uv) ** 2)) < rms_point / 50
 
 
 def test_joint_refinement_with_the_conic_model_is_unbiased():

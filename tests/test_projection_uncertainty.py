@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from calib.errors import FormatError
-from calib.joint.method import distort
+from calib.joint.lens import distort
 from calib.models.result import CalibrationResult
 from calib.pipeline import calibrate_observations
 from calib.quality import projection_uncertainty as PU

@@ -211,6 +211,7 @@ def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Resid
     """Detections (from detections.json when it is current, else detected now) projected with `result`."""
     from calib.detection.detect import detect_session
     from calib.joint.method import JointOptions, build_problem
+    from calib.joint.points import KIND_NAMES
 
     obs = detect_session(store, workers=2, cache="use")
     diag = result.diagnostics if isinstance(result.diagnostics, dict) else {}
@@ -229,71 +230,40 @@ def recompute_residuals(store: SessionStore, result: CalibrationResult) -> Resid
     stored = _dict(diag.get("board_poses"))
     source = "PnP"
     if stored and all(ps.capture_id in stored for ps in prob.poses):
-        state = prob.state.copy()
         try:
-            for v, ps in enumerate(prob.poses):
-                T = np.asarray(stored[ps.capture_id], float).reshape(4, 4)
-                if not np.isfinite(T).all():
-                    raise ValueError
-                state.R[v], state.t[v] = T[:3, :3], T[:3, 3]
-                if ps.on_mirror:
-                    state.plane[v] = _plane_params(prob, T)
-            prob.set_state(state)
+            prob.set_board_poses(stored)
             source = session_files.CALIBRATION
         except (TypeError, ValueError):  # unreadable: the poses PnP found with the calibrated model stay
             source = "PnP (calibration.json's board poses are unreadable)"
     x = prob.x0()
-    if prob.pattern_model == "conic":
-        from calib.joint import method as joint
-
-        correct = getattr(joint, "_update_centroid_correction", None)
-        if correct is not None:
-            correct(prob, x)
+    prob.update_centroid_correction(x)
     uv_c, uv_p = prob.predict(x)
-    m = prob.unpack(x)
-    poses = {ps.capture_id: _T(m["R"][v], m["t"][v]) for v, ps in enumerate(prob.poses)}
+    poses = prob.board_poses(x)
+    corners, pattern = prob.corners, prob.pattern
 
-    kinds_j = {0: "board", 1: "mirror-real", 2: "mirror-virtual"}
-    cam_kind_c = np.array([KINDS.index(kinds_j[int(k)]) for k in prob.c["kind"]], int)
+    cam_kind_c = np.array([KINDS.index(KIND_NAMES[int(k)]) for k in corners.kind], int)
     views = tuple(ps.capture_id for ps in prob.poses)
     steps = tuple(ps.role for ps in prob.poses)
-    # prob.c["cid"] indexes prob.captures, which lists the views in the order of prob.poses
+    # the point sets' cid indexes prob.captures, which lists the views in the order of prob.poses
     vid = {cid: views.index(cid) for cid in views}
-    cview_c = np.array([vid[prob.captures[i]] for i in prob.c["cid"]], int)
-    cview_p = np.array([vid[prob.captures[i]] for i in prob.p["cid"]], int)
+    cview_c = np.array([vid[prob.captures[i]] for i in corners.cid], int)
+    cview_p = np.array([vid[prob.captures[i]] for i in pattern.cid], int)
     rej = _rejected_keys(diag)
-    rej_c = np.array([(views[v], KINDS[k], int(p)) in rej for v, k, p in zip(cview_c, cam_kind_c, prob.c["pid"])], bool)
-    rej_p = np.array([(views[v], "pattern", int(p)) in rej for v, p in zip(cview_p, prob.p["pid"])], bool)
+    rej_c = np.array([(views[v], KINDS[k], int(p)) in rej for v, k, p in zip(cview_c, cam_kind_c, corners.pid)], bool)
+    rej_p = np.array([(views[v], "pattern", int(p)) in rej for v, p in zip(cview_p, pattern.pid)], bool)
 
-    proj_res = _projector_residuals(result, poses, views, cview_p, prob.p["uv"], uv_p, prob.mirrored)
+    proj_res = _projector_residuals(result, poses, views, cview_p, pattern.uv, uv_p, prob.mirrored)
     res = Residuals(
         views=views, steps=steps,
-        cam_uv=np.concatenate([prob.c["uv"], prob.p["uv"]]).reshape(-1, 2),
-        cam_res=np.concatenate([uv_c - prob.c["uv"], uv_p - prob.p["uv"]]).reshape(-1, 2),
-        cam_kind=np.concatenate([cam_kind_c, np.full(len(prob.p["uv"]), KINDS.index("pattern"))]),
+        cam_uv=np.concatenate([corners.uv, pattern.uv]).reshape(-1, 2),
+        cam_res=np.concatenate([uv_c - corners.uv, uv_p - pattern.uv]).reshape(-1, 2),
+        cam_kind=np.concatenate([cam_kind_c, np.full(len(pattern.uv), KINDS.index("pattern"))]),
         cam_view=np.concatenate([cview_c, cview_p]),
-        cam_point=np.concatenate([prob.c["pid"], prob.p["pid"]]).astype(int),
+        cam_point=np.concatenate([corners.pid, pattern.pid]).astype(int),
         cam_rejected=np.concatenate([rej_c, rej_p]),
-        proj_q=np.asarray(prob.p["q"], float).reshape(-1, 2), proj_res=proj_res, proj_view=cview_p,
+        proj_q=np.asarray(pattern.q, float).reshape(-1, 2), proj_res=proj_res, proj_view=cview_p,
         proj_rejected=rej_p, board_poses=poses, poses_source=source)
     return res
-
-
-def _T(R, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = np.real(R), np.real(t)
-    return T
-
-
-def _plane_params(prob, T: np.ndarray) -> np.ndarray:
-    """(theta, a, b) of a board lying on the mirror (calib.joint.method's 3-DOF parametrisation) from its pose."""
-    n, d = prob.state.n, prob.state.d
-    e1 = prob.plane_ref - (prob.plane_ref @ n) * n
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(-n, e1)
-    X0 = (prob.thickness - d) * n
-    xa = T[:3, 0]
-    return np.array([np.arctan2(xa @ e2, xa @ e1), (T[:3, 3] - X0) @ e1, (T[:3, 3] - X0) @ e2])
 
 
 def _rejected_keys(diag: dict) -> set:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib.joint.solver import normal_blocks, prior_terms
+from calib.transforms import rotvec_covariance
 
 
 def _sym_inv(A: np.ndarray) -> np.ndarray:
@@ -59,7 +60,7 @@ def _summary(prob, cov: np.ndarray, unit_to_mm: float = 1.0) -> dict:
     ri = [idx[f"T_cam_proj.rot_{a}"] for a in "xyz"]
     ti = [idx[f"T_cam_proj.t_{a}"] for a in "xyz"]
     out = {"t_total": float(np.sqrt(np.trace(cov[np.ix_(ti, ti)]))),
-           "rot_total_deg": float(np.degrees(np.sqrt(np.trace(4.0 * cov[np.ix_(ri, ri)]))))}
+           "rot_total_deg": float(np.degrees(np.sqrt(np.trace(rotvec_covariance(cov[np.ix_(ri, ri)])))))}
     for dev, prefix in (("camera", "cam"), ("projector", "proj")):
         keys = [f"{prefix}.{k}" for k in ("fx", "fy", "cx", "cy")]
         out[f"{dev}_intrinsics_px"] = float(max(sd[idx[k]] for k in keys)) if all(k in idx for k in keys) else None
@@ -102,8 +103,8 @@ def joint_uncertainty(prob, x: np.ndarray) -> dict:
     }
     ri = [idx[f"T_cam_proj.rot_{a}"] for a in "xyz"]
     ti = [idx[f"T_cam_proj.t_{a}"] for a in "xyz"]
-    # Gibbs vector v at 0: rotation vector = 2 v (left perturbation, camera-frame axes)
-    cov_rot = 4.0 * cov[np.ix_(ri, ri)]
+    # the Gibbs vector about the solution (left perturbation, camera-frame axes) as a rotation vector
+    cov_rot = rotvec_covariance(cov[np.ix_(ri, ri)])
     cov_t = cov[np.ix_(ti, ti)]
     out["T_cam_proj"] = {
         "t": np.sqrt(np.diag(cov_t)).tolist(),

@@ -21,7 +21,7 @@ from calib.errors import CalibrationError
 from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.observations import BoardObservation
-from calib.transforms import T_from_rvec_tvec, rvec_tvec_from_T, transform_points
+from calib.transforms import FLIP_X, T_from_rvec_tvec, rvec_tvec_from_T, transform_points
 
 #: F_b: the board-frame mirror x -> -x (as a 4x4 transform). Numerically the same matrix as FLIP_X.
 MIRROR_BOARD = np.diag([-1.0, 1.0, 1.0, 1.0])
@@ -152,6 +152,19 @@ def solve_pnp(camera: CameraModel, X: np.ndarray, uv: np.ndarray) -> tuple[np.nd
     except cv2.error:
         return None
     return best
+
+
+def pose_from_points(camera: CameraModel, X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+    """T_cam_board of a planar target from its points and pixels (solve_pnp), or None."""
+    found = solve_pnp(camera, X, uv)
+    return None if found is None else found[0]
+
+
+def pose_through_mirror(camera: CameraModel, S: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+    """T_cam_board of a board seen through the mirror of reflection S, or None: the pose of the board in
+    the flipped image (a direct view for the flipped camera), T_cam_board = S F T_V'_board."""
+    T_v = pose_from_points(camera.flipped(), X, camera.flip_points(uv))
+    return None if T_v is None else S @ FLIP_X @ T_v
 
 
 def refine_pose(camera: CameraModel, X: np.ndarray, uv: np.ndarray, T0: np.ndarray) -> np.ndarray:

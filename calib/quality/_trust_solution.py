@@ -94,7 +94,7 @@ def check_observations(result, obs, th: TrustThresholds, fail, metrics: dict) ->
     wrong mirror or wrong intrinsics does not, whatever residuals the result itself records. The median
     over the views is judged, so one bad detection is not a bad calibration. The same pass tests the
     lit points themselves (the pattern's pixels on each board) for lying in front of the projector."""
-    from calib.joint.method import _pnp, _pose_through_mirror
+    from calib.paper.board_pose import pose_from_points, pose_through_mirror
 
     cam, proj = result.camera, result.projector
     T = np.asarray(result.T_cam_proj, float)
@@ -108,7 +108,8 @@ def check_observations(result, obs, th: TrustThresholds, fail, metrics: dict) ->
         uv = np.asarray(pv.board.corners_px, float)
         if pv.board.mirrored and result.mirror is None:
             continue
-        Tb = _pose_through_mirror(cam, S, corners[ids], uv) if pv.board.mirrored else _pnp(cam, corners[ids], uv)
+        X = corners[ids]
+        Tb = pose_through_mirror(cam, S, X, uv) if pv.board.mirrored else pose_from_points(cam, X, uv)
         if Tb is None:
             continue
         Xb, t = rays_to_board_plane(invert_T(Tb) @ T, proj.rays(np.asarray(pv.pattern_proj_px, float)))

@@ -15,9 +15,10 @@ recalibration keeps of its inputs.
 The model is the previous calibration with small corrections of three parameter blocks:
   camera    4: fx, fy, cx, cy (px; distortion held: a refocus changes the focal length)
   mirror    3: two tilts of the normal (rad, about tangent axes of the previous normal) and d (units)
-  projector 6: rotation vector (rad, camera axes, R = exp([w]) R_prev) and translation (units, camera
-               frame) of T_cam_proj
-and one free board pose per capture (a nuisance parameter). The re-estimate adds, by default, the
+  projector 6: rotation (a Gibbs vector g, camera axes: R = R(g) R_prev, calib.transforms.update_R, the
+               joint adjustment's parametrisation) and translation (units, camera frame) of T_cam_proj
+and one free board pose per capture (a nuisance parameter: a Gibbs vector about its PnP start and
+its translation). The re-estimate adds, by default, the
 intrinsics of both devices (fx, fy, cx, cy and the distortion coefficients the previous calibration
 estimated) under a Gaussian prior from the previous calibration's covariance (IntrinsicsPrior;
 reestimate's `intrinsics` "prior" | "held", docs/RECALIBRATION.md for the numbers). Residuals are

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from calib.errors import CalibrationError
@@ -14,7 +13,16 @@ from calib.models.observations import BoardObservation, SessionObservations
 from calib.models.result import CalibrationResult, MirrorPlane
 from calib.paper.board_pose import solve_board_pose
 from calib.recalib.prior import IntrinsicsPrior
-from calib.transforms import make_T, rays_to_board_plane, tangent_basis, transform_points
+from calib.transforms import (
+    FLIP_X,
+    make_T,
+    rays_to_board_plane,
+    rotvec_gibbs_jacobian,
+    tangent_basis,
+    transform_points,
+    update_R,
+    update_T,
+)
 
 PARTS = ("camera", "mirror", "projector")
 BLOCK_SIZE = {"camera": 4, "mirror": 3, "projector": 6}
@@ -22,14 +30,9 @@ BLOCK_SIZE = {"camera": 4, "mirror": 3, "projector": 6}
 #: max_nfev for changes far below the 1-sigma (docs/RECALIBRATION.md)
 TOL = 1e-8
 DEFAULT_CLASS_SIGMA_PX = 0.3
-_F = np.diag([-1.0, 1.0, 1.0, 1.0])  # board frame x -> -x (a mirrored view's board frame)
 
 
 # ---- the model --------------------------------------------------------------------------------------
-def _rotvec_R(w) -> np.ndarray:
-    R, _ = cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))
-    return R
-
 
 @dataclass(frozen=True, eq=False)
 class _Model:
@@ -81,8 +84,7 @@ class _Model:
             mirror = MirrorPlane(n / np.linalg.norm(n), mirror.d + d[2])
         T = prev.T_cam_proj
         if "projector" in blocks:
-            d = blocks["projector"]
-            T = make_T(_rotvec_R(d[:3]) @ T[:3, :3], T[:3, 3] + d[3:])
+            T = update_T(T, blocks["projector"])
         return prev.with_(camera=cam, projector=proj, mirror=mirror, T_cam_proj=T)
 
 
@@ -90,13 +92,14 @@ def _S(res: CalibrationResult) -> np.ndarray:
     return np.eye(4) if res.mirror is None else res.mirror.reflection()
 
 
-def _pose_T(p: np.ndarray) -> np.ndarray:
-    return make_T(_rotvec_R(p[:3]), p[3:])
+def _pose_start(T0: np.ndarray) -> np.ndarray:
+    """The parameters of a board pose at its start T0: (Gibbs vector about T0's rotation, translation)."""
+    return np.concatenate([np.zeros(3), np.asarray(T0, float)[:3, 3]])
 
 
-def _pose_p(T: np.ndarray) -> np.ndarray:
-    r, _ = cv2.Rodrigues(np.asarray(T[:3, :3], float))
-    return np.concatenate([r.reshape(3), T[:3, 3]])
+def _pose_T(T0: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The board pose of parameters p (see _pose_start) near its start T0."""
+    return make_T(update_R(p[:3], np.asarray(T0, float)[:3, :3]), p[3:])
 
 
 # ---- the evidence -----------------------------------------------------------------------------------
@@ -148,7 +151,7 @@ def _initial_pose(cal: CalibrationResult, v: _View) -> np.ndarray:
     if v.real is not None:
         return solve_board_pose(cal.camera, v.spec, v.real).T_cam_view
     T_view = solve_board_pose(cal.camera, v.spec, v.virtual).T_cam_view
-    return _S(cal) @ T_view @ _F
+    return _S(cal) @ T_view @ FLIP_X
 
 
 def _residuals(cal: CalibrationResult, v: _View, T: np.ndarray, sig: dict, mirror_view: bool) -> np.ndarray:
@@ -189,8 +192,9 @@ class Fit:
 
 
 def _joint_names(model: _Model) -> tuple[str, ...]:
-    """The global parameters of `model` under the names of calib.joint.method's covariance (the projector's
-    rotation and the mirror's tilts in this module's own parametrisation: _updated_uncertainty converts)."""
+    """The global parameters of `model` under the names of the joint adjustment's covariance, in the same
+    parametrisation (the projector's rotation a Gibbs vector, calib.transforms; the mirror's tilts along
+    the tangent basis of the normal the fit started from)."""
     names = []
     for p in model.blocks:
         if p == "camera":
@@ -219,10 +223,10 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
     model = _Model(previous, tuple(free), prior)
     sig = _class_sigma(previous)
     mirror_view = [v.real is not None and v.virtual is not None for v in views]
-    poses0 = []
+    starts = []
     for v in views:
         try:
-            poses0.append(_pose_p(_initial_pose(previous, v)))
+            starts.append(_initial_pose(previous, v))
         except Exception as e:  # a pose that cannot be solved is a capture that cannot be used
             raise CalibrationError(f"capture {v.capture_id}: no board pose ({e})") from None
     ng = model.n_global
@@ -232,7 +236,7 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
     g0 = np.zeros(ng)
     if prior is not None:
         g0[ng - n_prior:] = prior.W @ prior.offset
-    x0 = np.concatenate([g0] + poses0)
+    x0 = np.concatenate([g0] + [_pose_start(T0) for T0 in starts])
 
     def decode(x):
         blocks, rest = model.split(x)
@@ -249,7 +253,8 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
     def fun(x):
         blocks, rest, z = decode(x)
         cal = model.apply(blocks)
-        r = [_residuals(cal, v, _pose_T(rest[6 * i:6 * i + 6]), sig, mirror_view[i]) for i, v in enumerate(views)]
+        r = [_residuals(cal, v, _pose_T(starts[i], rest[6 * i:6 * i + 6]), sig, mirror_view[i])
+             for i, v in enumerate(views)]
         if prior is not None:
             r.append(z)
         return np.concatenate(r)
@@ -260,7 +265,7 @@ def fit_blocks(previous: CalibrationResult, obs: SessionObservations, free: tupl
     blocks0, _, _ = decode(x0)
     cal0 = model.apply(blocks0)
     for i, v in enumerate(views):
-        k = len(_residuals(cal0, v, _pose_T(x0[ng + 6 * i:ng + 6 * i + 6]), sig, mirror_view[i]))
+        k = len(_residuals(cal0, v, _pose_T(starts[i], x0[ng + 6 * i:ng + 6 * i + 6]), sig, mirror_view[i]))
         sparsity[row:row + k, :ng] = True
         sparsity[row:row + k, ng + 6 * i:ng + 6 * i + 6] = True
         row += k
@@ -312,7 +317,6 @@ def previous_covariance(previous: CalibrationResult, part: str) -> np.ndarray:
     """Covariance of `part`'s correction parameters from the previous calibration's uncertainty (the
     stored covariance where its parameter names are there, else its 1-sigma values; zeros for a part
     the previous calibration held fixed or did not report)."""
-    k = BLOCK_SIZE[part]
     u = previous.uncertainty if isinstance(previous.uncertainty, dict) else {}
     cv = u.get("covariance") if isinstance(u.get("covariance"), dict) else {}
     names, M = cv.get("names"), cv.get("matrix")
@@ -321,7 +325,6 @@ def previous_covariance(previous: CalibrationResult, part: str) -> np.ndarray:
         M = np.array(M, float) if M is not None else None
     except (TypeError, ValueError):
         M = None
-    C = np.zeros((k, k))
     if part == "camera":
         keys = ["cam.fx", "cam.fy", "cam.cx", "cam.cy"]
         if M is not None and all(n in idx for n in keys):
@@ -339,11 +342,10 @@ def previous_covariance(previous: CalibrationResult, part: str) -> np.ndarray:
     keys_t = [f"T_cam_proj.t_{a}" for a in "xyz"]
     if M is not None and all(n in idx for n in keys_r + keys_t):
         ii = [idx[n] for n in keys_r + keys_t]
-        C = M[np.ix_(ii, ii)].copy()
-        C[:3, :] *= 2.0  # Gibbs vector -> rotation vector
-        C[:, :3] *= 2.0
-        return C
+        return M[np.ix_(ii, ii)].copy()
     t = u.get("T_cam_proj") or {}
-    rot = [math.radians(float(v)) for v in (t.get("rot_deg") or [0, 0, 0])]
+    # the 1-sigma angles are of the rotation vector: the Gibbs vector's are the inverse map's at 0
+    to_gibbs = np.linalg.inv(rotvec_gibbs_jacobian(np.zeros(3)))
+    rot = to_gibbs @ [math.radians(float(v)) for v in (t.get("rot_deg") or [0, 0, 0])]
     tt = [float(v) for v in (t.get("t") or [0, 0, 0])]
-    return np.diag([v**2 for v in rot + tt])
+    return np.diag([v**2 for v in [*rot, *tt]])

@@ -11,6 +11,7 @@ from calib.errors import CalibrationError
 from calib.models.observations import SessionObservations
 from calib.models.result import CalibrationResult
 from calib.recalib._model import PARTS, Fit, fit_blocks, previous_covariance
+from calib.transforms import rotvec_covariance, rotvec_from_gibbs
 
 ALPHA = 1e-3  # the check's rule: calib.recalib's docstring
 SYSTEMATIC_FACTOR = 2.0
@@ -68,9 +69,12 @@ def describe_change(part: str, delta: np.ndarray, cov: np.ndarray, units: str) -
     if part == "mirror":
         return ({"normal_deg": math.degrees(float(np.linalg.norm(delta[:2]))), f"d_{units}": float(delta[2])},
                 {"normal_deg": math.degrees(float(np.sqrt(cov[0, 0] + cov[1, 1]))), f"d_{units}": float(sd[2])})
-    return ({"rot_deg": math.degrees(float(np.linalg.norm(delta[:3]))), f"t_{units}": float(np.linalg.norm(delta[3:])),
-             f"t_xyz_{units}": [float(v) for v in delta[3:]]},
-            {"rot_deg": math.degrees(float(np.sqrt(np.trace(cov[:3, :3])))),
+    # the rotation's Gibbs vector as a rotation vector (its norm the angle), its covariance with it
+    g = np.asarray(delta[:3], float)
+    cov_rot = rotvec_covariance(cov[:3, :3], g)
+    return ({"rot_deg": math.degrees(float(np.linalg.norm(rotvec_from_gibbs(g)))),
+             f"t_{units}": float(np.linalg.norm(delta[3:])), f"t_xyz_{units}": [float(v) for v in delta[3:]]},
+            {"rot_deg": math.degrees(float(np.sqrt(np.trace(cov_rot)))),
              f"t_{units}": float(np.sqrt(np.trace(cov[3:, 3:])))})
 
 

@@ -15,7 +15,7 @@ from calib.recalib._model import (
     Fit,
     _class_sigma,
     _initial_pose,
-    _pose_p,
+    _pose_start,
     _pose_T,
     _residuals,
     _views,
@@ -28,7 +28,7 @@ from calib.recalib.prior import (
     _stored_covariance,
     intrinsics_prior,
 )
-from calib.transforms import tangent_basis
+from calib.transforms import rotvec_covariance, tangent_basis
 
 #: 1-sigma targets of a re-estimate where the previous calibration reports none (see targets_from)
 DEFAULT_TARGETS = {"projector_t": 0.5, "projector_rot_deg": 0.05, "mirror_normal_deg": 0.05, "mirror_d": 0.5,
@@ -188,17 +188,12 @@ def _same_quantity(sentence: str, others: list[str]) -> str | None:
 
 
 # ---- the recalibrated result's uncertainty ----------------------------------------------------------
-def _to_joint(fit: Fit, result: CalibrationResult) -> np.ndarray:
-    """The Jacobian A of the joint's parametrisation with respect to this module's, at `result`
-    (cov_joint = A cov A^T): rotation vector -> Gibbs vector (1/2); the mirror's tilts from this
-    module's tangent basis at the fitted normal to the joint's at the new normal (the same basis,
-    calib.transforms.tangent_basis, at two normals)."""
+def _tilts_at_result(fit: Fit, result: CalibrationResult) -> np.ndarray:
+    """The Jacobian A that re-expresses a fit's parameters about `result` (cov = A cov_fit A^T): the
+    identity but for the mirror's tilts, taken from the tangent basis at the fitted normal to the one at
+    the result's normal (calib.transforms.tangent_basis at two normals), where a stored covariance has them."""
     A = np.eye(len(fit.names))
     names = list(fit.names)
-    for a in "xyz":
-        if f"T_cam_proj.rot_{a}" in names:
-            i = names.index(f"T_cam_proj.rot_{a}")
-            A[i, i] = 0.5
     if "mirror.tilt_1" in names and result.mirror is not None:
         i = names.index("mirror.tilt_1")
         u1, u2 = tangent_basis(fit.result.mirror.normal)  # at the fitted normal (the fit's start is < 1 deg away)
@@ -225,7 +220,7 @@ def _with_updated_uncertainty(result: CalibrationResult, previous: CalibrationRe
         idx = {n: i for i, n in enumerate(names)}
         for fit in fits:
             keep = [k for k, n in enumerate(fit.names) if n in idx]
-            A = _to_joint(fit, result)
+            A = _tilts_at_result(fit, result)
             C = (A @ fit.cov_global @ A.T)[np.ix_(keep, keep)]
             ii = [idx[fit.names[k]] for k in keep]
             M[ii, :] = 0.0
@@ -252,7 +247,7 @@ def _with_updated_uncertainty(result: CalibrationResult, previous: CalibrationRe
         ri = [idx.get(f"T_cam_proj.rot_{a}") for a in "xyz"]
         ti = [idx.get(f"T_cam_proj.t_{a}") for a in "xyz"]
         if None not in ri + ti:
-            cr, ct = 4.0 * M[np.ix_(ri, ri)], M[np.ix_(ti, ti)]
+            cr, ct = rotvec_covariance(M[np.ix_(ri, ri)]), M[np.ix_(ti, ti)]
             u["T_cam_proj"] = {"t": np.sqrt(np.diag(ct)).tolist(), "t_total": float(np.sqrt(np.trace(ct))),
                                "rot_deg": np.degrees(np.sqrt(np.diag(cr))).tolist(),
                                "rot_total_deg": float(np.degrees(np.sqrt(np.trace(cr))))}
@@ -304,13 +299,13 @@ def own_residuals(cal: CalibrationResult, obs: SessionObservations) -> dict:
     for v in _views(obs, "mirror+pattern"):
         mirror_view = v.real is not None and v.virtual is not None
         try:
-            sol = least_squares(lambda p: _residuals(cal, v, _pose_T(p), sig, mirror_view),
-                                _pose_p(_initial_pose(cal, v)))
+            T0 = _initial_pose(cal, v)
+            sol = least_squares(lambda p: _residuals(cal, v, _pose_T(T0, p), sig, mirror_view), _pose_start(T0))
         except Exception:  # no board pose: the capture has no residual to show (as the fits leave it out)
             per_view.append({"capture_id": v.capture_id, "step": "mirror" if mirror_view else "projector",
                              "n_points": 0, "rms_px": None})
             continue
-        r = _residuals(cal, v, _pose_T(sol.x), unit, mirror_view)
+        r = _residuals(cal, v, _pose_T(T0, sol.x), unit, mirror_view)
         n_res, rw2 = n_res + r.size, rw2 + float(sol.fun @ sol.fun)
         pts = r[0::2] ** 2 + r[1::2] ** 2
         kinds = [("mirror_real" if mirror_view else "board", v.real), ("mirror_virtual" if mirror_view else "board",
