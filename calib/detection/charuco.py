@@ -66,21 +66,22 @@ def _consistent_markers(corners, ids, obj: dict):
     if ids is None or len(ids) == 0:
         return [], None
     ids = np.asarray(ids, int).ravel()
-    pts = [np.asarray(c, np.float64).reshape(4, 2) for c in corners]
+    pts = np.asarray([np.asarray(c, np.float64).reshape(4, 2) for c in corners])
     keep = [k for k in range(len(ids)) if int(ids[k]) in obj]
     if len(keep) >= 2:
         src = np.concatenate([obj[int(ids[k])] for k in keep])
-        dst = np.concatenate([pts[k] for k in keep])
-        side = np.median([np.linalg.norm(pts[k][1] - pts[k][0]) for k in keep])
+        dst = pts[keep].reshape(-1, 2)
+        side = np.median(np.linalg.norm(pts[keep, 1] - pts[keep, 0], axis=1))
         H, mask = cv2.findHomography(src, dst, cv2.RANSAC, max(3.0, 0.3 * float(side)), maxIters=500)
         if H is not None:
             proj = cv2.perspectiveTransform(src.reshape(-1, 1, 2), H).reshape(-1, 4, 2)
             err = np.linalg.norm(proj - dst.reshape(-1, 4, 2), axis=2)
             good = (mask.reshape(-1, 4).sum(axis=1) >= 3)
+            mean_err = err.mean(axis=1)
             best: dict[int, tuple[float, int]] = {}
             for j, k in enumerate(keep):
-                if good[j] and (int(ids[k]) not in best or err[j].mean() < best[int(ids[k])][0]):
-                    best[int(ids[k])] = (float(err[j].mean()), k)
+                if good[j] and (int(ids[k]) not in best or mean_err[j] < best[int(ids[k])][0]):
+                    best[int(ids[k])] = (float(mean_err[j]), k)
             keep = sorted(k for _, k in best.values())
     if not keep:
         return [], None
@@ -98,34 +99,34 @@ def _agreeing_markers(corners, ids, trusted_corners, trusted_ids, obj: dict):
     if H is None:
         return trusted_corners, trusted_ids
     side = np.median(np.linalg.norm(dst.reshape(-1, 4, 2)[:, 1] - dst.reshape(-1, 4, 2)[:, 0], axis=1))
-    trusted = set(int(i) for i in np.ravel(trusted_ids))
-    keep_c, keep_i = [], []
-    for c, i in zip(corners, np.ravel(ids)):
-        i = int(i)
-        if i not in obj:
-            continue
-        pts = np.asarray(c, float).reshape(4, 2)
-        pred = cv2.perspectiveTransform(obj[i].reshape(-1, 1, 2), H).reshape(4, 2)
-        if i in trusted or np.linalg.norm(pred - pts, axis=1).max() < 0.25 * side:
-            keep_c.append(pts.astype(np.float32).reshape(1, 4, 2))
-            keep_i.append(i)
-    if len(set(keep_i)) != len(keep_i):
+    ids = np.ravel(ids).astype(int)
+    known = np.array([int(i) in obj for i in ids], bool)
+    if not known.any():
+        return [], np.zeros((0, 1), np.int32)
+    ids = ids[known]
+    pts = np.asarray([np.asarray(c, float).reshape(4, 2) for c, k in zip(corners, known) if k])
+    pred = cv2.perspectiveTransform(np.concatenate([obj[int(i)] for i in ids]).reshape(-1, 1, 2), H).reshape(-1, 4, 2)
+    agree = np.isin(ids, np.ravel(trusted_ids)) | (np.linalg.norm(pred - pts, axis=2).max(axis=1) < 0.25 * side)
+    if len(np.unique(ids[agree])) != agree.sum():
         return trusted_corners, trusted_ids
-    return keep_c, np.array(keep_i, np.int32).reshape(-1, 1)
+    return [q.astype(np.float32).reshape(1, 4, 2) for q in pts[agree]], ids[agree].astype(np.int32).reshape(-1, 1)
 
 
 def _charuco_in(img: np.ndarray, spec: CharucoSpec, legacy: bool = False, fast_only: bool = False):
     """(corners (N, 2) or None, ids (N,) or None, board markers (M, 4, 2), corners OpenCV's strict
     rule accepts) found in `img`. `fast_only`: the single-window marker search only."""
     arucos, detectors, obj = _detectors(spec, legacy)
-    result = None
-    for aruco in arucos[:1] if fast_only else arucos:
-        found = _charuco_with(img, spec, aruco, detectors, obj)
-        if result is None or len(found[1]) > len(result[1]) or \
-                (len(found[1]) == len(result[1]) and len(found[2]) > len(result[2])):
-            result = found
-        if len(result[1]) == spec.n_corners:
-            break
+    result = _charuco_with(img, spec, arucos[0], detectors, obj)
+    if not fast_only and len(result[1]) < spec.n_corners:
+        # OpenCV's full set of thresholding windows costs three single-window searches: run it only where
+        # the corners not found can be, around the board the corners found predict (nowhere when every
+        # missing corner lies outside the image), else on the whole image
+        box = _board_box(result[0], result[1], (0, 0), spec, img.shape)
+        if box != ():
+            x0, y0, x1, y1 = box if box is not None else (0, 0, img.shape[1], img.shape[0])
+            corners, ids, markers, strict = _charuco_with(img[y0:y1, x0:x1], spec, arucos[1], detectors, obj)
+            if len(ids) > len(result[1]) or (len(ids) == len(result[1]) and len(markers) > len(result[2])):
+                result = (corners + [x0, y0], ids, markers + [x0, y0], strict)
     corners, ids, markers, n_strict = result
     if len(ids) == 0:
         return None, None, markers, 0
@@ -489,10 +490,23 @@ def _asymmetry(smooth: np.ndarray, pts: np.ndarray, hw: int) -> np.ndarray:
     a half turn about its centre): mean |I(p + d) - I(p - d)| over a (2 hw + 1)^2 patch, divided by the
     patch's contrast. ~0.01 at a corner, > 0.1 a pixel or more away from it (rendered and simulated
     boards)."""
-    out = np.empty(len(pts))
-    size = (2 * int(hw) + 1, 2 * int(hw) + 1)
-    for k, (x, y) in enumerate(np.asarray(pts, float)):
-        patch = cv2.getRectSubPix(smooth, size, (float(x), float(y)))
-        span = float(patch.max() - patch.min())
-        out[k] = np.abs(patch - patch[::-1, ::-1]).mean() / span if span > 1e-6 else 1.0
-    return out
+    pts = np.asarray(pts, float).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.empty(0)
+    # every patch at once: a patch's pixels share its centre's sub-pixel phase, so each is one bilinear
+    # blend of four integer-shifted windows (edges replicated, as cv2.getRectSubPix samples them)
+    h, w = smooth.shape
+    off = np.arange(-int(hw), int(hw) + 1)
+    base = np.floor(pts)
+    a = (pts[:, 0] - base[:, 0])[:, None, None]
+    b = (pts[:, 1] - base[:, 1])[:, None, None]
+    xs = base[:, 0].astype(int)[:, None] + off
+    ys = base[:, 1].astype(int)[:, None] + off
+    x0, x1 = np.clip(xs, 0, w - 1)[:, None, :], np.clip(xs + 1, 0, w - 1)[:, None, :]
+    y0, y1 = np.clip(ys, 0, h - 1)[:, :, None], np.clip(ys + 1, 0, h - 1)[:, :, None]
+    img = np.asarray(smooth, np.float64)
+    patch = (1 - b) * ((1 - a) * img[y0, x0] + a * img[y0, x1]) + b * ((1 - a) * img[y1, x0] + a * img[y1, x1])
+    span = patch.max(axis=(1, 2)) - patch.min(axis=(1, 2))
+    diff = np.abs(patch - patch[:, ::-1, ::-1]).mean(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(span > 1e-6, diff / span, 1.0)
