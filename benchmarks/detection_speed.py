@@ -127,14 +127,20 @@ def measure_stages(folder: Path, with_truth: bool = True) -> dict:
     store = SessionStore.open(folder)
     m = store.manifest
     cv2.setNumThreads(1)
+    # the detector's functions by stage module (older code kept them all in one module, D)
+    stages = [mod for mod in (_module("calib.detection.charuco"), _module("calib.detection.pattern")) if mod] or [D]
+    detect_board = getattr(D, "_detect_board_gray", D.detect_board)
+    detect_pattern = getattr(D, "_detect_pattern_gray", D.detect_pattern)
     # code that reads the camera's response gets it, as detect_session passes it; older code has none
-    takes = "response" in inspect.signature(D._detect_board_gray).parameters
-    response = {"response": D.recorded_response(m.rig.camera_settings)} if takes else {}
+    takes = "response" in inspect.signature(detect_board).parameters
+    recorded = _module("calib.detection.response")
+    response = {"response": recorded.recorded_response(m.rig.camera_settings)} if takes else {}
     sub = defaultdict(float)
     for _, name in SUB_STAGES:
-        fn = getattr(D, name, None)
-        if fn is not None:
-            setattr(D, name, _timed(fn, name, sub))
+        for mod in stages:
+            fn = getattr(mod, name, None)
+            if fn is not None:
+                setattr(mod, name, _timed(fn, name, sub))
     mirrored = m.rig.view == VIEW_MIRROR
     mboard = m.mirror_board or m.projector_board
     t = defaultdict(list)
@@ -148,13 +154,13 @@ def measure_stages(folder: Path, with_truth: bool = True) -> dict:
         t1 = time.process_time()
         t["read"].append((t1 - t0) * 1e3)
         if c.step == STEP_PROJECTOR:
-            board = D._detect_board_gray(gray, m.projector_board, mirrored, **response)
+            board = detect_board(gray, m.projector_board, mirrored, **response)
             t2 = time.process_time()
             t["board"].append((t2 - t1) * 1e3)
             if isinstance(board, D.DetectionFailure):
                 failures += 1
                 continue
-            pts = D._detect_pattern_gray(gray, m.pattern, mirrored, board, m.projector_board, **response)
+            pts = detect_pattern(gray, m.pattern, mirrored, board, m.projector_board, **response)
             t["pattern"].append((time.process_time() - t2) * 1e3)
             if isinstance(pts, D.DetectionFailure):
                 failures += 1

@@ -210,7 +210,7 @@ def corner_errors(scenario_name: str, seeds: int, effects, noise: bool, log=prin
                         gray = cv2.imread(str(store.image_path(c)), cv2.IMREAD_GRAYSCALE)
                         t = truth[c.id]
                         if c.step == STEP_PROJECTOR:
-                            found = [(D._detect_board_gray(gray, m.projector_board, mirrored, response=resp),
+                            found = [(D.detect_board(gray, m.projector_board, mirrored, response=resp),
                                       t.board_px, "projector")]
                         else:
                             fn = D.detect_real_virtual if c.step == STEP_REAL_VIRTUAL else D.detect_real_mirror
@@ -322,9 +322,9 @@ def main() -> None:
                          "2026-12-02; circle centroids still linearised)")
     a = ap.parse_args()
     if a.encoded_corners:
-        from calib.detection import detect as D
+        from calib.detection import charuco
 
-        D._refinement_image = lambda img, response: img  # a before/after measurement only
+        charuco._refinement_image = lambda img, response: img  # a before/after measurement only
     effects = list(dict.fromkeys(a.effects))
     if a.corners:
         t0 = time.perf_counter()

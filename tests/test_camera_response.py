@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.detection.detect import _refine_centroids, detect_pattern, detect_session
+from calib.detection.detect import detect_pattern, detect_session
+from calib.detection.pattern import _refine_centroids
 from calib.detection.response import CameraResponse, parse_response, recorded_response
 from calib.models.pattern import PatternSpec
 from drivers.sim.render import encode_gamma

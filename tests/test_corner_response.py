@@ -1,5 +1,5 @@
 """ChArUco corners refined on linearised levels when the session records the camera's response
-(calib.detection.detect._refinement_image; docs/SIMULATOR.md, "Photometric realism")."""
+(calib.detection.charuco._refinement_image; docs/SIMULATOR.md, "Photometric realism")."""
 
 from __future__ import annotations
 

@@ -260,7 +260,7 @@ def _board_corners_px(scale, offset):
 
 
 def test_the_linearised_retry_is_searched_around_the_board_or_not_at_all():
-    import calib.detection.detect as D
+    import calib.detection.charuco as D
 
     shape = (H, W)
     ids = np.arange(SPEC.n_corners)
@@ -285,7 +285,7 @@ def test_the_linearised_retry_is_searched_around_the_board_or_not_at_all():
 
 
 def test_a_board_incomplete_in_its_roi_is_searched_again_only_if_corners_may_lie_beyond_it():
-    import calib.detection.detect as D
+    import calib.detection.charuco as D
 
     shape = (H, W)
     ids = np.arange(SPEC.n_corners)

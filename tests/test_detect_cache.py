@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-import calib.detection.detect as D
+import calib.detection.session_jobs as D
 from calib.detection import cache as detect_cache
 from calib.detection.detect import DetectionFailure, detect_session
 from calib.formats.session import SessionStore

@@ -99,7 +99,7 @@ def test_detect_session_keeps_good_captures_and_skips_bad_ones(session):
 
 
 def test_detect_session_inline_reads_each_image_once_and_matches_pool(session, monkeypatch):
-    import calib.detection.detect as D
+    import calib.detection.session_jobs as D
 
     store, _, _ = session
     pooled = detect_session(store, workers=2, cache="off")

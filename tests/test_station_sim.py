@@ -132,7 +132,7 @@ def test_small_session_calibrates_near_ground_truth(tmp_path, monkeypatch):
     import threading
     from collections import Counter
 
-    import calib.detection.detect as D
+    import calib.detection.session_jobs as D
     from calib.quality.metrics import compare
 
     detected = Counter()

@@ -14,7 +14,7 @@ An entry is used only when all of these still hold; otherwise that capture is de
 - what it holds fits the capture: result kind for the capture's step, ids in the board's range, as many
   pattern points as the pattern has, pixels inside the image (`decode_result`).
 
-Images are hashed from the bytes calib.detection.detect read through SessionStore.image_path, which refuses a
+Images are hashed from the bytes calib.detection.session_jobs read through SessionStore.image_path, which refuses a
 path leading out of the session folder; the cache file itself is read only when it is a plain file in
 the folder (a link is ignored with a warning, never followed).
 
@@ -54,8 +54,10 @@ _KEY_BYTES = 32
 
 #: the modules whose code decides what detection returns (their source is fingerprinted), by dotted
 #: name so that the file is found wherever the module lives
-_DETECTION_MODULES = ("calib.detection.detect", "calib.detection.cache", "calib.detection.response",
-                      "calib.models.boards", "calib.models.pattern", "calib.models.observations")
+_DETECTION_MODULES = ("calib.detection.charuco", "calib.detection.pattern", "calib.detection.mirror_views",
+                      "calib.detection.session_jobs", "calib.detection.imaging", "calib.detection.cache",
+                      "calib.detection.response", "calib.models.boards", "calib.models.pattern",
+                      "calib.models.observations")
 
 
 @lru_cache(maxsize=1)
