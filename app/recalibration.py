@@ -28,6 +28,7 @@ from calib.models.boards import CharucoSpec
 from calib.models.observations import STEP_PROJECTOR, VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult
+from calib.models.vocab import RigKind
 from drivers.clock import clock_of
 
 PREVIOUS_DIR = session_files.PREVIOUS_DIR
@@ -222,7 +223,7 @@ def check_rig_matches(previous: CalibrationResult, specs: BoardSpecs | None, rig
                            "--projector-screen) at its resolution")
     from drivers.factory import is_simulated
 
-    if specs is not None and is_simulated(getattr(rig, "kind", "sim")):
+    if specs is not None and is_simulated(getattr(rig, "kind", RigKind.SIM)):
         from app.station.setup import sim_specs
 
         s = sim_specs(rig)

@@ -17,6 +17,7 @@ read through that driver (drivers.sim.stream).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import Any
 
 from calib.errors import SpecError
@@ -80,7 +81,7 @@ class HardwareRig:
     camera: Any
     projector: Any
     operator: HumanOperator
-    kind: str = "realsense"
+    kind: str = RigKind.REALSENSE
     options: dict = field(default_factory=dict)
 
     def close(self) -> None:
@@ -97,87 +98,159 @@ class HardwareRig:
 
 
 def open_rig(kind: str, **options):
-    """The rig `kind` names.
-
-    realsense: serial, width (1280), height (800), fps (30), exact_mode (False: a mode the device does not
-      list falls back to the fastest one of that size; True: refused with the list), projector_screen (None: the non-primary screen of two),
-      projector_size (None: the screen's), fullscreen (True), settle_s (0.0), pattern_positions,
-      context (librealsense context or a software device, for tests). The projector window is created
-      here, so call open_rig on the main thread (pyglet's) and run the station's logic in a worker
-      (drivers.projector_window.run_projector_loop).
-    sim: scenario, seed, quality and the simulator's own options (drivers.sim.rig.open_sim_rig).
-    sim-realsense: the same, plus camera_mode ((width, height, fps): the simulated camera's size, a listed
-      rate); its camera is drivers.realsense.RealSenseCamera on a
-      librealsense software device (drivers.sim.realsense_bridge).
-    uvc: camera (an index, default 0, or a URL / file), width, height, fps (None: the camera's), intrinsics
-      (a pre-calibrated CameraModel), and the projector window's options as for realsense.
-    sim-uvc: the sim options, plus controls ("honour", or "ignore": a camera that ignores manual
-      exposure); its camera is drivers.opencv_camera.OpenCVCamera on an MJPEG stream (drivers.sim.stream).
-    """
-    if kind == "sim-realsense":
-        from drivers.sim.realsense_bridge import open_sim_realsense_rig
-
-        return open_sim_realsense_rig(**options)
-    if kind == "sim-uvc":
-        from drivers.sim.stream import open_sim_uvc_rig
-
-        return open_sim_uvc_rig(**options)
-    if kind == "uvc":
-        return _open_uvc_rig(**options)
-    if kind == "sim":
-        from drivers.sim.rig import open_sim_rig
-
-        opts = dict(options)
-        scenario = opts.pop("scenario", None)
-        args = () if scenario is None else (scenario,)
-        rig = open_sim_rig(*args, **opts)
-        if not hasattr(rig, "kind"):
-            try:
-                rig.kind = "sim"
-            except AttributeError:
-                pass
-        return rig
-    if kind != "realsense":
+    """The rig `kind` names, opened with its entry of `RIGS` (each entry's docstring lists its options)."""
+    entry = RIGS.get(kind)
+    if entry is None:
         raise SpecError(f"unknown rig '{kind}' (one of {', '.join(RIG_KINDS)})")
+    if entry.known_options is not None:
+        unknown = sorted(set(options) - entry.known_options)
+        if unknown:
+            raise SpecError(f"unknown option(s) for the {kind} rig: {', '.join(unknown)} "
+                            f"(known: {', '.join(sorted(entry.known_options))})")
+    return entry.open(**options)
+
+
+def _open_sim(**options):
+    """sim: scenario, seed, quality and the simulator's own options (drivers.sim.rig.open_sim_rig, which
+    checks them)."""
+    from drivers.sim.rig import open_sim_rig
+
+    opts = dict(options)
+    scenario = opts.pop("scenario", None)
+    rig = open_sim_rig(*(() if scenario is None else (scenario,)), **opts)
+    if not hasattr(rig, "kind"):
+        try:
+            rig.kind = RigKind.SIM
+        except AttributeError:
+            pass
+    return rig
+
+
+def _open_sim_realsense(**options):
+    """sim-realsense: the sim options, plus camera_mode ((width, height, fps): the simulated camera's size,
+    a listed rate); its camera is drivers.realsense.RealSenseCamera on a librealsense software device
+    (drivers.sim.realsense_bridge)."""
+    from drivers.sim.realsense_bridge import open_sim_realsense_rig
+
+    return open_sim_realsense_rig(**options)
+
+
+def _open_sim_uvc(**options):
+    """sim-uvc: the sim options, plus controls ("honour", or "ignore": a camera that ignores manual
+    exposure); its camera is drivers.opencv_camera.OpenCVCamera on an MJPEG stream (drivers.sim.stream)."""
+    from drivers.sim.stream import open_sim_uvc_rig
+
+    return open_sim_uvc_rig(**options)
+
+
+def _projector_window(options):
     from drivers.projector_window import ProjectorWindow
+
+    return ProjectorWindow(options.get("projector_screen"), size=options.get("projector_size"),
+                           fullscreen=options.get("fullscreen", True), settle_s=options.get("settle_s", 0.0),
+                           quit_keys=())
+
+
+def _open_realsense(**options) -> HardwareRig:
+    """realsense: serial, width (1280), height (800), fps (30), exact_mode (False: a mode the device does
+    not list falls back to the fastest one of that size; True: refused with the list), projector_screen
+    (None: the non-primary screen of two), projector_size (None: the screen's), fullscreen (True),
+    settle_s (0.0), pattern_positions, context (librealsense context or a software device, for tests).
+    The projector window is created here, so call open_rig on the main thread (pyglet's) and run the
+    station's logic in a worker (drivers.projector_window.run_projector_loop)."""
     from drivers.realsense import RealSenseCamera
 
-    known = {"serial", "width", "height", "fps", "exact_mode", "projector_screen", "projector_size", "fullscreen",
-             "settle_s", "pattern_positions", "context"}
-    unknown = sorted(set(options) - known)
-    if unknown:
-        raise SpecError(f"unknown option(s) for the realsense rig: {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     camera = RealSenseCamera(options.get("serial"), options.get("width", 1280), options.get("height", 800),
                              options.get("fps", 30), context=options.get("context"),
                              exact_mode=bool(options.get("exact_mode", False)))
-    projector = ProjectorWindow(options.get("projector_screen"), size=options.get("projector_size"),
-                                fullscreen=options.get("fullscreen", True), settle_s=options.get("settle_s", 0.0),
-                                quit_keys=())
-    return HardwareRig(camera, projector, HumanOperator(options.get("pattern_positions")), "realsense",
+    projector = _projector_window(options)
+    return HardwareRig(camera, projector, HumanOperator(options.get("pattern_positions")), RigKind.REALSENSE,
                        {k: v for k, v in options.items() if k != "context"})
 
 
-def _open_uvc_rig(**options) -> HardwareRig:
+def _open_uvc(**options) -> HardwareRig:
+    """uvc: camera (an index, default 0, or a URL / file), width, height, fps (None: the camera's),
+    intrinsics (a pre-calibrated CameraModel), and the projector window's options as for realsense."""
     from drivers.opencv_camera import OpenCVCamera
-    from drivers.projector_window import ProjectorWindow
 
-    known = {"camera", "width", "height", "fps", "intrinsics", "projector_screen", "projector_size", "fullscreen",
-             "settle_s", "pattern_positions"}
-    unknown = sorted(set(options) - known)
-    if unknown:
-        raise SpecError(f"unknown option(s) for the uvc rig: {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     camera = OpenCVCamera(options.get("camera", 0), options.get("width"), options.get("height"), options.get("fps"),
                           intrinsics=options.get("intrinsics"))
     camera.start()  # its size is known once it streams; a missing camera is refused before the window opens
     try:
-        projector = ProjectorWindow(options.get("projector_screen"), size=options.get("projector_size"),
-                                    fullscreen=options.get("fullscreen", True), settle_s=options.get("settle_s", 0.0),
-                                    quit_keys=())
+        projector = _projector_window(options)
     except BaseException:
         camera.stop()
         raise
-    return HardwareRig(camera, projector, HumanOperator(options.get("pattern_positions")), "uvc",
+    return HardwareRig(camera, projector, HumanOperator(options.get("pattern_positions")), RigKind.UVC,
                        {k: v for k, v in options.items() if k != "intrinsics"})
+
+
+def _sim_args(args) -> dict:
+    """A simulated rig's options from a command line: its projector latency and faults, a bump."""
+    out = dict(getattr(args, "sim_hardware", None) or {})
+    if getattr(args, "sim_bump", None):
+        out["bump"] = args.sim_bump
+    return out
+
+
+def _sim_realsense_args(args) -> dict:
+    out = _sim_args(args)
+    if getattr(args, "camera_mode", None):
+        out["camera_mode"] = args.camera_mode
+    return out
+
+
+def _realsense_args(args) -> dict:
+    opts = {"serial": getattr(args, "serial", None), "projector_screen": getattr(args, "projector_screen", None),
+            "settle_s": getattr(args, "settle_s", None)}
+    out = {k: v for k, v in opts.items() if v is not None}
+    if getattr(args, "camera_mode", None):
+        out.update(dict(zip(("width", "height", "fps"), args.camera_mode)), exact_mode=True)
+    return out
+
+
+def _uvc_args(args) -> dict:
+    camera = getattr(args, "camera", None)
+    opts = {"camera": 0 if camera is None else camera, "projector_screen": getattr(args, "projector_screen", None),
+            "settle_s": getattr(args, "settle_s", None), "fps": getattr(args, "camera_fps", None)}
+    model = getattr(args, "camera_intrinsics_model", None)
+    if model is not None:
+        # a pre-calibration holds for one image size: the camera is asked for it, and refused if it
+        # delivers another; its model is the camera's own for live detection
+        opts.update(intrinsics=model, width=model.width, height=model.height)
+    return {k: v for k, v in opts.items() if v is not None}
+
+
+_WINDOW_OPTIONS = frozenset({"projector_screen", "projector_size", "fullscreen", "settle_s", "pattern_positions"})
+
+
+@dataclass(frozen=True)
+class RigEntry:
+    """One kind of rig: how it opens, which options it takes, and how a command line's options become
+    them (`from_args` reads an argparse namespace's attributes; app.commands.session.rig_options)."""
+
+    kind: RigKind
+    summary: str
+    open: Callable[..., Any]
+    known_options: frozenset | None  # None: the opener checks its own
+    from_args: Callable[[Any], dict]
+
+
+#: every rig the station drives, by kind: `--rig`'s choices, `open_rig` and the command-line options read it
+RIGS: dict[str, RigEntry] = {e.kind: e for e in (
+    RigEntry(RigKind.SIM, "the simulated rig: a rendered world, a scripted operator, ground truth",
+             _open_sim, None, _sim_args),
+    RigEntry(RigKind.SIM_REALSENSE, "the simulated world, its camera through librealsense's software device",
+             _open_sim_realsense, None, _sim_realsense_args),
+    RigEntry(RigKind.SIM_UVC, "the simulated world, its camera an MJPEG stream read by the OpenCV driver",
+             _open_sim_uvc, None, _sim_args),
+    RigEntry(RigKind.REALSENSE, "a RealSense D455 and the projector window, a person moving the board",
+             _open_realsense, _WINDOW_OPTIONS | {"serial", "width", "height", "fps", "exact_mode", "context"},
+             _realsense_args),
+    RigEntry(RigKind.UVC, "any camera OpenCV opens and the projector window, a person moving the board",
+             _open_uvc, _WINDOW_OPTIONS | {"camera", "width", "height", "fps", "intrinsics"}, _uvc_args),
+)}
+assert set(RIGS) == set(RigKind), "every RigKind needs an entry of RIGS"
 
 
 def default_rig_kind(context=None) -> str:
@@ -185,6 +258,6 @@ def default_rig_kind(context=None) -> str:
     try:
         from drivers.realsense import list_realsense_devices
 
-        return "realsense" if list_realsense_devices(context) else "sim"
+        return RigKind.REALSENSE if list_realsense_devices(context) else RigKind.SIM
     except Exception:  # no librealsense, no USB access (DeviceError or the library's own): the simulated rig
-        return "sim"
+        return RigKind.SIM

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from app.commands._rig_options import add_rig_options
 from calib.formats import session_files
-from calib.models.vocab import MirrorMethod, choices
+from calib.models.vocab import MirrorMethod, RigKind, choices
 
 NAME = "session"
 HELP = "run a guided capture-and-calibrate session headless (--rig sim --auto: fully simulated)"
@@ -52,35 +52,24 @@ def plan_from_args(args, base=None):
 
 
 def rig_options(args, kind: str) -> dict:
-    """Device options for drivers.factory.open_rig (simulated rigs: their projector latency)."""
-    from drivers.factory import is_simulated
+    """Device options for drivers.factory.open_rig from the command line: the rig's entry of
+    drivers.factory.RIGS maps them, after the checks that need the station (the simulated rig's
+    latency and faults, a pre-calibration's file)."""
+    from argparse import Namespace
 
+    from drivers.factory import RIGS, is_simulated
+
+    entry = RIGS[kind]
+    resolved = Namespace(**vars(args))
     if is_simulated(kind):
         from app.commands._rig_options import sim_hardware_options
 
-        out = sim_hardware_options(args)
-        if getattr(args, "sim_bump", None):
-            out["bump"] = args.sim_bump
-        if kind == "sim-realsense" and getattr(args, "camera_mode", None):
-            out["camera_mode"] = args.camera_mode
-        return out
-    if kind == "uvc":
-        camera = getattr(args, "camera", None)
-        opts = {"camera": 0 if camera is None else camera, "projector_screen": args.projector_screen,
-                "settle_s": args.settle_s, "fps": getattr(args, "camera_fps", None)}
-        if getattr(args, "camera_intrinsics", None):
-            # a pre-calibration holds for one image size: the camera is asked for it, and refused if it
-            # delivers another; its model is the camera's own for live detection
-            from app.station.machine import load_intrinsics
+        resolved.sim_hardware = sim_hardware_options(args)
+    if getattr(args, "camera_intrinsics", None) and "intrinsics" in (entry.known_options or ()):
+        from app.station.machine import load_intrinsics
 
-            model = load_intrinsics(args.camera_intrinsics)
-            opts.update(intrinsics=model, width=model.width, height=model.height)
-        return {k: v for k, v in opts.items() if v is not None}
-    opts = {"serial": args.serial, "projector_screen": args.projector_screen, "settle_s": args.settle_s}
-    out = {k: v for k, v in opts.items() if v is not None}
-    if getattr(args, "camera_mode", None):
-        out.update(dict(zip(("width", "height", "fps"), args.camera_mode)), exact_mode=True)
-    return out
+        resolved.camera_intrinsics_model = load_intrinsics(args.camera_intrinsics)
+    return entry.from_args(resolved)
 
 
 def refuse_recalibration_folder(folder: Path) -> None:
@@ -146,7 +135,7 @@ def open_session(args, log=print):
             machine.extra_state["method"] = args.method  # a resumed session calibrates the same way
             machine.persist()
         what = f"{kind} rig" if not is_simulated(kind) else f"simulated rig '{req.scenario}' (seed {req.seed})" + (
-            "" if kind == "sim" else ", camera through the OpenCV driver on a live stream" if kind == "sim-uvc"
+            "" if kind == RigKind.SIM else ", camera through the OpenCV driver on a live stream" if kind == RigKind.SIM_UVC
             else ", camera through the RealSense driver")
         log(f"new session in {folder} on the {what}")
     if args.camera_intrinsics:
@@ -203,7 +192,7 @@ def rig_check_hint(kind: str, view: str) -> str | None:
     from drivers.factory import is_simulated
     from calib.models.observations import VIEW_MIRROR
 
-    if kind == "sim":
+    if kind == RigKind.SIM:
         return None
     where = "in the mirror, where the camera sees it" if view == VIEW_MIRROR else "where the camera sees it"
     who = " (the simulated operator does it here)" if is_simulated(kind) else ""

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from app.commands import _types
 from app.commands._rig_options import add_rig_options
-from calib.models.vocab import MirrorMethod, choices
+from calib.models.vocab import MirrorMethod, RigKind, choices
 
 NAME = "station"
 HELP = "the guided capture-and-calibrate station, operated from a browser panel"
@@ -89,7 +89,7 @@ def run(args) -> int:
         kind = args.rig
         if kind is None:
             kind = default_rig_kind()
-            defaulted = kind == "sim"
+            defaulted = kind == RigKind.SIM
         args.rig = kind
     args.out = args.session
     if args.recalibrate:

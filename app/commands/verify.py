@@ -22,6 +22,7 @@ from pathlib import Path
 from app.commands import _types
 from calib.formats import session_files
 from calib.models.vocab import RenderQuality, choices
+from drivers.factory import is_simulated
 
 NAME = "verify"
 HELP = "measure a session's calibration on the rig: epipolar curves drawn by the projector vs picked camera pixels"
@@ -260,7 +261,7 @@ def run(args) -> int:
         try:
             instruction = rig.operator.request_pose("verification", None, 0)
             print(instruction, file=sys.stderr, flush=True)
-            if args.rig in ("realsense", "uvc") and args.delay > 0:
+            if not is_simulated(args.rig) and args.delay > 0:
                 time.sleep(args.delay)
             # exposure, emitter and projector latency as the session recorded them
             applied, lines = _apply_recorded(rig, man, args.settle)
@@ -279,8 +280,6 @@ def run(args) -> int:
 
     if args.settle is not None and not args.settle >= 0:
         raise SessionError(f"--settle must be >= 0 seconds, got {args.settle:g}")
-    from drivers.factory import is_simulated
-
     if is_simulated(args.rig):
         from drivers.factory import open_rig
 
@@ -295,8 +294,11 @@ def run(args) -> int:
 
         settle = args.settle if args.settle is not None else recorded_latency_s(man)
         settle = DEFAULT_SETTLE_S if settle is None else settle  # until apply_recorded sets the recorded one
-        camera = ({"camera": args.camera, **({"fps": args.camera_fps} if args.camera_fps else {})}
-                  if args.rig == "uvc" else {"serial": args.serial})
+        from drivers.factory import RIGS
+
+        # the camera's own options as its rig reads them from a command line (verify names the screen --screen)
+        camera = RIGS[args.rig].from_args(argparse.Namespace(camera=args.camera, camera_fps=args.camera_fps or None,
+                                                    serial=args.serial))
         rig = open_rig(args.rig, projector_screen=args.screen, settle_s=settle,
                        projector_size=tuple(man.rig.projector_size), **camera)
         try:

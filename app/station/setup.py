@@ -13,6 +13,7 @@ from calib.formats.session import MANIFEST, RigInfo, SessionManifest, SessionSto
 from calib.models.boards import CharucoSpec
 from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
+from calib.models.vocab import RigKind
 
 GROUND_TRUTH_FILE = session_files.GROUND_TRUTH
 VERIFICATION_FILE = session_files.VERIFICATION
@@ -23,7 +24,7 @@ DEFAULT_SCENARIO = "nonoverlap-136"
 class RigRequest:
     """What the user asked for on the command line; recorded in the session state for --resume."""
 
-    kind: str = "sim"
+    kind: str = RigKind.SIM
     scenario: str = DEFAULT_SCENARIO
     seed: int = 0
     quality: str = "live"
@@ -61,7 +62,7 @@ def run_on_rig(rig, work):
     thread runs the projector window's event loop (pyglet wants the main thread)."""
     from drivers.factory import is_simulated
 
-    if is_simulated(getattr(rig, "kind", "sim")):
+    if is_simulated(getattr(rig, "kind", RigKind.SIM)):
         return work()
     from drivers.projector_window import run_projector_loop
 

@@ -32,6 +32,7 @@ from app.station.projector_light import BACK_MESSAGE as LIGHT_BACK, LOST_MESSAGE
 from app.station.rig_check import RigChecker
 from calib.errors import ProcamError
 from calib.models.observations import STEP_PROJECTOR
+from calib.models.vocab import RigKind
 from drivers.base import Frame
 from drivers.clock import clock_of
 from drivers.errors import DeviceError
@@ -97,7 +98,7 @@ class Station:
         self.clock = clock_of(rig.camera)  # frame and presentation times (simulated time on the simulated rig)
         self.machine = machine
         self.options = options or StationOptions()
-        self.kind = getattr(rig, "kind", "sim")
+        self.kind = getattr(rig, "kind", RigKind.SIM)
         from drivers.factory import is_simulated
 
         self.is_sim = is_simulated(self.kind)

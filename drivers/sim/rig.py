@@ -23,6 +23,7 @@ from calib.errors import SpecError
 from calib.models.camera import CameraModel
 from calib.models.result import CalibrationResult
 from calib.transforms import make_T, rotation_about, rotation_angle_deg
+from calib.models.vocab import RigKind
 from drivers.base import Frame
 from drivers.clock import Clock, SimClock
 from drivers.errors import DeviceError, DeviceTimeout
@@ -367,7 +368,7 @@ class SimOperator:
 class SimRig:
     """The shared scene state of a simulated rig, and its three devices."""
 
-    kind = "sim"  # as drivers.factory names rigs
+    kind = RigKind.SIM  # as drivers.factory names rigs
 
     def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
