@@ -17,10 +17,10 @@ import cv2
 import numpy as np
 
 from calib.errors import SpecError
-from calib.models.boards import CharucoSpec
+from calib.models.boards import MM_PER_UNIT, CharucoSpec
+from calib.models.vocab import LengthUnit
 from calib.synthetic import BoardLayout
 
-MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 #: ISO 216 sheets, (short side, long side) in mm, smallest first
 PAPERS = {"a4": (210.0, 297.0), "a3": (297.0, 420.0), "a2": (420.0, 594.0), "a1": (594.0, 841.0),
@@ -172,7 +172,7 @@ def _annotation_lines(spec: CharucoSpec, blank: BlankArea | None, option: str) -
     w, h = spec.size
 
     def length(v):  # in the board's unit, with millimetres alongside when the unit is not mm
-        return f"{_num(v)} {u}" if u == "mm" else f"{_num(v)} {u} ({_num(v * mm, 5)} mm)"
+        return f"{_num(v)} {u}" if u == LengthUnit.MM else f"{_num(v)} {u} ({_num(v * mm, 5)} mm)"
 
     spec_line = f"Board spec for the station: {option} {spec_argument(spec)} --units {u}"
     details = (f"{spec.cols} x {spec.rows} squares of {length(spec.square_length)}, "

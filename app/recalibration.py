@@ -28,7 +28,7 @@ from calib.models.boards import CharucoSpec
 from calib.models.observations import STEP_PROJECTOR, VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult
-from calib.models.vocab import RigKind
+from calib.models.vocab import MirrorMethod, RigKind
 from drivers.clock import clock_of
 
 PREVIOUS_DIR = session_files.PREVIOUS_DIR
@@ -385,7 +385,7 @@ def run_recalibration(previous_path, station: Station, machine: RecalibrationMac
     while machine.state == "check_rig":
         station.tick()
     if mirrored and machine.mirror_method is None:
-        machine.choose_mirror_method("real-virtual")  # the check's mirror test needs real-virtual captures
+        machine.choose_mirror_method(MirrorMethod.REAL_VIRTUAL)  # the check's mirror test needs real-virtual captures
     n_m, n_p = (CHECK_MIRROR_CAPTURES if mirrored else 0), CHECK_PROJECTOR_CAPTURES
     n_check = n_m + n_p
     check_ids = state.get("check_captures")

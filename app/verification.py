@@ -79,7 +79,7 @@ from calib.errors import ProcamError
 from calib.formats import session_files
 from calib.formats.fileio import RESULT_MAX_BYTES, read_json
 from calib.models.result import CalibrationResult
-from calib.models.vocab import RigKind, choices
+from calib.models.vocab import RigKind, Step, choices
 
 __all__ = ["DEFAULT_GRID", "DEFAULT_THRESHOLD_PX", "INITIAL_STROKE_PX", "MAX_CURVES_PER_IMAGE", "MIN_SEPARATION_PX",
            "SCHEMA", "TARGET_STROKE_CAM_PX", "VERIFY_RIGS", "VERSION", "WORST_FACTOR", "Grabber", "PixelCheck",
@@ -147,7 +147,7 @@ def verify(camera, projector, operator, result: CalibrationResult, pixels=None, 
         raise VerificationError(f"the projector is {projector.size[0]}x{projector.size[1]} but the calibration is for "
                                 f"{result.projector.width}x{result.projector.height}")
     if operator is not None:
-        operator.request_pose("verification", None, 0)
+        operator.request_pose(Step.VERIFICATION, None, 0)
     ref_grabber = Grabber(camera, projector, settle_frames, average)
     refs = capture_references(camera, projector, settle_frames, average, grabber=ref_grabber, response=response)
     H, W = refs.off.shape[:2]

@@ -33,12 +33,13 @@ import numpy as np
 
 from calib.models.camera import CameraModel
 from calib.models.result import CalibrationResult
+from calib.models.vocab import LengthUnit
 from calib.transforms import invert_T, transform_points
 
 #: Optical path length interval (metres) where a board can plausibly be: see the module docstring.
 DEFAULT_DEPTH_RANGE_M = (0.2, 5.0)
 
-_UNITS_PER_M = {"mm": 1000.0, "cm": 100.0, "m": 1.0, "in": 1000.0 / 25.4}
+_UNITS_PER_M = {u.value: 1000.0 / u.mm for u in LengthUnit}
 
 #: Coarse angular step (degrees) used to find where a ray enters and leaves a device's image.
 _COARSE_STEP_DEG = 0.05

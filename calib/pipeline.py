@@ -59,7 +59,7 @@ def apply_trust_check(result: CalibrationResult, trust: str | None = "check",
     return result
 
 
-def calibrate_observations(obs: SessionObservations, method: str = "joint", camera: CameraModel | None = None,
+def calibrate_observations(obs: SessionObservations, method: str = CalibrationMethod.JOINT, camera: CameraModel | None = None,
                            progress: Progress | None = None, method_options: dict | None = None,
                            trust: str | None = "check") -> CalibrationResult:
     """Calibrate from detected observations with a registered method; `camera` skips the camera stage.
@@ -79,7 +79,7 @@ def calibrate_observations(obs: SessionObservations, method: str = "joint", came
     return apply_trust_check(result.with_(diagnostics=diag), trust, obs)
 
 
-def calibrate_session(folder, method: str = "joint", camera_intrinsics=None, workers: int = 2,
+def calibrate_session(folder, method: str = CalibrationMethod.JOINT, camera_intrinsics=None, workers: int = 2,
                       progress: Progress | None = None, detect_progress: Progress | None = None,
                       method_options: dict | None = None, detect_cache: str = "use",
                       trust: str | None = "check") -> CalibrationResult:

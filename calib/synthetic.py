@@ -30,6 +30,7 @@ from calib.models.observations import (
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult, MirrorPlane
 from calib.transforms import invert_T, make_T, rays_to_board_plane, rotation_about, transform_points
+from calib.models.vocab import LengthUnit, MirrorMethod, PatternKind
 
 
 def d455_camera() -> CameraModel:
@@ -98,7 +99,7 @@ class SyntheticRig:
     board_target: np.ndarray  # camera-frame point the projector-calibration poses are centred on
     projector_distance_mm: float
     angle_deg: float
-    units: str = "mm"
+    units: str = LengthUnit.MM
 
     @property
     def view(self) -> str:
@@ -271,7 +272,7 @@ def mirror_poses(rig: SyntheticRig, board: CharucoSpec, method: str, count: int 
     for _ in range(20000):
         if len(poses) == count:
             break
-        if method == STEP_REAL_MIRROR or method == "real-mirror":
+        if method == STEP_REAL_MIRROR or method == MirrorMethod.REAL_MIRROR:
             rect = rig.mirror_rect
             c = rect.centre + rect.axis_u * rng.uniform(-0.25, 0.25) * rect.size[0] \
                 + rect.axis_v * rng.uniform(-0.25, 0.25) * rect.size[1] + n * thickness_mm
@@ -341,19 +342,19 @@ class SyntheticSession:
 
 
 def make_session(rig: SyntheticRig, layout: BoardLayout | None = None, pattern: PatternSpec | None = None,
-                 mirror_board: CharucoSpec | None = None, mirror_method: str | None = "real-virtual",
+                 mirror_board: CharucoSpec | None = None, mirror_method: str | None = MirrorMethod.REAL_VIRTUAL,
                  per_position: int = 4, mirror_count: int = 7, thickness_mm: float = 3.0,
                  seed: int = 0) -> SyntheticSession:
-    layout = layout or BoardLayout(CharucoSpec(8, 6, "DICT_5X5_50", 50.0, 25.0, "mm"))
+    layout = layout or BoardLayout(CharucoSpec(8, 6, "DICT_5X5_50", 50.0, 25.0, LengthUnit.MM))
     pattern = pattern or PatternSpec.default_for(rig.projector.width, rig.projector.height)
     poses = projector_poses(rig, layout, pattern, per_position, seed)
     mposes, method = [], None
     if rig.mirror is not None and mirror_method is not None:
-        mirror_board = mirror_board or CharucoSpec(8, 6, "DICT_5X5_50", 22.0, 11.0, "mm")
+        mirror_board = mirror_board or CharucoSpec(8, 6, "DICT_5X5_50", 22.0, 11.0, LengthUnit.MM)
         method = mirror_method
         mposes = mirror_poses(rig, mirror_board, method, mirror_count, seed + 1, thickness_mm)
     return SyntheticSession(rig, layout, mirror_board, pattern, poses, mposes, method,
-                            thickness_mm if method == "real-mirror" else 0.0)
+                            thickness_mm if method == MirrorMethod.REAL_MIRROR else 0.0)
 
 
 def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0,
@@ -379,7 +380,7 @@ def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0,
         q = ss.pattern.points_px(rig.projector.width, rig.projector.height, pos)
         Xb = projector_points_on_board(rig, T, q)
         uv = cam.project(transform_points(S @ T, Xb))
-        if circle_centroids and ss.pattern.kind == "circles":
+        if circle_centroids and ss.pattern.kind == PatternKind.CIRCLES:
             uv = imaged_circle_centroids(rig, T, q, ss.pattern.radius_px)
         pviews.append(ProjectorView(f"p{i:04d}", obs, noisy(uv), q, pos))
     mviews = []
@@ -387,7 +388,7 @@ def observe(ss: SyntheticSession, noise_px: float = 0.0, seed: int = 0,
         Xc = transform_points(T, ss.mirror_board.corner_points())
         ids = np.arange(ss.mirror_board.n_corners)
         real = BoardObservation(ids, noisy(cam.project(Xc)), False)
-        if ss.mirror_method == "real-virtual":
+        if ss.mirror_method == MirrorMethod.REAL_VIRTUAL:
             virt = BoardObservation(ids, noisy(cam.project(transform_points(S, Xc))), True)
             mviews.append(MirrorView(f"mrv{i:04d}", STEP_REAL_VIRTUAL, real, virt))
         else:
@@ -452,7 +453,7 @@ def random_session(seed: int, per_position: int = 1, mirror_count: int = 6) -> S
         pattern = PatternSpec.default_for(pw, ph)
         extent_px = float(np.ptp(pattern.points_px(pw, ph, 0), axis=0).max()) + 2 * pattern.radius_px
         square = rng.uniform(20.0, 80.0)
-        board = CharucoSpec(8, 6, "DICT_5X5_50", square, 0.5 * square, "mm")
+        board = CharucoSpec(8, 6, "DICT_5X5_50", square, 0.5 * square, LengthUnit.MM)
         # the pattern covers about half the board's height at the board's distance from the projector
         D = rng.uniform(0.35, 0.6) * 6 * square * pf / extent_px
         layout = BoardLayout(board, blank_width=max(6 * square, 1.2 * D * extent_px / pf), gap=0.4 * square)
@@ -472,17 +473,17 @@ def random_session(seed: int, per_position: int = 1, mirror_count: int = 6) -> S
                                board_distance_mm=rng.uniform(250.0, 1500.0), projector_distance_mm=float(D),
                                mirror_size_mm=(rng.uniform(400, 900), rng.uniform(300, 600)))
                 ms = rng.uniform(12.0, 30.0)
-                mirror_board = CharucoSpec(8, 6, "DICT_5X5_50", ms, 0.5 * ms, "mm")
+                mirror_board = CharucoSpec(8, 6, "DICT_5X5_50", ms, 0.5 * ms, LengthUnit.MM)
             poses = projector_poses(rig, layout, pattern, per_position, int(rng.integers(1 << 30)),
                                     max_tilt_deg=float(rng.uniform(20.0, 45.0)))
             mposes, method = [], None
             if rig.mirror is not None:
-                method = "real-virtual" if rng.uniform() < 0.7 else "real-mirror"
+                method = MirrorMethod.REAL_VIRTUAL if rng.uniform() < 0.7 else MirrorMethod.REAL_MIRROR
                 mposes = mirror_poses(rig, mirror_board, method, mirror_count, int(rng.integers(1 << 30)), 3.0)
         except RuntimeError:
             continue
         return SyntheticSession(rig, layout, mirror_board, pattern, poses, mposes, method,
-                                3.0 if method == "real-mirror" else 0.0,
+                                3.0 if method == MirrorMethod.REAL_MIRROR else 0.0,
                                 extras={"seed": seed, "hfov_deg": float(hfov), "throw": float(throw),
                                         "angle_deg": float(angle),
                                         "baseline_mm": float(np.linalg.norm(rig.T_cam_proj[:3, 3]))})

@@ -131,7 +131,9 @@ def sim_hardware_options(args) -> dict:
 
 def add_sim_bump_option(p) -> None:
     """--sim-bump (the simulated rig after a part was bumped on site: drivers/sim/bump.py)."""
-    p.add_argument("--sim-bump", choices=("projector", "mirror", "camera", "none"), default=None, metavar="PART",
+    from drivers.sim.bump import BUMP_PARTS
+
+    p.add_argument("--sim-bump", choices=BUMP_PARTS, default=None, metavar="PART",
                    help="simulated rig: the rig after PART (projector|mirror|camera|none) was bumped on site "
                         "(projector turned 1 deg and shifted 10-20 mm, mirror tilted 0.5 deg, camera refocused "
                         "+0.5%% focal length); ground_truth.json is the bumped rig")

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from app.commands import _types
-from calib.models.vocab import RenderQuality, choices
+from calib.models.vocab import CalibrationMethod, RenderQuality, choices
 
 NAME = "bench"
 HELP = "benchmarks on the simulated rig: calibration accuracy vs ground truth, render speed"
@@ -52,7 +52,7 @@ def add_arguments(p) -> None:
     a.add_argument("--methods", default=None,
                    help="comma-separated calibration methods (default: every registered method; also "
                         "joint-bic, the joint method without the coverage criterion)")
-    a.add_argument("--quality", choices=choices(RenderQuality), default="session",
+    a.add_argument("--quality", choices=choices(RenderQuality), default=RenderQuality.SESSION,
                    help="render quality (default %(default)s)")
     a.add_argument("--noise", type=_types.noise_dn, default=None, metavar="SIGMA", help="read noise override (levels)")
     a.add_argument("--blur", type=_types.blur_px, default=None, metavar="SIGMA", help="optical blur override (px)")
@@ -70,10 +70,10 @@ def add_arguments(p) -> None:
 #: method variants only the benchmark knows: name -> (registered method, its options). "joint-bic" is the
 #: joint method with the distortion model chosen by BIC alone (no coverage criterion, issue 18's "before"),
 #: measured on the very same rendered sessions as "joint".
-VARIANTS: dict[str, tuple[str, dict]] = {"joint-bic": ("joint", {"coverage": False})}
+VARIANTS: dict[str, tuple[str, dict]] = {"joint-bic": (CalibrationMethod.JOINT, {"coverage": False})}
 
 
-def accuracy_runs(scenarios, seeds: int, methods, quality: str = "session", keep=None, noise=None, blur=None,
+def accuracy_runs(scenarios, seeds: int, methods, quality: str = RenderQuality.SESSION, keep=None, noise=None, blur=None,
                   workers: int = 2, log=print):
     """Simulate, detect and calibrate; returns a list of dicts (scenario, seed, method, metrics, timings)."""
     from dataclasses import replace
@@ -153,7 +153,7 @@ def accuracy_table(runs, seeds: int) -> str:
     from calib.quality.metrics import PAPER_HEADLINE
 
     head = ["scenario", "method"] + [c[1] for c in COLUMNS] + ["skipped", "time s"]
-    rows = [["paper (synthetic)", "paper"] + [_fmt(PAPER_HEADLINE.get(k), f) if k else "-" for _, _, f, k in COLUMNS]
+    rows = [["paper (synthetic)", CalibrationMethod.PAPER] + [_fmt(PAPER_HEADLINE.get(k), f) if k else "-" for _, _, f, k in COLUMNS]
             + ["", ""]]
     keys = []
     for r in runs:
@@ -264,9 +264,9 @@ def run_accuracy(args) -> int:
 
 # ---- render speed -----------------------------------------------------------------------------------------
 MODES = {
-    "live": ("live", {}),
-    "live, noise+blur off": ("live", {"read_noise_dn": 0.0, "electrons_per_dn": 0.0, "blur_sigma_px": 0.0}),
-    "session (3x3 AA)": ("session", {}),
+    "live": (RenderQuality.LIVE, {}),
+    "live, noise+blur off": (RenderQuality.LIVE, {"read_noise_dn": 0.0, "electrons_per_dn": 0.0, "blur_sigma_px": 0.0}),
+    "session (3x3 AA)": (RenderQuality.SESSION, {}),
 }
 
 
@@ -283,7 +283,7 @@ def render_speed(scenario: str = "nonoverlap-136", frames: int = 20, modes=None)
         warm = time.perf_counter() - t0
         sc = rig.scenario
         W, H = rig.projector.size
-        n = max(1, frames if quality == "live" else max(3, frames // 5))
+        n = max(1, frames if quality == RenderQuality.LIVE else max(3, frames // 5))
         t0 = time.perf_counter()
         for i in range(n):
             pos = i % sc.pattern.positions

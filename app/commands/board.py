@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from app.commands import _types
+from calib.models.vocab import LengthUnit
 
 #: squares outside this range (mm) are most likely a length given in the wrong unit
 PLAUSIBLE_SQUARE_MM = (10.0, 500.0)
@@ -30,7 +31,7 @@ def size_warning(spec) -> str | None:
     if lo <= mm <= hi:
         return None
     w, h = spec.size
-    alt = [u for u in ("mm", "cm", "m", "in") if u != spec.units
+    alt = [u for u in LengthUnit if u != spec.units
            and lo <= spec.square_length * MM_PER_UNIT[u] <= hi]
     hint = f"; if the lengths are in {alt[0]}, add --units {alt[0]}" if alt else ""
     return (f"squares of {spec.square_length:g} {spec.units} make a board of {w:g} x {h:g} {spec.units}, "
@@ -53,7 +54,7 @@ PATTERN_SIZES = ((1280, 720), (1920, 1080))  # the default projector resolutions
 def add_arguments(p) -> None:
     p.add_argument("--board", metavar="SPEC", help="COLSxROWS:DICT:SQUARE[:MARKER], as given to the station, "
                    "e.g. 8x6:DICT_5X5_50:44.3 (squares of 44.3 mm; marker defaults to half the square)")
-    p.add_argument("--units", default="mm", help="unit of the board lengths: mm (default), cm, m, in")
+    p.add_argument("--units", default=LengthUnit.MM, help="unit of the board lengths: mm (default), cm, m, in")
     p.add_argument("--blank-area", metavar="WIDTH[:GAP]",
                    help="projector board: a blank area WIDTH wide, GAP (default 20 mm) right of the squares, "
                         "as tall as them (board units)")

@@ -9,7 +9,7 @@ import numpy as np
 
 from app.commands import _types
 from calib.formats import session_files
-from calib.models.vocab import DistortionModel, choices
+from calib.models.vocab import CalibrationMethod, DistortionModel, choices
 
 NAME = "calibrate"
 HELP = "calibrate a saved capture session (camera, mirror, projector) and write calibration.json"
@@ -22,7 +22,7 @@ DESCRIPTION = (
 
 
 MODELS = ("auto", *choices(DistortionModel))
-DEFAULT_METHOD = "joint"
+DEFAULT_METHOD = CalibrationMethod.JOINT
 RESULT_NAME = session_files.CALIBRATION
 VERIFICATION_NAME = session_files.VERIFICATION
 SAME_TOL = 1e-9  # a re-run giving the same result to this keeps the file and its verification
@@ -114,7 +114,7 @@ def validate(args):
         raise SessionError("--workers must be at least 1")
     if args.method not in METHODS:
         raise SessionError(f"unknown calibration method '{args.method}' (available: {', '.join(sorted(METHODS))})")
-    if (args.camera_model or args.projector_model) and args.method != "joint":
+    if (args.camera_model or args.projector_model) and args.method != CalibrationMethod.JOINT:
         raise SessionError("--camera-model / --projector-model apply to --method joint only")
     store = SessionStore.open(session)
     camera = None

@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 
 from app.commands import _types
-from calib.models.vocab import LengthUnit, choices
+from calib.models.vocab import LengthUnit, View, choices
 
 NAME = "import-procamcalib"
 HELP = "convert a recording made with EDM-Research/ProcamCalib into a session folder"
@@ -29,7 +29,7 @@ def add_arguments(p) -> None:
     p.add_argument("--mirror-board", metavar="SPEC", help="board of the mirror step (default: --board)")
     p.add_argument("--board-thickness", type=_types.float_range(0.0, 1000.0), default=0.0, metavar="T",
                    help="real-mirror: printed face above the mirror surface, in --units (default %(default)s)")
-    p.add_argument("--units", default="mm", choices=choices(LengthUnit),
+    p.add_argument("--units", default=LengthUnit.MM, choices=choices(LengthUnit),
                    help="length unit of the square/marker lengths (default mm)")
     p.add_argument("--out", required=True, metavar="SESSION", help="session folder to create (new or empty)")
     p.add_argument("--no-progress", action="store_true",
@@ -70,7 +70,7 @@ def run(args) -> int:
           f"({m.mirror_method or 'none'}); camera {m.rig.camera_size[0]}x{m.rig.camera_size[1]}, projector "
           f"{m.rig.projector_size[0]}x{m.rig.projector_size[1]}, view {m.rig.view}; pattern {m.pattern.cols}x"
           f"{m.pattern.rows} circles, spacing {m.pattern.spacing_px:.1f} px, radius {m.pattern.radius_px:.1f} px")
-    if m.rig.view == "mirror" and not m.mirror_method:
+    if m.rig.view == View.MIRROR and not m.mirror_method:
         print("note: the recording is mirrored (S...) but no --mirror images were given; calibration needs them",
               file=sys.stderr)
     return 0

@@ -12,6 +12,7 @@ from app.commands._rig_options import (
     add_board_options, add_device_options, add_rig_choice, add_sim_rig_options, add_workers_option,
 )
 from calib.formats import session_files
+from calib.models.vocab import RenderQuality
 
 NAME = "recalibrate"
 HELP = "on-site recalibration: check what moved since PREVIOUS, re-measure only that, compare"
@@ -189,7 +190,7 @@ def prepare(args, log) -> Prepared:
         from_prev = simulated and is_simulated(rr.get("kind"))
         req = RigRequest(kind, args.scenario or (rr.get("scenario") if from_prev else None) or DEFAULT_SCENARIO,
                          args.seed if args.seed is not None else (rr.get("seed") if from_prev else None) or 0,
-                         args.quality or "live")
+                         args.quality or RenderQuality.LIVE)
     return Prepared(kind, src, previous, specs, req, simulated, max_caps, rig_options(args, kind))
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from app.commands._rig_options import add_rig_options
 from calib.formats import session_files
-from calib.models.vocab import MirrorMethod, RigKind, choices
+from calib.models.vocab import MirrorMethod, RenderQuality, RigKind, choices
 
 NAME = "session"
 HELP = "run a guided capture-and-calibrate session headless (--rig sim --auto: fully simulated)"
@@ -117,7 +117,7 @@ def open_session(args, log=print):
 
         folder = check_output_folder(args.out)  # never inside another session (its images/, ...)
         kind = args.rig or default_rig_kind()
-        req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or "live")
+        req = RigRequest(kind, args.scenario or DEFAULT_SCENARIO, args.seed or 0, args.quality or RenderQuality.LIVE)
         from drivers.factory import is_simulated
 
         if not is_simulated(kind) and not args.board:

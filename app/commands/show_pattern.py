@@ -32,7 +32,7 @@ def _size(text: str) -> tuple[int, int]:
 def add_arguments(p) -> None:
     p.add_argument("--screen", type=_types.screen, default=None, metavar="N",
                    help="screen index from `procam devices` (default: the non-primary one of two screens; required with more)")
-    p.add_argument("--pattern", choices=choices(PatternKind), default="circles")
+    p.add_argument("--pattern", choices=choices(PatternKind), default=PatternKind.CIRCLES)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--position", type=_types.int_range(0, 999), default=0, metavar="K",
                    help="pattern position (0-based, default 0)")
@@ -66,7 +66,7 @@ def run(args) -> int:
     if args.spacing is not None:
         from dataclasses import replace
 
-        radius = round(0.3 * args.spacing, 1) if spec.kind == "circles" else spec.radius_px
+        radius = round(0.3 * args.spacing, 1) if spec.kind == PatternKind.CIRCLES else spec.radius_px
         spec = replace(spec, spacing_px=float(args.spacing), radius_px=radius)
     spec.offsets(size[0], size[1])  # raises SpecError when the pattern does not fit
     positions = list(range(spec.positions)) if args.cycle is not None else [args.position]

@@ -18,7 +18,7 @@ import numpy as np
 from app.commands import _types
 from calib.formats import session_files
 from calib.models.structured_light import StructuredLightSpec
-from calib.models.vocab import PatternKind, RenderQuality, choices
+from calib.models.vocab import MirrorMethod, PatternKind, RenderQuality, Step, choices
 
 NAME = "simulate"
 HELP = "render a capture session of a simulated rig (with ground truth), or --list the scenarios"
@@ -53,7 +53,7 @@ def add_arguments(p) -> None:
     p.add_argument("--shot", type=_types.shot_e_per_dn, default=None, metavar="E_PER_DN",
                    help="shot noise: photo-electrons per 8-bit level (default: the scenario's; 0 = off)")
     p.add_argument("--blur", type=_types.blur_px, default=None, metavar="SIGMA", help="optical blur sigma in pixels")
-    p.add_argument("--quality", choices=choices(RenderQuality), default="session",
+    p.add_argument("--quality", choices=choices(RenderQuality), default=RenderQuality.SESSION,
                    help="anti-aliasing: session = 3x3 samples per pixel (default), live = 1")
     p.add_argument("--per-position", type=_types.int_range(1, 100), default=None, metavar="N",
                    help=f"board poses per pattern position (default: the scenario's, "
@@ -123,20 +123,20 @@ def capture_plan(scenario, structured_placements: int | None = None) -> list[dic
     capture is a placement of its own (`key`)."""
     jobs = []
     if scenario.mirror_method is not None:
-        step = "mirror-real-virtual" if scenario.mirror_method == "real-virtual" else "mirror-real-mirror"
+        step = Step.REAL_VIRTUAL if scenario.mirror_method == MirrorMethod.REAL_VIRTUAL else Step.REAL_MIRROR
         for k in range(len(scenario.mirror_poses)):
             jobs.append({"step": step, "position": None, "index": k})
     if structured_placements is not None:
         from drivers.sim.structured import placement_poses
 
-        jobs += [{"step": "projector", "position": pos, "index": k, "structured": True}
+        jobs += [{"step": Step.PROJECTOR, "position": pos, "index": k, "structured": True}
                  for pos, k in placement_poses(scenario, structured_placements)]
     else:
         count: dict[int, int] = {}
         for pos, _ in scenario.projector_poses:
             k = count.get(pos, 0)
             count[pos] = k + 1
-            jobs.append({"step": "projector", "position": pos, "index": k})
+            jobs.append({"step": Step.PROJECTOR, "position": pos, "index": k})
     for i, j in enumerate(jobs):
         j["key"] = i
     return jobs
@@ -180,7 +180,7 @@ def _render_job(job: dict):
             frames.append(_single_channel(rig.render_still(FRAME_KEY_BASE * (1 + job["key"]) + f)))
         return job["key"], frames, rig.board.T_cam_board.copy(), None
     pts = None
-    if job["step"] == "projector":
+    if job["step"] == Step.PROJECTOR:
         img, pts = sc.pattern.render(W, H, job["position"])
     else:
         img = np.zeros((H, W), np.uint8)
@@ -189,7 +189,7 @@ def _render_job(job: dict):
     return job["key"], image, rig.board.T_cam_board.copy(), pts
 
 
-def simulate_session(scenario, out, quality: str = "session", workers: int = 2, force: bool = False,
+def simulate_session(scenario, out, quality: str = RenderQuality.SESSION, workers: int = 2, force: bool = False,
                      progress: bool = True, structured_placements: int | None = None):
     """Render the scenario's session into folder `out` (its projector step `structured_placements`
     structured-light captures when given); returns the SessionStore."""
@@ -207,7 +207,7 @@ def simulate_session(scenario, out, quality: str = "session", workers: int = 2, 
                                                                               kind=PatternKind.STRUCTURED.value),
         mirror_board=scenario.mirror_board if scenario.mirror_method else None,
         mirror_method=scenario.mirror_method,
-        board_thickness=float(scenario.board_thickness_mm) if scenario.mirror_method == "real-mirror" else 0.0,
+        board_thickness=float(scenario.board_thickness_mm) if scenario.mirror_method == MirrorMethod.REAL_MIRROR else 0.0,
         state={"simulated": True, "scenario": scenario.name, "seed": scenario.seed},
     )
     store = SessionStore.create(out, manifest, exist_ok=force)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from app.commands import _types
 from calib.formats import session_files
-from calib.models.vocab import RenderQuality, choices
+from calib.models.vocab import RenderQuality, Step, choices
 from drivers.factory import is_simulated
 
 NAME = "verify"
@@ -80,7 +80,7 @@ def add_arguments(p) -> None:
     sim = p.add_argument_group("--rig sim, sim-realsense, sim-uvc")
     sim.add_argument("--scenario", default=None, help="scenario (default: the one the session was simulated with)")
     sim.add_argument("--seed", type=_types.seed, default=None, help="scenario seed (default: the session's)")
-    sim.add_argument("--quality", choices=choices(RenderQuality), default="live",
+    sim.add_argument("--quality", choices=choices(RenderQuality), default=RenderQuality.LIVE,
                      help="render quality of the simulated camera (default live: 1 sample per pixel)")
     from app.commands._rig_options import add_sim_faults_option, add_sim_latency_option
 
@@ -259,7 +259,7 @@ def run(args) -> int:
     def check(rig, settle_frames):
         rig.camera.start()
         try:
-            instruction = rig.operator.request_pose("verification", None, 0)
+            instruction = rig.operator.request_pose(Step.VERIFICATION, None, 0)
             print(instruction, file=sys.stderr, flush=True)
             if not is_simulated(args.rig) and args.delay > 0:
                 time.sleep(args.delay)

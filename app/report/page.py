@@ -16,6 +16,7 @@ from calib.transforms import rotation_angle_deg
 
 from . import figures
 from .data import KINDS, ReportData
+from calib.models.vocab import Step, View
 
 CSS = """
 body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;color:#1d1d1f;margin:0;background:#f5f5f7}
@@ -83,7 +84,7 @@ _VERDICT_CLASS = {Level.TRUSTED: "pass", Level.LOW_QUALITY: "warn", Level.UNTRUS
 def _verdict(d: ReportData) -> str:
     """The overall verdict, first: the trust check and the quality gate run on the calibration reported
     (calib.quality.verdict), not what the file says of itself."""
-    v = overall_verdict(d.result, d.store.manifest.rig.view == "mirror")
+    v = overall_verdict(d.result, d.store.manifest.rig.view == View.MIRROR)
     items = "".join(f"<li>{_e(r)}</li>" for r in v.reasons)
     return (f'<p id="overall-verdict" data-level="{_e(v.level.value)}"><span class="{_VERDICT_CLASS[v.level]}">'
             f"{_e(v.headline)}</span></p>" + (f'<ul id="verdict-reasons">{items}</ul>' if items else ""))
@@ -124,7 +125,7 @@ def _summary(d: ReportData) -> str:
 <tr><td class="l">session</td><td class="l">{_e(d.session_dir.resolve())}</td></tr>
 <tr><td class="l">method</td><td class="l">{_e(r.method)}{models}</td></tr>
 <tr><td class="l">rig</td><td class="l">camera {r.camera.width}x{r.camera.height} px, projector
-{r.projector.width}x{r.projector.height} px, {"seen through a mirror" if m.rig.view == "mirror" else "direct view"},
+{r.projector.width}x{r.projector.height} px, {"seen through a mirror" if m.rig.view == View.MIRROR else "direct view"},
 driver <code>{_e(m.rig.driver)}</code>; lengths in {_e(r.units)}</td></tr>
 <tr><td class="l">captures</td><td class="l">{", ".join(f"{n} {_e(s)}" for s, n in counts.items())};
 {len(skipped)} not used</td></tr>
@@ -351,7 +352,7 @@ def _rig(d: ReportData) -> str:
     if res is not None:
         for cid, T in res.board_poses.items():
             step = res.steps[res.views.index(cid)]
-            spec = m.projector_board if step == "projector" else (m.mirror_board or m.projector_board)
+            spec = m.projector_board if step == Step.PROJECTOR else (m.mirror_board or m.projector_board)
             w, h = spec.size
             outline = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]], float)
             boards.append((step, outline @ T[:3, :3].T + T[:3, 3]))

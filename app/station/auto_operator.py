@@ -22,6 +22,7 @@ from app.station.machine import (
     Target,
 )
 from calib.errors import SessionError
+from calib.models.vocab import MirrorMethod
 
 VARIANT_STRIDE = 100  # a variant's pose index: the slot's plus this many per variant
 
@@ -122,7 +123,7 @@ class AutoOperator:
             return self.options.mirror_method
         sc = getattr(self.station.rig, "scenario", None)
         method = getattr(sc, "mirror_method", None)
-        return method or "real-virtual"
+        return method or MirrorMethod.REAL_VIRTUAL
 
     def drive(self) -> None:
         """Auto mode: take the step the guideline asks for next."""

@@ -44,6 +44,7 @@ from calib.formats.session import Capture, SessionStore
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
 from calib.models.result import CalibrationResult
+from calib.models.vocab import MirrorMethod
 
 _OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake", "mirror_method",
                    "camera_intrinsics", "plan", "calibrated", "result_stale", "verified", "updated_unix_s")
@@ -321,7 +322,7 @@ class SessionMachine:
             value = float(value)
             if value != self.manifest.board_thickness:
                 self.store.update(board_thickness=value)
-                if self.mirror_method == "real-mirror":
+                if self.mirror_method == MirrorMethod.REAL_MIRROR:
                     self._mark_stale()
                 self._log(f"board thickness on the mirror: {value:g} {self.manifest.units}")
             self.persist()
@@ -374,7 +375,7 @@ class SessionMachine:
             cap = next(c for c in self.manifest.captures if c.id == capture_id)
             self._retake_step = cap.step
             if cap.step != STEP_PROJECTOR:
-                method = "real-virtual" if cap.step == STEP_REAL_VIRTUAL else "real-mirror"
+                method = MirrorMethod.REAL_VIRTUAL if cap.step == STEP_REAL_VIRTUAL else MirrorMethod.REAL_MIRROR
                 self.mirror_method = method
             self.store.delete_capture(capture_id)
             tgt = Target(cap.step, cap.pattern_position, int(cap.meta.get("pose_index", 0)))

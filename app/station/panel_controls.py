@@ -33,6 +33,7 @@ from app.station.panel_results import (
 )
 from app.station.panel_scene import click_to_pixel, view_from_camera, view_whole_rig
 from calib.errors import ProcamError
+from calib.models.vocab import MirrorMethod
 
 # which folder of controls each step shows (the rest stay hidden unless all are asked for)
 STEP_FOLDERS = {
@@ -137,8 +138,8 @@ class PanelControls:
                 h["check"] = g.add_button("Check rig")
                 h["start"] = g.add_button("Start")
             with g.add_folder(FOLDER_TITLES["mirror"]) as f["mirror"]:
-                h["real-virtual"] = g.add_button("Mirror: real-virtual")
-                h["real-mirror"] = g.add_button("Mirror: real-mirror")
+                h[MirrorMethod.REAL_VIRTUAL] = g.add_button("Mirror: real-virtual")
+                h[MirrorMethod.REAL_MIRROR] = g.add_button("Mirror: real-mirror")
                 h["thickness"] = g.add_number(f"Board thickness ({m.manifest.units})", float(m.manifest.board_thickness),
                                               min=0.0, step=0.1,
                                               hint="real-mirror: height of the printed face above the mirror")
@@ -189,8 +190,8 @@ class PanelControls:
             "start": lambda: m.start_session(),
             "next": lambda: m.proceed(),
             "back": lambda: m.go_back(),
-            "real-virtual": lambda: m.choose_mirror_method("real-virtual"),
-            "real-mirror": lambda: m.choose_mirror_method("real-mirror"),
+            MirrorMethod.REAL_VIRTUAL: lambda: m.choose_mirror_method(MirrorMethod.REAL_VIRTUAL),
+            MirrorMethod.REAL_MIRROR: lambda: m.choose_mirror_method(MirrorMethod.REAL_MIRROR),
             "capture": lambda: st.capture_now(),
             "move": lambda: st.request_pose(),
             "retake_last": lambda: self._retake(None),
@@ -440,7 +441,7 @@ class PanelControls:
             return {"start"} if m.rig_checks and m.why_not("start") is None else {"check"}
         if s == MIRROR_CAPTURE:
             if m.mirror_method is None:
-                return {"real-virtual"}
+                return {MirrorMethod.REAL_VIRTUAL}
             if m.target is None:
                 return {"next"}
             return {"capture", "move"} if st.is_sim and not st.options.follow_operator else {"capture"}
@@ -467,8 +468,8 @@ class PanelControls:
             "start": m.why_not("start"),
             "next": m.why_not("proceed"),
             "back": m.why_not("back"),
-            "real-virtual": m.why_not("choose_mirror_method", "real-virtual"),
-            "real-mirror": m.why_not("choose_mirror_method", "real-mirror"),
+            MirrorMethod.REAL_VIRTUAL: m.why_not("choose_mirror_method", MirrorMethod.REAL_VIRTUAL),
+            MirrorMethod.REAL_MIRROR: m.why_not("choose_mirror_method", MirrorMethod.REAL_MIRROR),
             "capture": m.why_not("capture"),
             "move": None if m.target is not None else "no capture is asked for now",
             "retake_last": m.why_not("retake", last),

@@ -16,6 +16,7 @@ import numpy as np
 
 from app.station.autocapture import Bar
 from calib.quality.coverage import cell_counts
+from calib.models.vocab import PatternKind
 
 MAP_WIDTH = 300  # pixels of each of the two coverage maps
 
@@ -142,7 +143,7 @@ def projector_coverage_image(pattern, projector_size, counts_per_position, poses
     each position's area green when complete, orange when started; the position shown now outlined."""
     img, s = _map_canvas(projector_size)
     W, H = projector_size
-    pad = pattern.radius_px if pattern.kind == "circles" else pattern.spacing_px
+    pad = pattern.radius_px if pattern.kind == PatternKind.CIRCLES else pattern.spacing_px
     for p in range(pattern.positions):
         pts = pattern.points_px(W, H, p)
         p0 = tuple(int(v) for v in (pts.min(axis=0) - pad) * s)

@@ -4,6 +4,7 @@ one capture asked for next). Both are stored in session.json's `state`, so a res
 from __future__ import annotations
 
 from dataclasses import dataclass
+from calib.models.vocab import MirrorMethod
 
 
 @dataclass(frozen=True)
@@ -21,10 +22,10 @@ class Plan:
     min_projector_captures: int = 6
 
     def mirror_captures(self, method: str) -> int:
-        return self.real_virtual_captures if method == "real-virtual" else self.real_mirror_captures
+        return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures
 
     def min_mirror(self, method: str) -> int:
-        need = self.min_real_virtual if method == "real-virtual" else self.min_real_mirror
+        need = self.min_real_virtual if method == MirrorMethod.REAL_VIRTUAL else self.min_real_mirror
         return min(need, self.mirror_captures(method))  # a plan asking for fewer captures needs only those
 
     def to_dict(self) -> dict:

@@ -16,6 +16,7 @@ from app.station.machine import RigCheck
 from calib.errors import ProcamError, SpecError
 from calib.models.observations import VIEW_MIRROR
 from drivers.errors import DeviceError, ExposureUnsupported
+from calib.models.vocab import Step
 
 _log = logging.getLogger("procam.station")
 
@@ -116,7 +117,7 @@ class RigChecker:
         checks = []
         settings = dict(recorded)
         if self.station.is_sim:  # the simulated person holds the board in the projector's light
-            self.station.rig.operator.request_pose("verification", None, 0)
+            self.station.rig.operator.request_pose(Step.VERIFICATION, None, 0)
         try:
             return self._timing_checks(cam, proj, man, recorded, timing, settings, checks)
         finally:

@@ -15,12 +15,13 @@ import cv2
 import numpy as np
 
 from calib.formats.session import Capture, SessionManifest
+from calib.models.boards import MM_PER_UNIT
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
 from calib.models.result import CalibrationResult
 from calib.transforms import FLIP_X, transform_points
 
-UNIT_TO_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "in": 0.0254}
+UNIT_TO_M = {u: mm / 1000.0 for u, mm in MM_PER_UNIT.items()}
 
 
 @dataclass(frozen=True, eq=False)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from calib.errors import ProcamError
 from calib.models.observations import STEP_REAL_MIRROR, STEP_REAL_VIRTUAL
+from calib.models.vocab import MirrorMethod
 
 CHECK_RIG = "check_rig"
 MIRROR_CAPTURE = "mirror_capture"
@@ -30,7 +31,7 @@ ACTIONS = ("start", "choose_mirror_method", "set_board_thickness", "capture", "d
 
 def mirror_step(method: str) -> str:
     """The capture step of a mirror method (real-virtual, real-mirror)."""
-    return {"real-virtual": STEP_REAL_VIRTUAL, "real-mirror": STEP_REAL_MIRROR}[method]
+    return {MirrorMethod.REAL_VIRTUAL: STEP_REAL_VIRTUAL, MirrorMethod.REAL_MIRROR: STEP_REAL_MIRROR}[method]
 
 
 class ActionRefused(ProcamError):

@@ -13,7 +13,7 @@ from calib.formats.session import MANIFEST, RigInfo, SessionManifest, SessionSto
 from calib.models.boards import CharucoSpec
 from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
-from calib.models.vocab import RigKind
+from calib.models.vocab import MirrorMethod, RenderQuality, RigKind
 
 GROUND_TRUTH_FILE = session_files.GROUND_TRUTH
 VERIFICATION_FILE = session_files.VERIFICATION
@@ -27,7 +27,7 @@ class RigRequest:
     kind: str = RigKind.SIM
     scenario: str = DEFAULT_SCENARIO
     seed: int = 0
-    quality: str = "live"
+    quality: str = RenderQuality.LIVE
 
     def to_dict(self) -> dict:
         return {"kind": self.kind, "scenario": self.scenario, "seed": self.seed, "quality": self.quality}
@@ -103,7 +103,7 @@ def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_boa
     if is_simulated(kind):
         s = sim_specs(rig)
         board, mirror_board, pattern, view = s["board"], s["mirror_board"], s["pattern"], s["view"]
-        thickness = s["thickness"] if s["mirror_method"] == "real-mirror" else 0.0
+        thickness = s["thickness"] if s["mirror_method"] == MirrorMethod.REAL_MIRROR else 0.0
     if board is None:
         raise SessionError("give the projector board spec (--board COLSxROWS:DICT:SQUARE[:MARKER])")
     view = view or VIEW_MIRROR

@@ -32,7 +32,7 @@ from app.station.projector_light import BACK_MESSAGE as LIGHT_BACK, LOST_MESSAGE
 from app.station.rig_check import RigChecker
 from calib.errors import ProcamError
 from calib.models.observations import STEP_PROJECTOR
-from calib.models.vocab import RigKind
+from calib.models.vocab import RigKind, Step
 from drivers.base import Frame
 from drivers.clock import clock_of
 from drivers.errors import DeviceError
@@ -350,7 +350,7 @@ class Station:
 
         with m.hold("verifying"):
             if self.is_sim:  # the simulated person holds the board where the projector lights it
-                self.rig.operator.request_pose("verification", None, 0)
+                self.rig.operator.request_pose(Step.VERIFICATION, None, 0)
             self._shown = None
             check = verify_pixel(self.rig.camera, self.rig.projector, m.result, (float(x), float(y)),
                                  response=recorded_response(m.manifest.rig.camera_settings))

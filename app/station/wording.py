@@ -11,6 +11,7 @@ from pathlib import Path
 from app.station.machine import CALIBRATION, CHECK_RIG, MIRROR_CAPTURE, PROJECTOR_CAPTURE, STATE_TITLES, VERIFICATION
 from app.station.projector_light import LOST_MESSAGE as LIGHT_LOST
 from calib.formats import session_files
+from calib.models.vocab import MirrorMethod
 
 
 def instruction(m, device_problem: str | None, problem: str | None, hint: str) -> str:
@@ -42,12 +43,12 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
         c = m.counts()
         if tgt is None:
             return f"All {c['mirror_total']} mirror captures are taken. Press 'Next step' to go on to the projector."
-        if m.mirror_method == "real-virtual":
+        if m.mirror_method == MirrorMethod.REAL_VIRTUAL:
             what = ("Hold the mirror board between the camera and the mirror so that the camera sees it "
                     "both directly and in the mirror; change its place and tilt from the last capture.")
         else:
             what = (f"Lay the mirror board flat on the mirror, at a new place and angle (at least "
-                    f"{m.plan.min_mirror('real-mirror')} placements: one alone leaves the mirror's tilt uncertain).")
+                    f"{m.plan.min_mirror(MirrorMethod.REAL_MIRROR)} placements: one alone leaves the mirror's tilt uncertain).")
         head = f"Mirror capture {c['mirror'] + 1} of {c['mirror_total']}: {what}"
         return head + hint
     if s == PROJECTOR_CAPTURE:

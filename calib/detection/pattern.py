@@ -21,6 +21,7 @@ from calib.detection.response import CameraResponse
 from calib.models.boards import CharucoSpec
 from calib.models.observations import BoardObservation, DetectionFailure
 from calib.models.pattern import PatternSpec
+from calib.models.vocab import PatternKind
 
 
 def _board_homography(obs: BoardObservation, spec: CharucoSpec, width: int, flip: bool):
@@ -385,7 +386,7 @@ def detect_pattern(image: np.ndarray, pattern: PatternSpec, mirrored: bool, boar
     W = gray.shape[1]
     img = cv2.flip(gray, 1) if mirrored else gray
     H = None
-    fill = 0 if pattern.kind == "circles" else int(np.median(img[::8, ::8]))
+    fill = 0 if pattern.kind == PatternKind.CIRCLES else int(np.median(img[::8, ::8]))
     if board is not None and board_spec is not None:
         H = _board_homography(board, board_spec, W, mirrored)
         if H is not None:
@@ -394,13 +395,13 @@ def detect_pattern(image: np.ndarray, pattern: PatternSpec, mirrored: bool, boar
         img = _mask_corner_hull(img, flip_x(board.corners_px, W) if mirrored else board.corners_px, fill)
     roi = _search_roi(img.shape, H, board_spec)
     lut = response.lut() if response is not None and not response.linear else None
-    if pattern.kind == "circles":
+    if pattern.kind == PatternKind.CIRCLES:
         pts = _find_circles(img, pattern, roi, lut)
     else:
         pts = _find_chessboard(img, pattern, roi)
     if isinstance(pts, DetectionFailure) and roi != (0, 0, img.shape[1], img.shape[0]):
         full = (0, 0, img.shape[1], img.shape[0])
-        pts = _find_circles(img, pattern, full, lut) if pattern.kind == "circles" else _find_chessboard(img, pattern, full)
+        pts = _find_circles(img, pattern, full, lut) if pattern.kind == PatternKind.CIRCLES else _find_chessboard(img, pattern, full)
     if isinstance(pts, DetectionFailure):
         return pts
     return flip_x(pts, W) if mirrored else pts

@@ -33,6 +33,7 @@ from calib.formats.session import RigInfo, SessionManifest, SessionStore
 from calib.models.boards import CharucoSpec
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
+from calib.models.vocab import MirrorMethod, PatternKind
 
 
 class RecordingError(ProcamError):
@@ -110,12 +111,12 @@ def detect_pattern_image(image: np.ndarray, cols: int, rows: int) -> tuple[np.nd
     from calib.detection.detect import DetectionFailure, detect_pattern
 
     gray = _white_only(image)
-    probe = PatternSpec("circles", cols, rows, spacing_px=10.0, radius_px=1.0, positions=1)
+    probe = PatternSpec(PatternKind.CIRCLES, cols, rows, spacing_px=10.0, radius_px=1.0, positions=1)
     pts = detect_pattern(gray, probe, mirrored=False)
     if isinstance(pts, DetectionFailure):
         return None
     # spacing: least-squares similarity from the unit-spacing grid to the found centres
-    local = PatternSpec("circles", cols, rows, spacing_px=1.0, radius_px=0.1, positions=1).local_points()
+    local = PatternSpec(PatternKind.CIRCLES, cols, rows, spacing_px=1.0, radius_px=0.1, positions=1).local_points()
     lc, pc = local - local.mean(axis=0), pts - pts.mean(axis=0)
     spacing = float(np.sqrt((pc ** 2).sum() / (lc ** 2).sum()))
     # radius: the covered area of each (anti-aliased) disc, within half the distance to its neighbours
@@ -156,7 +157,7 @@ def read_patterns(folder) -> PatternImages:
     spacing = float(np.median(spacings))
     radius = float(np.median(radii))
     radius = min(radius, 0.69 * spacing)
-    spec = PatternSpec("circles", cols, rows, spacing_px=round(spacing, 3), radius_px=round(radius, 3),
+    spec = PatternSpec(PatternKind.CIRCLES, cols, rows, spacing_px=round(spacing, 3), radius_px=round(radius, 3),
                        positions=len(files))
     return PatternImages(name, spec, size, tuple(points), tuple(files))
 
@@ -164,9 +165,9 @@ def read_patterns(folder) -> PatternImages:
 def _mirror_method(folder: Path) -> str:
     first = folder.name[:1]
     if first == "M":
-        return "real-virtual"
+        return MirrorMethod.REAL_VIRTUAL
     if first == "F":
-        return "real-mirror"
+        return MirrorMethod.REAL_MIRROR
     raise RecordingError(
         f"mirror folder name '{folder.name}' must start with 'M' (real-virtual images: board seen directly and "
         "in the mirror) or 'F' (real-mirror images: board lying on the mirror)")
@@ -224,7 +225,7 @@ def import_procamcalib(recording, patterns, board: CharucoSpec, out, mirror=None
         pattern=pats.spec,
         mirror_board=(mirror_board or board) if method else None,
         mirror_method=method,
-        board_thickness=float(board_thickness) if method == "real-mirror" else 0.0,
+        board_thickness=float(board_thickness) if method == MirrorMethod.REAL_MIRROR else 0.0,
         state={"imported_from": "ProcamCalib", "recording": str(recording.resolve()),
                "patterns": str(Path(patterns).resolve()), "mirror": None if mirror is None else str(mirror.resolve()),
                "images_per_pattern": per},
@@ -240,7 +241,7 @@ def import_procamcalib(recording, patterns, board: CharucoSpec, out, mirror=None
         store = SessionStore.create(tmp, manifest)
         total = len(mirror_files) + n_img
         done = 0
-        step = STEP_REAL_VIRTUAL if method == "real-virtual" else STEP_REAL_MIRROR
+        step = STEP_REAL_VIRTUAL if method == MirrorMethod.REAL_VIRTUAL else STEP_REAL_MIRROR
         for f in mirror_files:
             store.add_capture(step, _read(f), meta={"source": f"{mirror.name}/{f.name}"})
             done += 1

@@ -48,7 +48,7 @@ from calib.formats.session_lock import acquire as _acquire_lock
 from calib.models.boards import CharucoSpec
 from calib.models.observations import STEP_PROJECTOR, STEPS, VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
-from calib.models.vocab import MirrorMethod, choices
+from calib.models.vocab import MirrorMethod, Step, choices
 
 FORMAT = "procam-session"
 VERSION = 1
@@ -400,7 +400,7 @@ class SessionStore:
         return d
 
     def next_id(self, step: str, structured: bool = False) -> str:
-        prefix = "s" if structured else {"projector": "p", "mirror-real-virtual": "mrv", "mirror-real-mirror": "mrm"}[step]
+        prefix = "s" if structured else {Step.PROJECTOR: "p", Step.REAL_VIRTUAL: "mrv", Step.REAL_MIRROR: "mrm"}[step]
         used = [int(m.group(1)) for c in self._manifest.captures if (m := re.fullmatch(prefix + r"(\d+)", c.id))]
         # a structured capture's frames are ID-fNN.png
         taken = {p.stem.split("-f")[0] for p in (self.folder / IMAGES_DIR).glob(prefix + "*.png")}

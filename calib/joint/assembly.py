@@ -23,6 +23,7 @@ from calib.models.observations import STEP_REAL_MIRROR, VIEW_DIRECT, SessionObse
 from calib.models.result import CalibrationResult
 from calib.paper.board_pose import pose_from_points, pose_through_mirror
 from calib.transforms import tangent_basis
+from calib.models.vocab import PatternKind
 
 #: the fewest ChArUco corners a view's board pose is initialised from
 MIN_VIEW_CORNERS = 6
@@ -162,7 +163,7 @@ def build_problem(obs: SessionObservations, init: CalibrationResult, options: Jo
         dd[mask] = 0.0
     pm = options.pattern_model
     if pm == "auto":
-        pm = "conic" if obs.pattern.kind == "circles" else "point"
+        pm = "conic" if obs.pattern.kind == PatternKind.CIRCLES else "point"
     if pm not in ("point", "conic"):
         raise CalibrationError(f"unknown pattern model '{options.pattern_model}' (one of {', '.join(PATTERN_MODELS)})")
     prob = JointProblem(obs, state, pm, thickness, g.poses, g.corner_set(), g.pattern_set(),

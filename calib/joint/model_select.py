@@ -304,13 +304,13 @@ def select_models(prob, options) -> dict:
 
         ref = table[key(DistortionModel.FIVECOEF)]["rss_px2"]
         tests = {}
-        for name in ("none", "k1", DistortionModel.K1K2):
+        for name in (DistortionModel.NONE, DistortionModel.K1, DistortionModel.K1K2):
             k = 5 - len(DIST_MODELS[name])
             W = max(table[key(name)]["rss_px2"] - ref, 0.0) / sigma2
             tests[name] = (W, k, float(chi2_sf(W, k)))
         W = max(ref - table[key(DistortionModel.RATIONAL)]["rss_px2"], 0.0) / sigma2
         tests[DistortionModel.RATIONAL] = (W, 3, float(chi2_sf(W, 3)))
-        for name in ("none", "k1", DistortionModel.K1K2):
+        for name in (DistortionModel.NONE, DistortionModel.K1, DistortionModel.K1K2):
             if tests[name][2] > ALPHA_DROP:
                 return name, tests
         add_k456 = tests[DistortionModel.RATIONAL][2] < ALPHA_ADD
@@ -364,7 +364,7 @@ def select_models(prob, options) -> dict:
         else:
             tests = tests_by_dev[dev]
             why = []
-            for name in ("none", "k1", DistortionModel.K1K2):
+            for name in (DistortionModel.NONE, DistortionModel.K1, DistortionModel.K1K2):
                 W, k, pv = tests[name]
                 if name == chosen:
                     why.append(f"'{name}' is not significantly worse than 5coef (W = {W:.2f} on {k} dof, "

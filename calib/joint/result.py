@@ -11,6 +11,7 @@ from calib.joint.problem import JointProblem
 from calib.models.camera import CameraModel
 from calib.models.result import CalibrationResult, MirrorPlane
 from calib.transforms import make_T, nearest_rotation
+from calib.models.vocab import CalibrationMethod
 
 
 def _rms(a: np.ndarray) -> float | None:
@@ -107,5 +108,5 @@ def make_result(obs, init: CalibrationResult, prob: JointProblem, x: np.ndarray,
         "board_poses": {ps.capture_id: make_T(s.R[v], s.t[v]).tolist() for v, ps in enumerate(prob.poses)},
     }
     skipped = tuple(init.skipped) + tuple(left_out)
-    return CalibrationResult(cam, proj, T, mirror, obs.units, method="joint", rms=rms_d, per_view=tuple(per_view),
+    return CalibrationResult(cam, proj, T, mirror, obs.units, method=CalibrationMethod.JOINT, rms=rms_d, per_view=tuple(per_view),
                              skipped=skipped, uncertainty=unc, diagnostics=diag)

@@ -12,6 +12,7 @@ import numpy as np
 
 from calib.joint.solver import normal_blocks, prior_terms
 from calib.transforms import rotvec_covariance
+from calib.models.vocab import DistortionModel
 
 
 def _sym_inv(A: np.ndarray) -> np.ndarray:
@@ -98,8 +99,8 @@ def joint_uncertainty(prob, x: np.ndarray) -> dict:
         "variance_factor": float(sigma2),
         "class_sigma_px": dict(prob.class_sigma),
         "dof": int(dof),
-        "camera": device("cam", 8 if s.cam_model == "rational" else 5),
-        "projector": device("proj", 8 if s.proj_model == "rational" else 5),
+        "camera": device("cam", 8 if s.cam_model == DistortionModel.RATIONAL else 5),
+        "projector": device("proj", 8 if s.proj_model == DistortionModel.RATIONAL else 5),
     }
     ri = [idx[f"T_cam_proj.rot_{a}"] for a in "xyz"]
     ti = [idx[f"T_cam_proj.t_{a}"] for a in "xyz"]

@@ -43,7 +43,7 @@ class CharucoSpec:
     dictionary: str
     square_length: float
     marker_length: float
-    units: str = "mm"
+    units: str = LengthUnit.MM
 
     def __post_init__(self):
         if self.cols < 2 or self.rows < 2:
@@ -69,7 +69,7 @@ class CharucoSpec:
             raise SpecError(f"a {self.cols}x{self.rows} board needs {n_markers} markers; {self.dictionary} has {size}")
 
     @classmethod
-    def parse(cls, text: str, units: str = "mm") -> "CharucoSpec":
+    def parse(cls, text: str, units: str = LengthUnit.MM) -> "CharucoSpec":
         """'COLSxROWS:DICT:SQUARE[:MARKER]', e.g. '8x6:DICT_5X5_50:4.43' (marker defaults to square / 2)."""
         m = re.fullmatch(r"\s*(\d+)[xX](\d+):(DICT_\w+):([0-9.eE+-]+)(?::([0-9.eE+-]+))?\s*", text)
         if not m:

@@ -29,7 +29,7 @@ class PatternSpec:
     ((2 j + i % 2) * spacing_px, i * spacing_px), radius `radius_px`. Chessboard: inner corners, squares
     of side `spacing_px`, with a white quiet zone of one square around them."""
 
-    kind: str = "circles"
+    kind: str = PatternKind.CIRCLES
     cols: int = 4
     rows: int = 9
     spacing_px: float = 40.0
@@ -49,20 +49,20 @@ class PatternSpec:
             raise SpecError(f"pattern positions must be 1 to {MAX_POSITIONS}, got {self.positions}")
         if not 0 <= self.margin_px <= hi:
             raise SpecError(f"pattern margin_px must be 0 to {hi:g} px, got {self.margin_px:g}")
-        if self.kind == "circles" and not (0 < self.radius_px < 0.7 * self.spacing_px):
+        if self.kind == PatternKind.CIRCLES and not (0 < self.radius_px < 0.7 * self.spacing_px):
             raise SpecError(
                 f"circle radius {self.radius_px} px must be > 0 and < 0.7 x spacing ({self.spacing_px} px), "
                 "or neighbouring circles merge"
             )
 
     @classmethod
-    def default_for(cls, proj_width: int, proj_height: int, kind: str = "circles", **kw) -> "PatternSpec":
+    def default_for(cls, proj_width: int, proj_height: int, kind: str = PatternKind.CIRCLES, **kw) -> "PatternSpec":
         """A pattern about a third of the projector's height, as the paper's protocol uses."""
-        if kind == "circles":
+        if kind == PatternKind.CIRCLES:
             spacing = max(8.0, round(proj_height / 26.0))
-            return cls("circles", kw.pop("cols", 4), kw.pop("rows", 9), spacing, round(spacing * 0.3, 1), **kw)
+            return cls(PatternKind.CIRCLES, kw.pop("cols", 4), kw.pop("rows", 9), spacing, round(spacing * 0.3, 1), **kw)
         spacing = max(8.0, round(proj_height / 16.0))
-        return cls("chessboard", kw.pop("cols", 5), kw.pop("rows", 6), spacing, 0.0, **kw)
+        return cls(PatternKind.CHESSBOARD, kw.pop("cols", 5), kw.pop("rows", 6), spacing, 0.0, **kw)
 
     @property
     def n_points(self) -> int:
@@ -76,18 +76,18 @@ class PatternSpec:
         """(N, 2) points relative to the pattern's first point, in detection order."""
         i, j = np.divmod(np.arange(self.n_points), self.cols)
         s = self.spacing_px
-        if self.kind == "circles":
+        if self.kind == PatternKind.CIRCLES:
             return np.column_stack([(2 * j + i % 2) * s, i * s]).astype(float)
         return np.column_stack([j * s, i * s]).astype(float)
 
     def extent_px(self) -> tuple[float, float]:
         """(width, height) of the drawn pattern including circles / quiet zone."""
         p = self.local_points()
-        pad = self.radius_px if self.kind == "circles" else self.spacing_px * 2
+        pad = self.radius_px if self.kind == PatternKind.CIRCLES else self.spacing_px * 2
         return (p[:, 0].max() + 2 * pad, p[:, 1].max() + 2 * pad)
 
     def _pad(self) -> float:
-        return self.radius_px if self.kind == "circles" else 2 * self.spacing_px
+        return self.radius_px if self.kind == PatternKind.CIRCLES else 2 * self.spacing_px
 
     def offsets(self, proj_width: int, proj_height: int) -> np.ndarray:
         """(positions, 2) projector-pixel position of the first point for each pattern position.
@@ -104,10 +104,10 @@ class PatternSpec:
             )
         fracs = _position_fractions(self.positions)
         first = self.margin_px + self._pad() - 0.5
-        if self.kind == "chessboard":
+        if self.kind == PatternKind.CHESSBOARD:
             first = self.margin_px + self._pad()
         xy = np.column_stack([first + fracs[:, 0] * free_w, first + fracs[:, 1] * free_h])
-        if self.kind == "chessboard":
+        if self.kind == PatternKind.CHESSBOARD:
             # corners on pixel boundaries so that the drawn squares need no anti-aliasing
             xy = np.round(xy) - 0.5
         return xy
@@ -122,7 +122,7 @@ class PatternSpec:
         """(image (H, W) uint8, points (N, 2)): white pattern on black, anti-aliased so that every
         blob's intensity centroid is its circle's centre."""
         pts = self.points_px(proj_width, proj_height, position)
-        if self.kind == "circles":
+        if self.kind == PatternKind.CIRCLES:
             img = render_circles(proj_width, proj_height, pts, self.radius_px)
         else:
             img = _render_chessboard(proj_width, proj_height, pts[0], self.cols, self.rows, self.spacing_px)
@@ -131,7 +131,7 @@ class PatternSpec:
     def find(self, gray: np.ndarray) -> np.ndarray | None:
         """Run OpenCV's grid finder on an (unmirrored) grayscale image of the pattern as drawn (bright
         circles on dark); (N, 2) or None. Robust detection in camera images lives in calib.detection.detect."""
-        if self.kind == "circles":
+        if self.kind == PatternKind.CIRCLES:
             ok, pts = cv2.findCirclesGrid(255 - gray, self.pattern_size, flags=cv2.CALIB_CB_ASYMMETRIC_GRID)
         else:
             ok, pts = cv2.findChessboardCorners(gray, self.pattern_size)

@@ -19,6 +19,7 @@ from calib.models.result import CalibrationResult
 from calib.paper.camera import CameraCalibration, calibrate_camera
 from calib.paper.mirror import MirrorCalibration, calibrate_mirror
 from calib.paper.projector import ProjectorCalibration, calibrate_projector
+from calib.models.vocab import CalibrationMethod
 
 Progress = Callable[[int, int, str], None]
 
@@ -133,4 +134,4 @@ def calibrate_paper(obs: SessionObservations, camera: CameraModel | None = None,
                     progress: Progress | None = None) -> CalibrationResult:
     """The paper's method (Vanherck et al. 2025), stage by stage."""
     cc, mc, pc, timing = paper_stages(obs, camera, progress)
-    return assemble_result(obs, "paper", cc, mc, pc, timing)
+    return assemble_result(obs, CalibrationMethod.PAPER, cc, mc, pc, timing)

@@ -25,6 +25,7 @@ from calib.models.camera import CameraModel
 from calib.models.observations import STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, SessionObservations
 from calib.models.result import MirrorPlane
 from calib.paper.board_pose import MIN_CORNERS, solve_board_pose, usable_reason
+from calib.models.vocab import MirrorMethod
 
 #: Default RANSAC inlier threshold as a fraction of the mirror board's square length.
 THRESHOLD_SQUARES = 0.1
@@ -159,7 +160,7 @@ def calibrate_mirror(obs: SessionObservations, camera: CameraModel, *, threshold
             Xv = pv.seen_points(X)
             pts.append((Xr + Xv) / 2)
             diffs.append(Xv - Xr)
-            methods.add("real-virtual")
+            methods.add(MirrorMethod.REAL_VIRTUAL)
         elif mv.method == STEP_REAL_MIRROR:
             r1 = usable_reason(spec, mv.real, min_corners)
             if r1:
@@ -184,7 +185,7 @@ def calibrate_mirror(obs: SessionObservations, camera: CameraModel, *, threshold
                 into = -into
             pts.append(Xc + thickness * into)
             diffs.append(None)
-            methods.add("real-mirror")
+            methods.add(MirrorMethod.REAL_MIRROR)
         else:
             skipped.append({"capture_id": mv.capture_id, "stage": "mirror",
                             "reason": f"unknown mirror-calibration method '{mv.method}'"})
@@ -232,5 +233,5 @@ def calibrate_mirror(obs: SessionObservations, camera: CameraModel, *, threshold
     if n_diff is not None:
         n_diff.setflags(write=False)
     return MirrorCalibration(plane, "+".join(sorted(methods)), rms, thr, int(mask.sum()), int((~mask).sum()), P, mask,
-                             res, tuple(per_view), tuple(skipped), n_diff, thickness if "real-mirror" in methods else 0.0,
+                             res, tuple(per_view), tuple(skipped), n_diff, thickness if MirrorMethod.REAL_MIRROR in methods else 0.0,
                              diag)

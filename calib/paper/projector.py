@@ -33,6 +33,7 @@ from calib.models.camera import CameraModel
 from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR, ProjectorView, SessionObservations
 from calib.models.result import MirrorPlane
 from calib.transforms import FLIP_X, T_from_rvec_tvec, invert_T, make_T, rotation_angle_deg, transform_points
+from calib.models.vocab import LengthUnit
 
 #: Fewer usable projector views than this and the projector cannot be calibrated.
 MIN_VIEWS = 4
@@ -199,7 +200,7 @@ def calibrate_projector(obs: SessionObservations, camera: CameraModel, mirror: M
         if ok:
             T_pb = T_from_rvec_tvec(rvec, tvec)
             T_i = T_cb @ invert_T(T_pb)
-            rec["extrinsic_dev_mm" if obs.units == "mm" else "extrinsic_dev"] = float(
+            rec["extrinsic_dev_mm" if obs.units == LengthUnit.MM else "extrinsic_dev"] = float(
                 np.linalg.norm(T_i[:3, 3] - T_cam_proj[:3, 3]))
             rec["extrinsic_dev_deg"] = rotation_angle_deg(T_i[:3, :3].T @ T_cam_proj[:3, :3])
         per_view.append(rec)

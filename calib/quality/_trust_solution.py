@@ -12,6 +12,7 @@ import numpy as np
 from calib.models.boards import MM_PER_UNIT as _MM_PER_UNIT
 from calib.models.camera import CameraModel
 from calib.transforms import invert_T, rays_to_board_plane
+from calib.models.vocab import CalibrationMethod
 
 if TYPE_CHECKING:
     from calib.quality.trust import TrustThresholds
@@ -39,7 +40,7 @@ def check_rms(result, th: TrustThresholds, fail, metrics: dict) -> None:
     for key, v in rms.items():
         if key == "mirror_plane":
             continue
-        projector_px = result.method != "joint" and key in ("projector", "stereo")
+        projector_px = result.method != CalibrationMethod.JOINT and key in ("projector", "stereo")
         limit = th.rms_projector_px if projector_px else th.rms_camera_px
         metrics[f"rms.{key}"] = float(v)
         if v > limit:

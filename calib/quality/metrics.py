@@ -20,6 +20,7 @@ import numpy as np
 from calib.models.camera import CameraModel
 from calib.models.result import CalibrationResult
 from calib.transforms import rotation_angle_deg
+from calib.models.vocab import LengthUnit
 
 #: The paper's headline numbers on its synthetic scenes (circle grid, non-overlapping fields of view,
 #: estimated camera, real-virtual mirror calibration), from docs/GEOMETRY.md. Lengths in millimetres.
@@ -47,7 +48,7 @@ class PaperMetrics:
     proj_rms_px: float | None
     stereo_rms_px: float | None
     mirror_rms: float | None  # plane residual RMS, board units
-    units: str = "mm"
+    units: str = LengthUnit.MM
     joint_rms_px: float | None = None  # the joint adjustment's RMS over all its observations (camera px)
 
     def to_dict(self) -> dict:

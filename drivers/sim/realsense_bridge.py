@@ -46,6 +46,7 @@ from drivers.base import ExposureControl
 from drivers.errors import DeviceError
 from drivers.realsense import RealSenseCamera
 from drivers.sim._driver_rig import SimDriverRig
+from calib.models.vocab import RenderQuality, RigKind
 
 #: D455 colour sensor controls: (min, max, step, default) in the device's own units.
 COLOUR_OPTIONS = {
@@ -459,7 +460,7 @@ class SimRealSenseCamera(RealSenseCamera):
 class SimRealSenseRig(SimDriverRig):
     """A simulated rig whose camera is the RealSense driver on a software device (module doc)."""
 
-    kind = "sim-realsense"
+    kind = RigKind.SIM_REALSENSE
 
     def __init__(self, sim_rig, fps: int = 30, faults=(), camera_mode=None):
         self.sim = sim_rig
@@ -470,7 +471,7 @@ class SimRealSenseRig(SimDriverRig):
                                          exact_mode=camera_mode is not None)
 
 
-def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", fps: int | None = None,
+def open_sim_realsense_rig(scenario: str | None = None, seed: int = 0, quality: str = RenderQuality.LIVE, fps: int | None = None,
                            faults=(), camera_mode=None, **settings) -> SimRealSenseRig:
     """The simulated rig of `scenario` (drivers.sim.rig.open_sim_rig options) with its camera delivered
     through librealsense and drivers/realsense.py; `faults` (drivers.sim.faults) apply to both.

@@ -101,7 +101,7 @@ class RenderSettings:
         """'live': 1 sample per pixel (fast, for the live demo); 'session': 3 x 3 samples."""
         if quality not in QUALITIES:
             raise ValueError(f"unknown quality '{quality}' (one of {', '.join(QUALITIES)})")
-        base = cls(supersample=1 if quality == "live" else 3)
+        base = cls(supersample=1 if quality == RenderQuality.LIVE else 3)
         return replace(base, **overrides)
 
     def to_dict(self) -> dict:

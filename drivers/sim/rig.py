@@ -23,7 +23,7 @@ from calib.errors import SpecError
 from calib.models.camera import CameraModel
 from calib.models.result import CalibrationResult
 from calib.transforms import make_T, rotation_about, rotation_angle_deg
-from calib.models.vocab import RigKind
+from calib.models.vocab import MirrorMethod, RenderQuality, RigKind
 from drivers.base import Frame
 from drivers.clock import Clock, SimClock
 from drivers.errors import DeviceError, DeviceTimeout
@@ -336,7 +336,7 @@ class SimOperator:
         else:
             if sc.rig.mirror is None:
                 raise DeviceError(f"scenario '{sc.name}' has no mirror: there is no mirror step")
-            method = "real-virtual" if step == STEP_REAL_VIRTUAL else "real-mirror"
+            method = MirrorMethod.REAL_VIRTUAL if step == STEP_REAL_VIRTUAL else MirrorMethod.REAL_MIRROR
             poses = sc.mirror_poses if sc.mirror_method == method else self._rig._other_mirror_poses(method)
             if pose_index < len(poses):
                 T = poses[pose_index]
@@ -370,7 +370,7 @@ class SimRig:
 
     kind = RigKind.SIM  # as drivers.factory names rigs
 
-    def __init__(self, scenario: Scenario, quality: str = "live", expose_intrinsics: bool = False,
+    def __init__(self, scenario: Scenario, quality: str = RenderQuality.LIVE, expose_intrinsics: bool = False,
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
                  latency_ms: float | None = None, hardware: HardwareModel | None = None,
                  clock: Clock | None = None, realtime: bool = True, faults=(), fps: float | None = None,
@@ -380,7 +380,7 @@ class SimRig:
         self.scenario = scenario
         self.quality = quality
         base = scenario.render
-        ss = 1 if quality == "live" else 3
+        ss = 1 if quality == RenderQuality.LIVE else 3
         unknown = set(settings) - set(RenderSettings.__dataclass_fields__)
         if unknown:
             raise SpecError(f"unknown render setting(s) {sorted(unknown)}; known: "
@@ -540,7 +540,7 @@ def _interpolate_pose(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
     return make_T(R, (1 - a) * T0[:3, 3] + a * T1[:3, 3])
 
 
-def open_sim_rig(scenario: str = DEFAULT_SCENARIO, seed: int = 0, quality: str = "live", bump: str | None = None,
+def open_sim_rig(scenario: str = DEFAULT_SCENARIO, seed: int = 0, quality: str = RenderQuality.LIVE, bump: str | None = None,
                  **settings) -> SimRig:
     """A simulated rig for a named scenario. Keyword settings: expose_intrinsics, settling_frames,
     motion_jitter_mm, ideal (no latency, no frame clock, no exposure model: the fast mode for unit tests),

@@ -18,7 +18,7 @@ from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult
-from calib.models.vocab import Step
+from calib.models.vocab import LengthUnit, MirrorMethod, PatternKind, Step
 from calib.synthetic import (
     BoardLayout,
     SyntheticRig,
@@ -45,12 +45,12 @@ OPERATOR_STEPS = tuple(Step)
 def default_projector_board() -> CharucoSpec:
     """The board the projector lights: 8 x 6 squares of 50 mm, DICT_4X4_50 markers of 30 mm (big
     cells, so that they decode at the distances of a mirrored view)."""
-    return CharucoSpec(8, 6, "DICT_4X4_50", 50.0, 30.0, "mm")
+    return CharucoSpec(8, 6, "DICT_4X4_50", 50.0, 30.0, LengthUnit.MM)
 
 
 def default_mirror_board() -> CharucoSpec:
     """The small board used to calibrate the mirror (held between camera and mirror, or laid on it)."""
-    return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 13.2, "mm")
+    return CharucoSpec(8, 6, "DICT_4X4_50", 22.0, 13.2, LengthUnit.MM)
 
 
 def default_render(focus_mm: float = 0.0, aperture_mm: float | None = None) -> RenderSettings:
@@ -125,11 +125,11 @@ class Scenario:
         if self.rig.mirror is None:
             raise SpecError(f"scenario '{self.name}' has no mirror to calibrate")
         board = self.mirror_board or default_mirror_board()
-        thick = self.board_thickness_mm if method == "real-mirror" else 0.0
-        if method == "real-mirror" and thick == 0.0:
+        thick = self.board_thickness_mm if method == MirrorMethod.REAL_MIRROR else 0.0
+        if method == MirrorMethod.REAL_MIRROR and thick == 0.0:
             thick = 3.0
         s = self.seed + 1 if seed is None else seed
-        if method == "real-mirror":
+        if method == MirrorMethod.REAL_MIRROR:
             return mirror_poses(self.rig, board, method, count, s, thick)
         # real-virtual: keep the placements where the board and its reflection are well apart in the
         # image (a person would not hold the board where it touches its own reflection)
@@ -264,7 +264,7 @@ def short_throw_projector(width: int = 1920, height: int = 1080) -> CameraModel:
                                        [0, 0, 1]], [-0.04, 0.012, 0.0, 0.0, 0.0])
 
 
-def _mirrored(name, description, angle_deg=136.0, projector=None, kind="circles", method="real-virtual",
+def _mirrored(name, description, angle_deg=136.0, projector=None, kind=PatternKind.CIRCLES, method=MirrorMethod.REAL_VIRTUAL,
               thickness_mm=0.0, seed=0, camera=None, mirror_board=None, max_tilt_deg=28.0, aperture_mm=None,
               **rig_kw) -> Scenario:
     rig = make_rig(angle_deg, camera=camera, projector=projector, **rig_kw)
@@ -298,22 +298,22 @@ _BUILDERS = {
         seed=seed),
     "nonoverlap-136-realmirror": lambda seed=0: _mirrored(
         "nonoverlap-136-realmirror", "136 deg, mirror calibrated with a 3 mm board lying on the mirror (real-mirror)",
-        136.0, method="real-mirror", thickness_mm=3.0, seed=seed),
+        136.0, method=MirrorMethod.REAL_MIRROR, thickness_mm=3.0, seed=seed),
     "nonoverlap-136-720p": lambda seed=0: _mirrored(
         "nonoverlap-136-720p", "136 deg with a 1280x720 projector, real-virtual", 136.0,
         projector=portable_projector(1280, 720), seed=seed),
     "nonoverlap-136-chessboard": lambda seed=0: _mirrored(
         "nonoverlap-136-chessboard", "136 deg, projected chessboard pattern instead of circles, real-virtual",
-        136.0, kind="chessboard", seed=seed),
+        136.0, kind=PatternKind.CHESSBOARD, seed=seed),
     "wideangle-realmirror": lambda seed=0: _mirrored(
         "wideangle-realmirror", "136 deg, wide-angle 1920x1080 camera (fx 700 px, k1 -0.2), real-mirror: few views "
-        "reach the image corners", 136.0, method="real-mirror", thickness_mm=3.0, seed=seed,
+        "reach the image corners", 136.0, method=MirrorMethod.REAL_MIRROR, thickness_mm=3.0, seed=seed,
         camera=wide_angle_camera(), mirror_size_mm=(1000.0, 650.0), mirror_distance_mm=300.0),
     "shortthrow": lambda seed=0: _mirrored(
         "shortthrow", "short-throw projector (throw ratio 0.4) 14 cm from the camera, 136 deg, boards 34-46 cm in "
         "front of it tilted up to 45 deg, mirror at 13 cm, real-mirror with a 16 mm board", 136.0,
-        projector=short_throw_projector(), method="real-mirror", thickness_mm=3.0, seed=seed,
-        mirror_board=CharucoSpec(8, 6, "DICT_4X4_50", 16.0, 9.6, "mm"), max_tilt_deg=45.0,
+        projector=short_throw_projector(), method=MirrorMethod.REAL_MIRROR, thickness_mm=3.0, seed=seed,
+        mirror_board=CharucoSpec(8, 6, "DICT_4X4_50", 16.0, 9.6, LengthUnit.MM), max_tilt_deg=45.0,
         aperture_mm=SHORT_THROW_APERTURE_MM, mirror_distance_mm=130.0, board_distance_mm=500.0,
         projector_distance_mm=400.0, elevation_deg=30.0),
 }

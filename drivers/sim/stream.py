@@ -38,6 +38,7 @@ from drivers.errors import DeviceError
 from drivers.frame_stamp import FrameStamp, encode_stamp
 from drivers.opencv_camera import FrameTiming, OpenCVCamera
 from drivers.sim._driver_rig import SimDriverRig
+from calib.models.vocab import RenderQuality, RigKind
 
 CONTROL_MODES = ("honour", "ignore")
 
@@ -316,7 +317,7 @@ class SimStreamCamera(OpenCVCamera):
 class SimUvcRig(SimDriverRig):
     """A simulated rig whose camera is the OpenCV driver on the simulated camera's live stream."""
 
-    kind = "sim-uvc"
+    kind = RigKind.SIM_UVC
 
     def __init__(self, sim_rig, controls: str = "honour", jpeg_quality: int = 95):
         self.sim = sim_rig
@@ -327,7 +328,7 @@ class SimUvcRig(SimDriverRig):
         self.stream.close()
 
 
-def open_sim_uvc_rig(scenario: str | None = None, seed: int = 0, quality: str = "live", faults=(),
+def open_sim_uvc_rig(scenario: str | None = None, seed: int = 0, quality: str = RenderQuality.LIVE, faults=(),
                      controls: str = "honour", jpeg_quality: int = 95, **settings) -> SimUvcRig:
     """The simulated rig of `scenario` (drivers.sim.rig.open_sim_rig options, its own simulated clock)
     with its camera served as a stream and read through drivers/opencv_camera.py; the fault
