@@ -446,7 +446,7 @@ def measure_response(camera, refresh_hz: float, gains=(1.0, 1.41, 2.0, 2.83, 4.0
     first frame (groups of dim pixels, whose light the bracket multiplies up to 8x), each group's mean
     level at each gain, and the gamma whose inverse makes those levels proportional to the gain.
     Verified on the simulated camera and through the RealSense driver on `--rig sim-realsense`
-    (tests/test_camera_response.py); a real camera's black level and gain steps are not modelled. The
+    (tests/test_response.py); a real camera's black level and gain steps are not modelled. The
     station's rig check calls it for a camera without `response()` and restores the exposure after. Raises DeviceError when the scene has too few dim pixels or levels."""
     from calib.detection.response import CameraResponse
 

@@ -265,7 +265,7 @@ def test_a_board_of_implausible_size_is_drawn_with_a_warning_naming_the_unit(tmp
     assert main(["board", "--board", "2x2:DICT_5X5_50:600", "--out", str(tmp_path / "big.svg")]) == 0
     err = capsys.readouterr().err
     assert "larger than any calibration board" in err and "add --units" not in err
-    # a page beyond 2 m is refused (tests/test_hostile_options.py), not drawn with a warning
+    # a page beyond 2 m is refused (tests/test_cli_options.py), not drawn with a warning
     help_text = subprocess.run([sys.executable, "-m", "app", "board", "--help"], capture_output=True, text=True,
                                timeout=60).stdout
     assert "8x6:DICT_5X5_50:44.3 (squares of 44.3 mm" in " ".join(help_text.split())

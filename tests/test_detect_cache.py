@@ -76,7 +76,7 @@ def test_changed_image_or_job_is_detected_again(store, monkeypatch):
     st, ids = store
     first = detect_session(st, workers=1)
     # p0001 replaced by p0000's pixels in other PNG bytes: its entry no longer matches the file's bytes,
-    # and what it finds is p0000's detections again (a copy, counted once: test_duplicate_captures.py)
+    # and what it finds is p0000's detections again (a copy, counted once: test_session_jobs_copies.py)
     pixels = cv2.imread(str(st.folder / "images" / "p0000.png"), cv2.IMREAD_UNCHANGED)
     cv2.imwrite(str(st.folder / "images" / "p0001.png"), pixels, [cv2.IMWRITE_PNG_COMPRESSION, 0])
     detected = _count_detections(monkeypatch)

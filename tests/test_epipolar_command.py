@@ -9,7 +9,7 @@ import pytest
 from app.cli import main
 from app.verification import perturbed
 from drivers.sim.scenarios import get_scenario
-from tests._epipolar_helpers import make_sim_session
+from _epipolar_helpers import make_sim_session
 
 
 def test_correct_calibration_passes_and_writes_the_report(tmp_path, capsys):

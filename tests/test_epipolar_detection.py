@@ -5,7 +5,7 @@ import pytest
 
 from calib.detection.curves import detect_projected_curve, distance_to_curve, lit_region, stripe_signal
 from calib.epipolar import distance_to_polyline
-from tests._epipolar_helpers import checker_albedo, stripe_frames
+from _epipolar_helpers import checker_albedo, stripe_frames
 
 SIZE = (640, 400)
 

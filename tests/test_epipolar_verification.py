@@ -193,7 +193,7 @@ def test_nothing_lit_is_an_error_not_a_verdict():
 def test_station_call_writes_the_session_report_with_predicted_curves(sim, tmp_path):
     """The station calls verify(camera, projector, operator, result, session_dir=...): the report lands
     in the session, and the session's projector board (found in the white frame) gives the overlay."""
-    from tests._epipolar_helpers import make_sim_session
+    from _epipolar_helpers import make_sim_session
 
     make_sim_session(tmp_path)
     gt = sim.ground_truth()
@@ -260,7 +260,7 @@ def test_the_station_and_the_recalibration_verify_with_the_sessions_recorded_res
     from app.recalibration import rig_verify_fn
     from app.station.setup import make_verify_fn
     from calib.formats.session import SessionStore
-    from tests._epipolar_helpers import make_sim_session
+    from _epipolar_helpers import make_sim_session
 
     make_sim_session(tmp_path)
     gt = sim.ground_truth()

@@ -290,7 +290,7 @@ THREE_PROJECT = """(data) => {
 def test_threejs_camera_projects_like_the_station_in_chromium(tmp_path, three_build):
     from playwright.sync_api import sync_playwright
 
-    from tests._station_helpers import launch_chromium
+    from _station_helpers import launch_chromium
 
     result = _result(distorted=False)
     data = json.loads((_export(tmp_path, result, "threejs") / "calibration-threejs.json").read_text())

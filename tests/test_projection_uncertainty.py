@@ -16,7 +16,7 @@ from calib.pipeline import calibrate_observations
 from calib.quality import projection_uncertainty as PU
 from calib.synthetic import SyntheticSession, observe
 from drivers.sim.scenarios import get_scenario
-from tests._joint_helpers import observations
+from _joint_helpers import observations
 
 
 @lru_cache(maxsize=2)

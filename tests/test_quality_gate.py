@@ -120,7 +120,7 @@ def test_station_calibrate_step_logs_the_low_quality_reasons(tmp_path, thin_resu
     """The station machine's calibrate step (its calibration function returning the thin session's real
     result) keeps the result and logs each quality reason with its code."""
     from app.station.machine import CALIBRATION, Plan, RigCheck, SessionMachine
-    from tests._station_helpers import TINY, make_store
+    from _station_helpers import TINY, make_store
 
     m = SessionMachine(make_store(tmp_path / "s", "mirror", 5), Plan(poses_per_position=1, real_virtual_captures=3,
                                                                       min_real_virtual=3, min_projector_captures=5),

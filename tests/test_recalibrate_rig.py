@@ -44,7 +44,7 @@ def _synthetic_previous(folder: Path, projector_target_scale: float = 1.0) -> Pa
     check reads the covariance, not these values), so that a projector bump needs re-measure captures:
     this synthetic calibration's own targets are reached by the check's 4 captures alone."""
     sys.path.insert(0, str(Path(__file__).parent))
-    from tests.test_recalibrate import previous
+    from test_recalibrate import previous
 
     folder.mkdir(parents=True, exist_ok=True)
     cal = previous()

@@ -13,7 +13,7 @@ import pytest
 from calib.errors import FormatError
 
 from app.cli import main
-from tests._station_helpers import launch_chromium, make_store, run_procam
+from _station_helpers import launch_chromium, make_store, run_procam
 
 SECTIONS = ("summary", "parameters", "distortion", "residuals", "per-view", "coverage", "rig", "verification",
             "exports")

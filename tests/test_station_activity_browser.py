@@ -12,7 +12,7 @@ import re
 import pytest
 from playwright.sync_api import expect, sync_playwright
 
-from tests._station_helpers import WAIT_MS, StationProcess, launch_chromium, text_input
+from _station_helpers import WAIT_MS, StationProcess, launch_chromium, text_input
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

@@ -18,7 +18,7 @@ from playwright.sync_api import expect, sync_playwright
 
 from app.station.panel_results import RESULT_FILES
 from calib.formats.session import SessionStore
-from tests._station_helpers import WAIT_MS, until, StationProcess, launch_chromium, text_input
+from _station_helpers import WAIT_MS, until, StationProcess, launch_chromium, text_input
 
 pytestmark = pytest.mark.browser
 

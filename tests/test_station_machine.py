@@ -23,7 +23,7 @@ from app.station.machine import (
 from calib.formats.session import SessionStore
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
 from calib.synthetic import d455_camera
-from tests._station_helpers import TINY, Recorder, make_store
+from _station_helpers import TINY, Recorder, make_store
 
 OK = [RigCheck("camera", True, "streaming"), RigCheck("projector", True, "up")]
 SMALL = Plan(poses_per_position=2, real_virtual_captures=4, real_mirror_captures=2, min_real_virtual=3,

@@ -18,7 +18,7 @@ from app.station.panel_results import (
 )
 from calib.errors import ProcamError
 from calib.synthetic import make_rig
-from tests.test_station_autocapture import board_at, det, observe
+from test_station_autocapture import board_at, det, observe
 
 CAM = make_rig(136).ground_truth().camera
 

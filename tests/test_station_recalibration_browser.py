@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import expect, sync_playwright
 
-from tests._station_helpers import WAIT_MS, until, StationProcess, launch_chromium
+from _station_helpers import WAIT_MS, until, StationProcess, launch_chromium
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -24,7 +24,7 @@ def see(page, pattern, timeout=WAIT_MS):
 def recalibration_station(tmp_path, folder, bump: str = "projector") -> tuple[StationProcess, Path]:
     """A station recalibrating a previous calibration (tmp_path/prev/calibration.json, returned with it) on a
     simulated rig with `bump` moved, writing the recalibration to `folder`."""
-    from tests.test_recalibrate import previous
+    from test_recalibrate import previous
 
     prev = tmp_path / "prev" / "calibration.json"
     prev.parent.mkdir()
@@ -130,7 +130,7 @@ def test_recalibration_mode_shows_its_own_controls_numbers_and_files(tmp_path):
     import zipfile
 
     from calib.formats.session import SessionStore
-    from tests.test_station_browser import live_image_updates
+    from test_station_browser import live_image_updates
 
     folder = tmp_path / "recal"
     st, prev = recalibration_station(tmp_path, folder)

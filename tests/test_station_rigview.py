@@ -8,7 +8,7 @@ from app.station.rigview import rig_scene
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
 from calib.synthetic import make_rig, make_session, observe
 from calib.transforms import transform_points
-from tests._station_helpers import TINY, make_store
+from _station_helpers import TINY, make_store
 
 
 def store_with_captures(tmp_path, n_proj=5, n_mirror=3):

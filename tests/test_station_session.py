@@ -14,7 +14,7 @@ from app.station.machine import Plan
 from calib.formats.session import SessionStore
 from calib.models.result import CalibrationResult
 from calib.quality.metrics import compare
-from tests._station_helpers import popen_procam, run_procam
+from _station_helpers import popen_procam, run_procam
 
 
 class Lines:

@@ -12,7 +12,7 @@ import pytest
 from playwright.sync_api import expect, sync_playwright
 
 from calib.quality.projection_uncertainty import large_regions
-from tests._station_helpers import WAIT_MS, until, StationProcess, launch_chromium
+from _station_helpers import WAIT_MS, until, StationProcess, launch_chromium
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

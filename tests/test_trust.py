@@ -282,7 +282,7 @@ def test_station_shows_the_reasons_and_keeps_no_result(tmp_path):
     panel and the instruction line show) and its log; calibration.json is not written."""
     from app.station.machine import CALIBRATION, Plan, RigCheck, SessionMachine
     from app.station.session_calibration import keep_rejected
-    from tests._station_helpers import TINY, make_store
+    from _station_helpers import TINY, make_store
 
     def calibrate_fn(folder, camera_intrinsics, progress=None):  # the pipeline, on a degenerate session
         return calibrate_observations(_copied_capture(), "paper")

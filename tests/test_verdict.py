@@ -60,4 +60,4 @@ def test_the_report_puts_the_verdict_on_top(calibrated, tmp_path):
         assert words in top, words
 
 
-from tests.test_report import calibrated  # noqa: E402,F401  (the module's simulated, calibrated session)
+from test_report import calibrated  # noqa: E402,F401  (the module's simulated, calibrated session)

@@ -1,4 +1,4 @@
-"""The short-throw scenario (issue 28): a throw ratio 0.4 projector 14 cm from the camera, boards a
+"""The short-throw scenario: a throw ratio 0.4 projector 14 cm from the camera, boards a
 little over a third of a metre in front of it and strongly tilted, the rig on which the trust check once
 refused an excellent calibration. It is listed, it is the rig it claims, it renders, and its sessions
 calibrate within the accuracy table's bounds with the trust check passing."""

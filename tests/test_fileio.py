@@ -1,4 +1,4 @@
-"""Issue 29, section 2: links and special files inside a session folder, grouped by input. Every file a
+"""Links and special files inside a session folder, grouped by input. Every file a
 session folder holds is read through calib.formats.fileio.read_regular: never through a link, never a
 FIFO or device (which would block), never more bytes than its kind of file holds, a PNG's header size
 checked against the session's camera before decoding. Each case also checks that nothing outside the
@@ -24,8 +24,8 @@ from calib.formats.session import MANIFEST, SessionStore
 from calib.formats.session_lock import LOCK_FILE
 from calib.models.observations import STEP_REAL_VIRTUAL
 from calib.synthetic import make_rig
-from tests._station_helpers import CAM_SIZE, REPO, make_store, run_procam
-from tests.test_hardening_session import snapshot
+from _station_helpers import CAM_SIZE, REPO, make_store, run_procam
+from test_session_folder import snapshot
 
 GRAY = np.full((CAM_SIZE[1], CAM_SIZE[0]), 128, np.uint8)  # a capture of the session's camera size
 MEMORY_LIMIT = 2 * 2**30  # bytes a child may map: reading a hostile file whole would exceed it

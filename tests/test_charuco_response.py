@@ -11,7 +11,7 @@ from calib.detection.detect import detect_board, detect_session
 from calib.detection.response import CameraResponse
 from calib.models.boards import CharucoSpec
 from drivers.sim.render import encode_gamma
-from tests._detect_helpers import board_homography, render_board_scene
+from _detect_helpers import board_homography, render_board_scene
 
 SPEC = CharucoSpec(8, 6, "DICT_5X5_50", 50.0, 25.0)
 

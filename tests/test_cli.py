@@ -1,4 +1,4 @@
-"""The command line under misuse (issue 13 item 5 and 9, issue 17 "The command line"): outputs that
+"""The command line under misuse: outputs that
 would destroy a session are refused before any work, options are checked before detection, progress
 never writes bar codes into a log, unexpected exceptions become one line plus a traceback file, and a
 second calibration method never replaces the first one's result silently."""

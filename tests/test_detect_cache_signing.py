@@ -1,4 +1,4 @@
-"""Issue 29: detections.json is untrusted input (it travels with the session folder). Only entries this
+"""detections.json is untrusted input (it travels with the session folder). Only entries this
 installation signed are used (an HMAC with its own key, calib.detection.cache); a forged or foreign
 entry is detected again with one warning, and a signed entry that does not fit its capture is detected
 again too, never an IndexError/TypeError later."""

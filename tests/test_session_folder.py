@@ -1,4 +1,4 @@
-"""Issue 13, the session folder: paths that would escape it (read, hash, delete), one process per folder
+"""The session folder (calib.formats.session): paths that would escape it (read, hash, delete), one process per folder
 (the lock), file modes under the umask, malformed session.json (not UTF-8, non-finite numbers, a
 wrong-typed `state`) and a full disk. A session folder is untrusted input: every test also checks that
 nothing outside it changed."""
@@ -25,7 +25,7 @@ from calib.errors import DiskFullError, FormatError, SessionError
 from calib.formats.session import MANIFEST, SessionStore
 from calib.formats.session_lock import LOCK_FILE, read_holder
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
-from tests._station_helpers import REPO, TINY, Recorder, make_store, run_procam
+from _station_helpers import REPO, TINY, Recorder, make_store, run_procam
 
 OK = [RigCheck("camera", True, "streaming"), RigCheck("projector", True, "up")]
 

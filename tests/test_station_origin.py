@@ -1,4 +1,4 @@
-"""Issue 13, items 2, 3 and 8: the panel refuses foreign pages (Origin), the access code cannot be
+"""The panel refuses foreign pages (Origin), the access code cannot be
 brute-forced (a throttle across connections and addresses, every failure logged, nothing of the session
 shown without the code), and the capture loop cannot die silently (the autocapture race fixed, the loop
 supervised, a banner when the station process is gone).
@@ -32,7 +32,7 @@ from app.station.panel import DISCONNECT_TEXT, StationPanel
 from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
 from app.station.station import Station, StationOptions
 from calib.models.observations import BoardObservation
-from tests._station_helpers import WAIT_MS, StationProcess
+from _station_helpers import WAIT_MS, StationProcess
 
 PROTOCOL = [f"viser-v{viser.__version__}"]
 
@@ -381,7 +381,7 @@ def test_a_loop_failing_again_and_again_stops_with_a_clear_banner(tmp_path):
 def test_the_page_says_so_when_the_station_process_is_gone(tmp_path):
     from playwright.sync_api import expect, sync_playwright
 
-    from tests._station_helpers import launch_chromium
+    from _station_helpers import launch_chromium
 
     st = StationProcess("--rig", "sim", "--session", str(tmp_path / "s"))
     try:
@@ -406,7 +406,7 @@ def test_the_page_says_so_when_the_station_process_is_gone(tmp_path):
 def test_the_operator_sees_a_loop_failure_in_the_browser(tmp_path):
     from playwright.sync_api import expect, sync_playwright
 
-    from tests._station_helpers import launch_chromium
+    from _station_helpers import launch_chromium
 
     st = sim_station(tmp_path)
     st.frames.loop_backoff_s = (0.05, 0.2)

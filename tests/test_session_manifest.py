@@ -8,7 +8,7 @@ import pytest
 
 from calib.errors import FormatError
 from calib.formats.session import SessionManifest
-from tests._calib_helpers import session, write_session
+from _calib_helpers import session, write_session
 
 
 @pytest.fixture(scope="module")

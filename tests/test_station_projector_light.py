@@ -6,7 +6,7 @@ from app.station.projector_light import BACK_MESSAGE, LOST_MESSAGE, ProjectorLig
 from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
 from app.station.station import Station, StationOptions
 from calib.models.observations import STEP_PROJECTOR
-from tests._station_helpers import tick_until_projector_captures
+from _station_helpers import tick_until_projector_captures
 
 SMALL = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, min_projector_captures=6)
 

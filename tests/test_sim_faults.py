@@ -1,4 +1,4 @@
-"""The real rig, round two (issue 24): the simulated rig made as unkind as the hardware, fault by fault
+"""The simulated rig made as unkind as the hardware, fault by fault
 (drivers/sim/faults.py, `--sim-faults`), and the driver path working under each. Everything goes
 through the RealSense driver on librealsense's software device (`--rig sim-realsense`)."""
 

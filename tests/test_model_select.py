@@ -1,4 +1,4 @@
-"""The wide-angle corner-poor scenario (issue 18) and the coverage-aware distortion model selection on it:
+"""The wide-angle corner-poor scenario and the coverage-aware distortion model selection on it:
 the scenario is listed and renders (board corners detected where the geometry puts them); on its
 synthetic sessions the joint method drops the k3 that only the unobserved image corners would need, and
 is then no worse over the image than OpenCV with k3 fixed; where k3 is real and constrained (the D455-like

@@ -1,4 +1,4 @@
-"""Issue 29 sections 4 and 5: options that hung, crashed or wrote unusable sessions, and the panel's
+"""Options that hung, crashed or wrote unusable sessions, and the panel's
 websocket under malformed input. Grouped by input; every command runs in a subprocess with a timeout,
 so a hang fails the test instead of the suite."""
 
@@ -17,8 +17,8 @@ from websockets.sync.client import connect
 
 from app.cli import main
 from app.station.panel import StationPanel
-from tests._station_helpers import StationProcess, free_port, run_procam
-from tests.test_hardening_station import PROTOCOL, sim_station, ws_try
+from _station_helpers import StationProcess, free_port, run_procam
+from test_station_origin import PROTOCOL, sim_station, ws_try
 
 #: far longer than any refusal takes; a command that did not refuse runs into it (and fails the test)
 TIMEOUT_S = 120

@@ -1,4 +1,4 @@
-"""Issue 29: a capture that repeats another (byte-identical image, or identical detections for its step)
+"""A capture that repeats another (byte-identical image, or identical detections for its step)
 adds no information and is counted once (calib.detection.detect), for the calibration and the quality
 gate, and named as a copy in `procam calibrate`'s output and calibration.json's diagnostics. Padded with
 copies, a thin session stays LOW QUALITY; a mirror step of one image repeated is one placement."""
