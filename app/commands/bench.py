@@ -1,4 +1,5 @@
-"""`procam bench accuracy | render`: accuracy against the simulator's ground truth, and render speed.
+"""`procam bench accuracy | placements | render`: accuracy against the simulator's ground truth, the placements a
+calibration needs (app/commands/_bench_placements.py), and render speed.
 
 accuracy: for every scenario and seed, simulate a session (drivers.sim) into a temporary folder, detect
 once, calibrate with every method registered in calib.pipeline.METHODS (or --methods), compare with the
@@ -60,6 +61,9 @@ def add_arguments(p) -> None:
     a.add_argument("--json", metavar="FILE", default=None, help="also write every run's numbers to FILE")
     a.add_argument("--workers", type=_types.workers, default=2,
                    help="render processes and detection threads (default %(default)s)")
+    from app.commands._bench_placements import add_parser as add_placements
+
+    add_placements(sub)
     r = sub.add_parser("render", help="frames per second of the simulated camera per render mode")
     r.add_argument("--scenario", default="nonoverlap-136", help="scenario (default %(default)s)")
     r.add_argument("--frames", type=_types.int_range(1, 100000), default=20,
@@ -314,4 +318,8 @@ def run_render(args) -> int:
 def run(args) -> int:
     if args.bench == "render":
         return run_render(args)
+    if args.bench == "placements":
+        from app.commands._bench_placements import run_placements
+
+        return run_placements(args)
     return run_accuracy(args)
