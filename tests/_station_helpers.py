@@ -4,6 +4,7 @@ for tests of the state machine's logic (the end-to-end tests use the real pipeli
 from __future__ import annotations
 
 import os
+import stat
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -208,3 +209,31 @@ def assert_within_its_uncertainty(session, k: float = 3.0):
     assert m.angle_deg < k * pose["rot_total_deg"], (m.angle_deg, pose)
     assert m.proj_k_px < k * proj_k_sigma, (m.proj_k_px, proj)
     return m
+
+
+def snapshot(folder):
+    """{path: (mode, bytes or link target)} of everything under `folder`."""
+    out = {}
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            p = os.path.join(root, name)
+            st = os.lstat(p)
+            out[p] = (st.st_mode, os.readlink(p) if os.path.islink(p) else
+                      (open(p, "rb").read() if stat.S_ISREG(st.st_mode) else None))
+    return out
+
+
+def live_image_updates(page, n=3):
+    """Wait until the live camera image has shown `n` distinct sources (each update is a new blob)."""
+    img = page.locator("img[src^='blob:']").first
+    seen = []
+
+    def updated():
+        """the live image updates"""
+        src = img.get_attribute("src")
+        if not seen or seen[-1] != src:
+            seen.append(src)
+        return len(seen) >= n
+
+    until(updated, every_s=0.02)
+    return seen

@@ -18,7 +18,7 @@ from websockets.sync.client import connect
 from app.cli import main
 from app.station.panel import StationPanel
 from _station_helpers import StationProcess, free_port, run_procam
-from test_station_origin import PROTOCOL, sim_station, ws_try
+from _panel_helpers import PROTOCOL, sim_station, ws_try
 
 #: far longer than any refusal takes; a command that did not refuse runs into it (and fails the test)
 TIMEOUT_S = 120

@@ -24,8 +24,7 @@ from calib.formats.session import MANIFEST, SessionStore
 from calib.formats.session_lock import LOCK_FILE
 from calib.models.observations import STEP_REAL_VIRTUAL
 from calib.synthetic import make_rig
-from _station_helpers import CAM_SIZE, REPO, make_store, run_procam
-from test_session_folder import snapshot
+from _station_helpers import CAM_SIZE, REPO, make_store, run_procam, snapshot
 
 GRAY = np.full((CAM_SIZE[1], CAM_SIZE[0]), 128, np.uint8)  # a capture of the session's camera size
 MEMORY_LIMIT = 2 * 2**30  # bytes a child may map: reading a hostile file whole would exceed it

@@ -25,21 +25,10 @@ from calib.errors import DiskFullError, FormatError, SessionError
 from calib.formats.session import MANIFEST, SessionStore
 from calib.formats.session_lock import LOCK_FILE, read_holder
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_VIRTUAL
-from _station_helpers import REPO, TINY, Recorder, make_store, run_procam
+from _station_helpers import REPO, TINY, Recorder, make_store, run_procam, snapshot
 
 OK = [RigCheck("camera", True, "streaming"), RigCheck("projector", True, "up")]
 
-
-def snapshot(folder):
-    """{path: (mode, bytes or link target)} of everything under `folder`."""
-    out = {}
-    for root, dirs, files in os.walk(folder):
-        for name in dirs + files:
-            p = os.path.join(root, name)
-            st = os.lstat(p)
-            out[p] = (st.st_mode, os.readlink(p) if os.path.islink(p) else
-                      (open(p, "rb").read() if stat.S_ISREG(st.st_mode) else None))
-    return out
 
 
 @pytest.fixture

@@ -18,7 +18,7 @@ from playwright.sync_api import expect, sync_playwright
 
 from app.station.panel_results import RESULT_FILES
 from calib.formats.session import SessionStore
-from _station_helpers import WAIT_MS, until, StationProcess, launch_chromium, text_input
+from _station_helpers import WAIT_MS, until, StationProcess, launch_chromium, live_image_updates, text_input
 
 pytestmark = pytest.mark.browser
 
@@ -37,21 +37,6 @@ def see(page, pattern, timeout=WAIT_MS):
     print(f"{time.monotonic() - T0[0]:6.1f} s  waiting for {pattern}")
     expect(page.get_by_text(re.compile(pattern)).first).to_be_visible(timeout=timeout)
 
-
-def live_image_updates(page, n=3):
-    """Wait until the live camera image has shown `n` distinct sources (each update is a new blob)."""
-    img = page.locator("img[src^='blob:']").first
-    seen = []
-
-    def updated():
-        """the live image updates"""
-        src = img.get_attribute("src")
-        if not seen or seen[-1] != src:
-            seen.append(src)
-        return len(seen) >= n
-
-    until(updated, every_s=0.02)
-    return seen
 
 
 def scroll_panels_to_top(page):

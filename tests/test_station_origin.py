@@ -21,36 +21,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import viser
-from websockets.exceptions import InvalidStatus
-from websockets.sync.client import connect
 
 from app.station.access import AccessGate, Backoff, new_access_code, normalize_code
 from app.station.autocapture import AutoCapture, AutoCaptureSettings, LiveDetection
-from app.station.machine import ActionRefused, Plan
+from app.station.machine import ActionRefused
 from app.station.panel import DISCONNECT_TEXT, StationPanel
-from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
-from app.station.station import Station, StationOptions
 from calib.models.observations import BoardObservation
+from _panel_helpers import sim_station, ws_try
 from _station_helpers import WAIT_MS, StationProcess
-
-PROTOCOL = [f"viser-v{viser.__version__}"]
-
-
-def ws_try(url: str, origin: str | None = None, source: str | None = None):
-    """Open a websocket like viser's client does; returns (status, first message bytes or body)."""
-    sock = None
-    if source is not None:  # another loopback address as the client's (127.0.0.x)
-        host, port = re.match(r"ws://([^:/]+):(\d+)", url).groups()
-        sock = socket.socket()
-        sock.bind((source, 0))
-        sock.connect((host, int(port)))
-    try:
-        with connect(url, subprotocols=PROTOCOL, sock=sock, open_timeout=10,
-                     **({"origin": origin} if origin is not None else {})) as c:
-            return 101, c.recv(timeout=10)
-    except InvalidStatus as e:
-        return e.response.status_code, bytes(e.response.body or b"")
 
 
 class FakeClock:
@@ -60,14 +38,6 @@ class FakeClock:
     def __call__(self):
         return self.t
 
-
-def sim_station(tmp_path, **opts) -> Station:
-    req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_requested_rig(req)
-    plan = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, min_projector_captures=6)
-    store = create_session(tmp_path / "s", rig, req, plan)
-    m = make_machine(store, rig, plan)
-    return Station(rig, m, StationOptions(**opts))
 
 
 def wait_for(cond, timeout_s=20.0, what="condition"):

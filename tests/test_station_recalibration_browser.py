@@ -130,7 +130,7 @@ def test_recalibration_mode_shows_its_own_controls_numbers_and_files(tmp_path):
     import zipfile
 
     from calib.formats.session import SessionStore
-    from test_station_browser import live_image_updates
+    from _station_helpers import live_image_updates
 
     folder = tmp_path / "recal"
     st, prev = recalibration_station(tmp_path, folder)
