@@ -90,9 +90,9 @@ def _calibrate(obs, mirror, projector):
 def stop_on_confidence(store, obs, mirror_first: int, fraction: float | None = None, min_projector: int = 3):
     """(result, mirror placements, projector placements, projector confidence lines) of the emulated
     station stopping each step when confident."""
-    from calib.quality.confidence import TARGET_FRACTION, confidence_of, unconfident
+    from calib.quality.confidence import confidence_of, unconfident
 
-    frac = TARGET_FRACTION if fraction is None else fraction
+    frac = fraction
     mirror = list(obs.mirror_views)
     proj = _ordered_projector(store, obs)
     m = min(mirror_first, len(mirror)) if mirror else 0

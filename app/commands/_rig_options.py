@@ -91,6 +91,9 @@ def add_rig_options(p) -> None:
     p.add_argument("--mirror-captures", type=_types.int_range(*MIRROR_CAPTURES), default=None,
                    help="mirror captures to take, %d to %d (default 14, as in the published ProcamCalib "
                         "recordings)" % MIRROR_CAPTURES)
+    p.add_argument("--stop-on-confidence", action="store_true", default=None,
+                   help="end the projector step once its 1-sigmas meet their targets (docs/CALIBRATION.md); "
+                        "the plan's counts are then maximums")
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
     p.add_argument("--board-thickness", type=_types.float_range(0.0, 1000.0), default=None, metavar="T",

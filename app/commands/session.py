@@ -44,6 +44,8 @@ def plan_from_args(args, base=None):
     kw = plan.to_dict()
     if getattr(args, "poses_per_position", None) is not None:
         kw["poses_per_position"] = args.poses_per_position
+    if getattr(args, "stop_on_confidence", None):
+        kw["stop_on_confidence"] = True
     if getattr(args, "mirror_captures", None) is not None:
         kw["real_virtual_captures"] = kw["real_mirror_captures"] = args.mirror_captures
         kw["min_real_virtual"] = min(kw["min_real_virtual"], args.mirror_captures)

@@ -140,6 +140,8 @@ class AutoOperator:
             elif m.target is None:
                 m.proceed()
         elif s == PROJECTOR_CAPTURE:
+            if m.plan.stop_on_confidence:
+                st.wait_for_detections()  # the next pose only once the last capture's confidence is known
             if m.target is None:
                 st.run_long("calibrate", st.calibrate)
         elif s == CALIBRATION:

@@ -16,6 +16,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from app.station.autocapture import Decision, LiveDetection, PoseFeatures
+from app.station.confidence_watch import update_after
 from app.station.machine import SessionMachine, Target
 from calib.detection.detect import DetectionFailure, detect_capture
 from calib.errors import ProcamError
@@ -75,6 +76,7 @@ class CaptureWriter:
                 return  # deleted before its turn
             if isinstance(result, DetectionFailure) and any(c.id == capture_id for c in store.manifest.captures):
                 self.log(f"{capture_id}: {result.reason}; calibration will leave it out (retake it to replace it)")
+            update_after(self.machine, capture_id, self.log)
 
         self._detecting = [f for f in self._detecting if not f.done()] + [self._detector.submit(work)]
 

@@ -100,6 +100,8 @@ class SessionMachine:
         self.verification_error: str | None = None
         self.rig_checks: tuple[RigCheck, ...] = ()
         self.retake_target: Target | None = None
+        # the projector step's confidence after its latest detected capture (Plan.stop_on_confidence)
+        self.projector_confidence = None
         self.last_capture: Capture | None = None
         self.events: list[Event] = []
         self.on_event: Callable[[str], None] | None = None
@@ -228,11 +230,31 @@ class SessionMachine:
                 return self.retake_target
             caps = self.captures_of(STEP_PROJECTOR)
             counts = self.position_counts()
+            if self.plan.stop_on_confidence:
+                return self._confident_target(caps, counts)
             for p in range(self.positions):
                 if counts[p] < self.plan.poses_per_position:
                     at = [c for c in caps if c.pattern_position == p]
                     return Target(STEP_PROJECTOR, p, self._free_pose(at, self.plan.poses_per_position + len(at)))
         return None
+
+    def _confident_target(self, caps, counts) -> Target | None:
+        """The projector step stopping on confidence: None once its captures (at least the plan's
+        minimum) are confident, else one pose at every pattern position before the next pose."""
+        conf = self.projector_confidence
+        if conf is not None and conf.all_met and len(caps) >= self.plan.min_projector_captures:
+            return None
+        for k in range(self.plan.poses_per_position):
+            for p in range(self.positions):
+                if counts[p] <= k:
+                    at = [c for c in caps if c.pattern_position == p]
+                    return Target(STEP_PROJECTOR, p, self._free_pose(at, self.plan.poses_per_position + len(at)))
+        return None
+
+    def set_projector_confidence(self, conf) -> None:
+        """The projector step's confidence after its latest capture (None: not known yet)."""
+        with self._lock:
+            self.projector_confidence = conf
 
     def counts(self) -> dict:
         """Checklist numbers: captures taken and asked for, per step."""

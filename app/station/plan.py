@@ -20,6 +20,9 @@ class Plan:
     # with one, the mirror's normal rests on a single board's tilt (docs/JOINT.md#several-real-mirror-placements)
     min_real_mirror: int = 3
     min_projector_captures: int = 6
+    # end the projector step once its 1-sigmas meet their targets (calib.quality.confidence), the counts
+    # above then maximums; its poses are asked one at every pattern position before the next
+    stop_on_confidence: bool = False
 
     def mirror_captures(self, method: str) -> int:
         return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures
@@ -34,7 +37,8 @@ class Plan:
     @classmethod
     def from_dict(cls, d: dict | None) -> Plan:
         d = d or {}
-        return cls(**{k: int(v) for k, v in d.items() if k in cls.__dataclass_fields__})
+        return cls(**{k: (bool(v) if k == "stop_on_confidence" else int(v)) for k, v in d.items()
+                      if k in cls.__dataclass_fields__})
 
 
 @dataclass(frozen=True)

@@ -80,10 +80,11 @@ def _step_quantities(step: str):
     return _PROJECTOR if step == Step.PROJECTOR else _MIRROR
 
 
-def targets(step: str, fraction: float = TARGET_FRACTION,
+def targets(step: str, fraction: float | None = None,
             thresholds: QualityThresholds | None = None) -> dict[str, float]:
-    """{quantity key: target 1-sigma} of a step."""
+    """{quantity key: target 1-sigma} of a step (`fraction` None: TARGET_FRACTION)."""
     th = thresholds or QualityThresholds()
+    fraction = TARGET_FRACTION if fraction is None else fraction
     return {key: fraction * getattr(th, ref) for key, _, _, ref in _step_quantities(step)}
 
 
@@ -123,7 +124,7 @@ def sigmas(result) -> dict[str, float]:
     }
 
 
-def confidence_of(result, step: str, fraction: float = TARGET_FRACTION,
+def confidence_of(result, step: str, fraction: float | None = None,
                   thresholds: QualityThresholds | None = None) -> Confidence:
     """The confidence of `step` in a calibrated result."""
     got = sigmas(result)
@@ -132,7 +133,7 @@ def confidence_of(result, step: str, fraction: float = TARGET_FRACTION,
                                   for key, label, unit, _ in _step_quantities(step)))
 
 
-def unconfident(step: str, reason: str, fraction: float = TARGET_FRACTION,
+def unconfident(step: str, reason: str, fraction: float | None = None,
                 thresholds: QualityThresholds | None = None) -> Confidence:
     """The confidence of a step whose captures so far do not calibrate (`reason`): nothing met."""
     goal = targets(step, fraction, thresholds)

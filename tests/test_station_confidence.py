@@ -1,0 +1,85 @@
+"""The station's projector step stopping when the calibration is confident (Plan.stop_on_confidence,
+app/station/confidence_watch.py): poses asked one at every pattern position before the next, the
+confidence judged after each detected capture, the step ended at the first confident one, the plan's
+count a maximum."""
+
+import pytest
+
+import calib.quality.confidence as C
+from app.station.machine import CALIBRATION, PROJECTOR_CAPTURE, Plan
+from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
+from app.station.station import Station, StationOptions
+from calib.formats.session_files import CALIBRATION as CALIBRATION_FILE, GROUND_TRUTH
+from calib.models.observations import STEP_PROJECTOR
+from _station_helpers import assert_within_its_uncertainty
+
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+
+PLAN = Plan(poses_per_position=4, real_virtual_captures=5, min_real_virtual=3, min_projector_captures=6,
+            stop_on_confidence=True)
+
+
+def _station(tmp_path, plan=PLAN):
+    req = RigRequest("sim", "nonoverlap-136", 0)
+    rig = open_requested_rig(req)
+    store = create_session(tmp_path / "s", rig, req, plan)
+    m = make_machine(store, rig, plan)
+    lines = []
+    return rig, m, Station(rig, m, StationOptions(auto=True), log=lines.append), lines
+
+
+def _tick_until(st, cond, max_ticks):
+    for _ in range(max_ticks):
+        if cond():
+            return
+        st.tick()
+    raise AssertionError(f"not reached in {max_ticks} ticks; state {st.machine.state}")
+
+
+def test_the_projector_step_ends_at_its_first_confident_capture(tmp_path, monkeypatch):
+    # targets a short session reaches: the test is about when the step ends, not about the default share
+    monkeypatch.setattr(C, "TARGET_FRACTION", 0.3)
+    rig, m, st, lines = _station(tmp_path)
+    seen = []
+    real = m.set_projector_confidence
+
+    def recording(conf):
+        seen.append((len(m.captures_of(STEP_PROJECTOR)), conf.all_met))
+        real(conf)
+
+    monkeypatch.setattr(m, "set_projector_confidence", recording)
+    _tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=900)
+    caps = m.captures_of(STEP_PROJECTOR)
+    n = len(caps)
+    assert PLAN.min_projector_captures <= n < m.projector_total  # stopped before the plan's 52
+    # judged after every capture; the step ended at the first confident one (never before the minimum)
+    assert [k for k, _ in seen] == list(range(1, n + 1))
+    assert seen[-1][1] and not any(ok for k, ok in seen[:-1] if k >= PLAN.min_projector_captures)
+    assert any("projector step confident after" in ln for ln in lines)
+    # one pose at every pattern position before the next pose
+    positions = [c.pattern_position for c in caps]
+    assert positions[:min(n, 13)] == list(range(min(n, 13)))
+    # a stopped session still calibrates within its own uncertainty of the truth
+    if not (m.store.folder / GROUND_TRUTH).exists():
+        rig.ground_truth().save_json(m.store.folder / GROUND_TRUTH)
+    assert (m.store.folder / CALIBRATION_FILE).exists()
+    assert_within_its_uncertainty(m.store.folder)
+
+
+def test_without_confidence_the_step_takes_every_capture_it_plans(tmp_path, monkeypatch):
+    """Targets no session meets: the step asks for all its captures, in the pose-major order."""
+    monkeypatch.setattr(C, "TARGET_FRACTION", 1e-9)
+    plan = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, min_projector_captures=6,
+                stop_on_confidence=True)
+    rig, m, st, lines = _station(tmp_path, plan)
+    _tick_until(st, lambda: m.state == PROJECTOR_CAPTURE, max_ticks=300)
+    _tick_until(st, lambda: m.state == CALIBRATION, max_ticks=600)
+    assert len(m.captures_of(STEP_PROJECTOR)) == m.projector_total == 13
+    assert m.projector_confidence is not None and not m.projector_confidence.all_met
+    assert any("not yet" in ln for ln in lines if ln.startswith("projector step after"))
+
+
+def test_the_plan_keeps_the_switch_across_a_resume():
+    d = PLAN.to_dict()
+    assert d["stop_on_confidence"] is True
+    assert Plan.from_dict(d) == PLAN and Plan.from_dict({}).stop_on_confidence is False
