@@ -83,3 +83,27 @@ def test_the_plan_keeps_the_switch_across_a_resume():
     d = PLAN.to_dict()
     assert d["stop_on_confidence"] is True
     assert Plan.from_dict(d) == PLAN and Plan.from_dict({}).stop_on_confidence is False
+
+
+def test_the_checklist_shows_each_1_sigma_against_its_target():
+    from types import SimpleNamespace
+
+    from app.station.panel_status import checklist
+    from calib.quality.confidence import Quantity
+
+    conf = C.Confidence(STEP_PROJECTOR, (Quantity("t_mm", "projector position", "mm", 0.21, 0.48),
+                                         Quantity("rot_deg", "projector orientation", "deg", 0.05, 0.0385)))
+    class M(SimpleNamespace):
+        def counts(self):
+            return {"mirror": 5, "mirror_total": 5, "projector": 9, "projector_total": 52, "positions_done": 0,
+                    "positions": 13}
+
+        def why_not(self, _action):
+            return None
+
+    m = M(state=PROJECTOR_CAPTURE, rig_checks=(), direct=False, mirror_method="real-virtual", result=None,
+          result_stale=False, camera_intrinsics=None, busy=None, report=None, plan=PLAN, projector_confidence=conf)
+    text = checklist(m)
+    assert "9 / 52" in text and "ends when confident" in text
+    assert "projector position: 0.21 mm (target 0.48)" in text
+    assert "projector orientation: 0.05 deg (target 0.0385) not yet" in text

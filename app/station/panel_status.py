@@ -46,7 +46,11 @@ def checklist(m) -> str:
         lines.append(f"- {mark(MIRROR_CAPTURE)} **Mirror capture** ({method}): "
                      f"**{c['mirror']} / {c['mirror_total'] or '?'}** captures")
     lines.append(f"- {mark(PROJECTOR_CAPTURE)} **Projector capture**: **{c['projector']} / {c['projector_total']}** "
-                 f"captures, {c['positions_done']} / {c['positions']} pattern positions complete")
+                 f"captures, {c['positions_done']} / {c['positions']} pattern positions complete"
+                 + (" (at most: ends when confident)" if m.plan.stop_on_confidence else ""))
+    if m.plan.stop_on_confidence and m.projector_confidence is not None:
+        # each 1-sigma the projector step constrains against its target (calib.quality.confidence)
+        lines += [f"    - {line}" for line in m.projector_confidence.lines()]
     cam = (f"camera from `{Path(m.camera_intrinsics).name}` (given)" if m.camera_intrinsics
            else "camera from the captures")
     cal = "done" if m.result is not None and not m.result_stale else (
