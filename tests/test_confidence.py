@@ -18,6 +18,9 @@ from calib.quality.confidence import TARGET_FRACTION, confidence_of, sigmas, tar
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
 NOISE_PX = 0.03  # about the noise of the rendered sessions' detections (their joint 1-sigmas match at this noise)
+# a share of the references a full session at this noise meets and a thin one does not (the default,
+# TARGET_FRACTION, sits at the full sessions' own level: docs/BENCHMARKS.md "Placements")
+FRACTION = 0.15
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +40,7 @@ def test_a_full_session_is_confident_in_every_step(full):
     got = sigmas(full)
     assert all(math.isfinite(v) and v > 0 for v in got.values()), got
     for step in (Step.PROJECTOR, Step.REAL_VIRTUAL):
-        conf = confidence_of(full, step)
+        conf = confidence_of(full, step, FRACTION)
         assert conf.all_met, conf.lines()
         assert all(q.sigma <= q.target for q in conf.quantities)
 
@@ -45,7 +48,7 @@ def test_a_full_session_is_confident_in_every_step(full):
 def test_a_thin_projector_step_is_not_confident_and_says_which_quantities(full):
     obs = observations(NOISE_PX, 1)
     thin = calibrate_observations(replace(obs, projector_views=obs.projector_views[:6]), trust=None)
-    conf = confidence_of(thin, Step.PROJECTOR)
+    conf = confidence_of(thin, Step.PROJECTOR, FRACTION)
     assert not conf.all_met
     unmet = [q for q in conf.quantities if not q.met]
     assert unmet and all("not yet" in q.line() for q in unmet)

@@ -26,7 +26,7 @@ from calib.models.vocab import Step
 from calib.quality._trust_gate import QualityThresholds
 
 #: share of the quality gate's reference 1-sigma (worst full session at 0.3 px) a step must reach
-TARGET_FRACTION = 0.25
+TARGET_FRACTION = 0.07
 
 
 @dataclass(frozen=True)
