@@ -147,6 +147,15 @@ def open_session(args, log=print):
     return rig, store, machine, req
 
 
+def _projector_limit(machine, c) -> str:
+    """The summary's words on the projector step's count when it stops on confidence (Plan.stop_on_confidence)."""
+    if not machine.plan.stop_on_confidence:
+        return ""
+    conf = getattr(machine, "projector_confidence", None)
+    why = "stopped when confident" if conf is not None and conf.all_met else "not confident"
+    return f"of at most {c['projector_total']} ({why}) "
+
+
 def summary(machine, folder, elapsed_s: float) -> str:
     from app.station.setup import load_ground_truth
 
@@ -154,7 +163,7 @@ def summary(machine, folder, elapsed_s: float) -> str:
     c = machine.counts()
     lines.append(f"session {folder}: {STATE(machine)} after {elapsed_s:.1f} s")
     lines.append(f"  captures: mirror {c['mirror']} ({machine.mirror_method or 'none'}), projector {c['projector']} "
-                 f"at {c['positions_done']}/{c['positions']} pattern positions")
+                 + _projector_limit(machine, c) + f"at {c['positions_done']}/{c['positions']} pattern positions")
     res = machine.result
     if res is not None:
         from app.commands.calibrate import format_rms  # every RMS value with its unit
