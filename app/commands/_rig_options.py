@@ -3,11 +3,41 @@ recalibrate`): the rig, the simulated rig, the real rig's devices and boards, ea
 argument group (evo's parent parsers; a private module: not a sub-command)."""
 
 from app.commands import _types
-from calib.models.vocab import LengthUnit, RenderQuality, RigKind, choices
+from calib.models.vocab import LengthUnit, PatternKind, RenderQuality, RigKind, choices
 
 #: the capture plan's ranges: a plan outside them is either empty or a session that never ends
 POSES_PER_POSITION = (1, 100)
 MIRROR_CAPTURES = (1, 500)
+
+
+#: what --projector-pattern offers: the circle grid (the scenario's own pattern on the simulated rig), or the
+#: structured-light sequence (docs/STRUCTURED_LIGHT.md)
+PROJECTOR_PATTERNS = (PatternKind.CIRCLES.value, PatternKind.STRUCTURED.value)
+#: projector placements of a structured-light step (its maximum when it stops on confidence)
+DEFAULT_PLACEMENTS = 6
+PLACEMENTS = (1, 52)
+
+
+def add_projector_pattern_options(p, what: str) -> None:
+    """--projector-pattern and --placements (`procam session`, `procam station`, `procam simulate`)."""
+    p.add_argument("--projector-pattern", choices=PROJECTOR_PATTERNS, default=None,
+                   help=f"the projector step: the circle grid at every {what} (default), or structured: the "
+                        "structured-light sequence at a few board placements, the board held still for each "
+                        "(--placements; docs/STRUCTURED_LIGHT.md)")
+    p.add_argument("--placements", type=_types.int_range(*PLACEMENTS), default=None, metavar="N",
+                   help=f"projector placements with --projector-pattern structured, %d to %d (default "
+                        f"{DEFAULT_PLACEMENTS}; a maximum with --stop-on-confidence)" % PLACEMENTS)
+
+
+def structured_placements(args) -> int | None:
+    """The structured step's placements the arguments ask for (None: the circle grid); SpecError for
+    --placements without --projector-pattern structured."""
+    from calib.errors import SpecError
+
+    structured = getattr(args, "projector_pattern", None) == PatternKind.STRUCTURED.value
+    if getattr(args, "placements", None) is not None and not structured:
+        raise SpecError("--placements counts structured-light placements: give it with --projector-pattern structured")
+    return (args.placements or DEFAULT_PLACEMENTS) if structured else None
 
 
 #: --rig's choices (drivers.factory.RIG_KINDS)
@@ -94,6 +124,7 @@ def add_rig_options(p) -> None:
     p.add_argument("--stop-on-confidence", action="store_true", default=None,
                    help="end the projector step once its 1-sigmas meet their targets (docs/CALIBRATION.md); "
                         "the plan's counts are then maximums")
+    add_projector_pattern_options(p, "pose")
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
     p.add_argument("--board-thickness", type=_types.float_range(0.0, 1000.0), default=None, metavar="T",

@@ -46,6 +46,8 @@ def plan_from_args(args, base=None):
         kw["poses_per_position"] = args.poses_per_position
     if getattr(args, "stop_on_confidence", None):
         kw["stop_on_confidence"] = True
+    if getattr(args, "placements", None) is not None:
+        kw["structured_placements"] = args.placements
     if getattr(args, "mirror_captures", None) is not None:
         kw["real_virtual_captures"] = kw["real_mirror_captures"] = args.mirror_captures
         kw["min_real_virtual"] = min(kw["min_real_virtual"], args.mirror_captures)
@@ -105,7 +107,9 @@ def open_session(args, log=print):
         rig = open_requested_rig(req, **rig_options(args, req.kind))
         check_same_rig(store, rig)
         plan = None
-        if args.poses_per_position is not None or args.mirror_captures is not None:
+        if args.projector_pattern is not None:
+            raise SessionError("--projector-pattern is chosen when a session starts: a resumed session keeps its own")
+        if args.poses_per_position is not None or args.mirror_captures is not None or args.placements is not None:
             from app.station.machine import Plan
 
             plan = plan_from_args(args, Plan.from_dict((store.manifest.state or {}).get("plan")))
@@ -130,8 +134,11 @@ def open_session(args, log=print):
             board = CharucoSpec.parse(args.board, args.units)
             kw = dict(board=board, mirror_board=CharucoSpec.parse(args.mirror_board, args.units)
                       if args.mirror_board else None, view=VIEW_DIRECT if args.direct else VIEW_MIRROR)
+        from app.commands._rig_options import structured_placements
+
+        structured_placements(args)  # --placements only with --projector-pattern structured
         plan = plan_from_args(args)
-        store = create_session(folder, rig, req, plan, **kw)
+        store = create_session(folder, rig, req, plan, projector_pattern=args.projector_pattern, **kw)
         machine = make_machine(store, rig, plan, workers=args.workers, method=args.method)
         if args.method:
             machine.extra_state["method"] = args.method  # a resumed session calibrates the same way
@@ -156,14 +163,26 @@ def _projector_limit(machine, c) -> str:
     return f"of at most {c['projector_total']} ({why}) "
 
 
+def placement_split(machine) -> str:
+    """The placements of each capture step (a structured placement is one however many frames it took)."""
+    from calib.formats.session_captures import placements
+    from calib.models.observations import STEP_PROJECTOR
+
+    mirror = placements(machine.mirror_captures())
+    return f"mirror {mirror}, projector {placements(machine.captures_of(STEP_PROJECTOR))}"
+
+
 def summary(machine, folder, elapsed_s: float) -> str:
     from app.station.setup import load_ground_truth
 
     lines = []
     c = machine.counts()
     lines.append(f"session {folder}: {STATE(machine)} after {elapsed_s:.1f} s")
+    where = ("structured light" if machine.structured else
+             f"at {c['positions_done']}/{c['positions']} pattern positions")
     lines.append(f"  captures: mirror {c['mirror']} ({machine.mirror_method or 'none'}), projector {c['projector']} "
-                 + _projector_limit(machine, c) + f"at {c['positions_done']}/{c['positions']} pattern positions")
+                 + _projector_limit(machine, c) + where)
+    lines.append(f"  placements: {c['placements']} (the board's positions: {placement_split(machine)})")
     res = machine.result
     if res is not None:
         from app.commands.calibrate import format_rms  # every RMS value with its unit

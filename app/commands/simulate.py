@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from app.commands import _types
+from app.commands._rig_options import add_projector_pattern_options, structured_placements
 from calib.formats import session_files
 from calib.models.structured_light import StructuredLightSpec
 from calib.models.vocab import MirrorMethod, PatternKind, RenderQuality, Step, choices
@@ -29,9 +30,6 @@ DESCRIPTION = (
     "--placements board placements, each showing the structured-light sequence. `procam simulate --list` "
     "lists the scenarios."
 )
-#: what --projector-pattern offers: the scenario's own pattern, or the structured-light sequence
-PROJECTOR_PATTERNS = (PatternKind.CIRCLES.value, PatternKind.STRUCTURED.value)
-DEFAULT_PLACEMENTS = 6
 
 
 def _scenario_default(name: str):
@@ -60,11 +58,7 @@ def add_arguments(p) -> None:
                         f"{_scenario_default('per_position')} as in the paper)")
     p.add_argument("--mirror-count", type=_types.int_range(1, 500), default=None, metavar="N",
                    help=f"mirror-calibration captures (default: the scenario's, {_scenario_default('mirror_count')})")
-    p.add_argument("--projector-pattern", choices=PROJECTOR_PATTERNS, default=PatternKind.CIRCLES.value,
-                   help="the projector step: the scenario's circle grid at every pose (default), or structured: "
-                        "the structured-light sequence at a few placements (--placements)")
-    p.add_argument("--placements", type=_types.int_range(1, 52), default=None, metavar="N",
-                   help=f"projector placements with --projector-pattern structured (default {DEFAULT_PLACEMENTS})")
+    add_projector_pattern_options(p, "scripted pose")
     p.add_argument("--workers", type=_types.workers, default=2, help="render processes (default %(default)s)")
     p.add_argument("--force", action="store_true", help="write into DIR even if it holds a session")
     p.add_argument("--no-progress", action="store_true",
@@ -106,10 +100,7 @@ def run(args) -> int:
         changes["render"] = replace(scenario.render, **settings)
     if changes:
         scenario = replace(scenario, **changes)
-    structured = args.projector_pattern == PatternKind.STRUCTURED.value
-    if args.placements is not None and not structured:
-        raise SpecError("--placements counts structured-light placements: give it with --projector-pattern structured")
-    placements = (args.placements or DEFAULT_PLACEMENTS) if structured else None
+    placements = structured_placements(args)
     simulate_session(scenario, args.out, quality=args.quality, workers=args.workers, force=args.force,
                      progress=not args.no_progress, structured_placements=placements)
     print(f"wrote {args.out}: session.json, images/, ground_truth.json, scene.json")

@@ -118,9 +118,11 @@ def guard_skip_camera(m, arg) -> str | None:
 
 
 def guard_calibrate(m, _arg) -> str | None:
-    n = len(m.captures_of(STEP_PROJECTOR))
-    if n < m.plan.min_projector_captures:
-        return f"take at least {m.plan.min_projector_captures} projector captures first ({n} so far)"
+    from app.station.structured_step import min_projector_captures
+
+    n, need = len(m.captures_of(STEP_PROJECTOR)), min_projector_captures(m)
+    if n < need:
+        return f"take at least {need} projector captures first ({n} so far)"
     if m.direct:
         return None
     if m.mirror_method is None:

@@ -19,6 +19,7 @@ from calib.formats.session import SessionManifest
 from calib.models.boards import CharucoSpec
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_MIRROR, BoardObservation
+from calib.models.vocab import PatternKind
 
 
 # ---- pose features ---------------------------------------------------------------------------------
@@ -148,6 +149,8 @@ def detect_for_step(image: np.ndarray, step: str | None, manifest: SessionManife
         if not board:
             return done(failure=f"board: {board.reason}")
         feats = pose_features(board, spec, camera)
+        if manifest.pattern.kind == PatternKind.STRUCTURED.value:  # the sequence comes once the board is still
+            return done(board=board, features=feats)
         pts = D.detect_pattern(image, manifest.pattern, mirrored, board=board, board_spec=spec)
         if isinstance(pts, D.DetectionFailure):
             return done(board=board, features=feats, failure=f"pattern: {pts.reason}")

@@ -58,10 +58,15 @@ class CaptureWriter:
         self._detecting: list[Future] = []
 
     def write(self, frame, det: LiveDetection, decision: Decision | None, how: str, projector_ticket: int,
-              operator_pose_index: int | None = None):
-        """Write the capture of the current target from `frame` (ActionRefused when the target changed)."""
+              operator_pose_index: int | None = None, sequence=None):
+        """Write the capture of the current target from `frame` (ActionRefused when the target changed);
+        a structured step's from its captured `sequence` (structured_step.SequenceResult), `frame` its
+        opening frame."""
         meta = capture_meta(frame, det, decision, how, projector_ticket, operator_pose_index)
-        cap = self.machine.record_capture(frame.image, meta)
+        if sequence is not None:
+            meta.update({"frame_numbers": list(sequence.frame_numbers), "sequence_s": round(sequence.duration_s, 3),
+                         "motion_px": round(float(sequence.motion_px), 4)})
+        cap = self.machine.record_capture(frame.image, meta, frames=None if sequence is None else sequence.frames)
         self.log(f"captured {cap.id}: {self.describe(cap)}")
         self._detect_in_background(cap.id)
         return cap
@@ -94,6 +99,8 @@ class CaptureWriter:
         m = self.machine
         k = cap.meta.get("pose_index", 0) + 1
         c = m.counts()
+        if cap.structured:
+            return f"placement {c['projector']} of at most {c['projector_total']} (structured light, {len(cap.frames)} frames)"
         if cap.step == STEP_PROJECTOR:
             return (f"pattern position {cap.pattern_position + 1}/{m.positions}, pose {k}/"
                     f"{m.plan.poses_per_position} ({c['projector']}/{c['projector_total']})")
@@ -105,8 +112,8 @@ class CaptureWriter:
             return []
         out = []
         for c in self.machine.manifest.captures_of(target.step):
-            if target.step == STEP_PROJECTOR and c.pattern_position != target.pattern_position:
-                continue
+            if target.step == STEP_PROJECTOR and not c.structured and c.pattern_position != target.pattern_position:
+                continue  # a circle pose differs from the others at its position; a placement from every other
             f = PoseFeatures.from_dict(c.meta.get("pose")) if isinstance(c.meta.get("pose"), dict) else None
             if f is not None:
                 out.append((c.id, f))

@@ -15,8 +15,11 @@ def projector_confidence(machine) -> Confidence:
     """Calibrate the session's captures so far (its kept detections; joint) and judge the projector step."""
     from calib.pipeline import calibrate_session
 
-    if len(machine.captures_of(Step.PROJECTOR)) < machine.plan.min_projector_captures:
-        return unconfident(Step.PROJECTOR, f"fewer than {machine.plan.min_projector_captures} projector captures")
+    from app.station.structured_step import min_projector_captures
+
+    need = min_projector_captures(machine)
+    if len(machine.captures_of(Step.PROJECTOR)) < need:
+        return unconfident(Step.PROJECTOR, f"fewer than {need} projector captures")
     try:
         result = calibrate_session(machine.store.folder, camera_intrinsics=machine.intrinsics_path, workers=1)
     except ProcamError as e:

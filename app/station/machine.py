@@ -33,6 +33,8 @@ from app.station.action_rules import FILE_CHECKED, RULES, Rule
 from app.station.operator_files import checked_intrinsics, copy_into_session
 from app.station.plan import Plan, Target
 from app.station.session_calibration import CALIBRATION_FILE, default_calibrate, keep_rejected, write_calibration
+from app.station.targets import circle_target, free_pose
+from app.station.structured_step import STATION_SPEC, is_structured, slot_of, structured_target
 from app.station.session_steps import CAPTURE_STATES  # noqa: F401 (app/recalibration.py imports it from here)
 from app.station.session_steps import (
     ACTIONS, CALIBRATION, CHECK_RIG, DONE, MIRROR_CAPTURE, PROJECTOR_CAPTURE, STATE_TITLES, STATES,
@@ -41,6 +43,7 @@ from app.station.session_steps import (
 from calib.errors import FormatError, ProcamError
 from calib.formats import session_files
 from calib.formats.session import Capture, SessionStore
+from calib.formats.session_captures import placements
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
 from calib.models.result import CalibrationResult
@@ -185,7 +188,14 @@ class SessionMachine:
 
     @property
     def projector_total(self) -> int:
+        if self.structured:
+            return self.plan.structured_placements
         return self.positions * self.plan.poses_per_position
+
+    @property
+    def structured(self) -> bool:
+        """The projector step shows the structured-light sequence (app.station.structured_step)."""
+        return is_structured(self.manifest)
 
     @property
     def mirror_total(self) -> int:
@@ -205,11 +215,7 @@ class SessionMachine:
         return counts
 
     def _free_pose(self, caps: list[Capture], n: int) -> int | None:
-        used = {c.meta.get("pose_index") for c in caps}
-        for k in range(n):
-            if k not in used:
-                return k
-        return None
+        return free_pose(caps, n)
 
     @property
     def target(self) -> Target | None:
@@ -228,27 +234,7 @@ class SessionMachine:
         if self.state == PROJECTOR_CAPTURE:
             if self.retake_target is not None and self.retake_target.step == STEP_PROJECTOR:
                 return self.retake_target
-            caps = self.captures_of(STEP_PROJECTOR)
-            counts = self.position_counts()
-            if self.plan.stop_on_confidence:
-                return self._confident_target(caps, counts)
-            for p in range(self.positions):
-                if counts[p] < self.plan.poses_per_position:
-                    at = [c for c in caps if c.pattern_position == p]
-                    return Target(STEP_PROJECTOR, p, self._free_pose(at, self.plan.poses_per_position + len(at)))
-        return None
-
-    def _confident_target(self, caps, counts) -> Target | None:
-        """The projector step stopping on confidence: None once its captures (at least the plan's
-        minimum) are confident, else one pose at every pattern position before the next pose."""
-        conf = self.projector_confidence
-        if conf is not None and conf.all_met and len(caps) >= self.plan.min_projector_captures:
-            return None
-        for k in range(self.plan.poses_per_position):
-            for p in range(self.positions):
-                if counts[p] <= k:
-                    at = [c for c in caps if c.pattern_position == p]
-                    return Target(STEP_PROJECTOR, p, self._free_pose(at, self.plan.poses_per_position + len(at)))
+            return structured_target(self) if self.structured else circle_target(self)
         return None
 
     def set_projector_confidence(self, conf) -> None:
@@ -266,6 +252,7 @@ class SessionMachine:
             "projector_total": self.projector_total,
             "positions_done": sum(c >= self.plan.poses_per_position for c in self.position_counts()),
             "positions": self.positions,
+            "placements": placements(self.manifest.captures),
         }
 
     # ---- refusals -------------------------------------------------------------------------------
@@ -349,9 +336,10 @@ class SessionMachine:
                 self._log(f"board thickness on the mirror: {value:g} {self.manifest.units}")
             self.persist()
 
-    def record_capture(self, image, meta: dict | None = None, pattern_points_px=None) -> Capture:
+    def record_capture(self, image, meta: dict | None = None, pattern_points_px=None, frames=None) -> Capture:
         """Write the capture for the current target (image first, then the manifest); return it once it
-        is on disk. Projector captures store the projector pixels of the pattern at the target position."""
+        is on disk. Projector captures store the projector pixels of the pattern at the target position;
+        a structured step's capture is the sequence's `frames` (app.station.structured_step)."""
         with self._lock:
             self._refuse("capture")
             tgt = self.target
@@ -360,12 +348,18 @@ class SessionMachine:
             if self.retake_target is not None:
                 meta["retake"] = True
             pts = None
-            if tgt.step == STEP_PROJECTOR:
+            if frames is not None and tgt.step != STEP_PROJECTOR:
+                raise ActionRefused("capture", "a coded sequence is a projector capture; this step is " + tgt.step)
+            if frames is not None:
+                meta["slot_position"] = tgt.pattern_position
+                cap = self.store.add_structured_capture(frames, STATION_SPEC, meta=meta)
+            elif tgt.step == STEP_PROJECTOR:
                 w, h = self.manifest.rig.projector_size
                 pts = self.manifest.pattern.points_px(w, h, tgt.pattern_position)
                 if pattern_points_px is not None:
                     pts = pattern_points_px
-            cap = self.store.add_capture(tgt.step, image, tgt.pattern_position, pts, meta)
+            if frames is None:
+                cap = self.store.add_capture(tgt.step, image, tgt.pattern_position, pts, meta)
             self.last_capture = cap
             self.retake_target = None
             self._mark_stale()
@@ -400,7 +394,8 @@ class SessionMachine:
                 method = MirrorMethod.REAL_VIRTUAL if cap.step == STEP_REAL_VIRTUAL else MirrorMethod.REAL_MIRROR
                 self.mirror_method = method
             self.store.delete_capture(capture_id)
-            tgt = Target(cap.step, cap.pattern_position, int(cap.meta.get("pose_index", 0)))
+            tgt = Target(cap.step, *slot_of(cap)) if cap.structured else \
+                Target(cap.step, cap.pattern_position, int(cap.meta.get("pose_index", 0)))
             self.retake_target = tgt
             self._mark_stale()
             try:

@@ -10,7 +10,8 @@ from calib.models.vocab import MirrorMethod
 @dataclass(frozen=True)
 class Plan:
     """How many captures each step asks for. The projector step takes `poses_per_position` board poses
-    at each of the pattern's positions (PatternSpec.positions)."""
+    at each of the pattern's positions (PatternSpec.positions), or `structured_placements` placements
+    when it shows the structured-light sequence."""
 
     poses_per_position: int = 4
     real_virtual_captures: int = 14
@@ -23,6 +24,10 @@ class Plan:
     # end the projector step once its 1-sigmas meet their targets (calib.quality.confidence), the counts
     # above then maximums; its poses are asked one at every pattern position before the next
     stop_on_confidence: bool = False
+    # a structured-light projector step (PatternKind.STRUCTURED): at most this many board placements, each
+    # the whole coded sequence (calib.models.structured_light); with stop_on_confidence at least the minimum
+    structured_placements: int = 6
+    min_structured_placements: int = 3
 
     def mirror_captures(self, method: str) -> int:
         return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures

@@ -3,7 +3,7 @@ calibration / verification callables the state machine runs."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from app.station.machine import Plan, SessionMachine
@@ -13,7 +13,7 @@ from calib.formats.session import MANIFEST, RigInfo, SessionManifest, SessionSto
 from calib.models.boards import CharucoSpec
 from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
-from calib.models.vocab import MirrorMethod, RenderQuality, RigKind
+from calib.models.vocab import MirrorMethod, PatternKind, RenderQuality, RigKind
 
 GROUND_TRUTH_FILE = session_files.GROUND_TRUTH
 VERIFICATION_FILE = session_files.VERIFICATION
@@ -94,8 +94,11 @@ def sim_specs(rig) -> dict:
 
 
 def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_board: CharucoSpec | None = None,
-                 pattern: PatternSpec | None = None, view: str | None = None, thickness: float = 0.0) -> SessionManifest:
-    """The manifest of a new session on `rig`: specs from the simulated scenario, or as given."""
+                 pattern: PatternSpec | None = None, view: str | None = None, thickness: float = 0.0,
+                 projector_pattern: str | None = None) -> SessionManifest:
+    """The manifest of a new session on `rig`: specs from the simulated scenario, or as given;
+    `projector_pattern` "structured": the projector step shows the structured-light sequence
+    (app.station.structured_step), the pattern's positions only naming where the board goes."""
     cam_size = tuple(rig.camera.size)
     proj_size = tuple(rig.projector.size)
     from drivers.factory import is_simulated
@@ -110,6 +113,8 @@ def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_boa
     if view == VIEW_MIRROR and mirror_board is None:
         mirror_board = board
     pattern = pattern or PatternSpec.default_for(*proj_size)
+    if projector_pattern == PatternKind.STRUCTURED.value:
+        pattern = replace(pattern, kind=PatternKind.STRUCTURED.value)
     try:
         settings = dict(rig.camera.settings())
     except Exception:  # settings are informative; a driver without them still records a session

@@ -30,6 +30,7 @@ from app.station.machine import (
 )
 from app.station.projector_light import BACK_MESSAGE as LIGHT_BACK, LOST_MESSAGE as LIGHT_LOST, ProjectorLightWatch
 from app.station.rig_check import RigChecker
+from app.station.structured_step import SequenceCapture
 from calib.errors import ProcamError
 from calib.models.observations import STEP_PROJECTOR
 from calib.models.vocab import RigKind, Step
@@ -131,6 +132,7 @@ class Station:
         self.progress: tuple[int, int, str] | None = None  # (done, total, label) of the running calibration
         self.on_progress: Callable | None = None
         self.light_watch = ProjectorLightWatch()  # the projector's image still reaching the camera
+        self.sequence = SequenceCapture(self)  # a structured projector step's coded sequence
 
     @property
     def device_problem(self) -> str | None:
@@ -177,13 +179,16 @@ class Station:
     # ---- one frame ------------------------------------------------------------------------------
     def _sync_projector(self, state: str, target: Target | None) -> None:
         want = None
-        if state == PROJECTOR_CAPTURE and target is not None:
+        if state == PROJECTOR_CAPTURE and target is not None and self.machine.structured:
+            want = ("white",)  # the sequence's opening image while the operator places the board
+        elif state == PROJECTOR_CAPTURE and target is not None:
             want = ("pattern", target.pattern_position)
         elif state == MIRROR_CAPTURE:
             want = ("black",)
         if want is None or want == self._shown:
             return
-        visible = self._show(self.pattern_image(want[1]) if want[0] == "pattern" else self._black())
+        image = {"pattern": lambda: self.pattern_image(want[1]), "white": self.sequence.white}.get(want[0], self._black)()
+        visible = self._show(image)
         self._shown = want
         self.frames.changed(visible)
 
@@ -234,7 +239,7 @@ class Station:
             det = detect_for_step(frame.image, target.step, m.manifest, self.camera_model, frame.frame_number)
             self.frames.detected()
             decision = self.autocap.update(det)
-        if target is None or target.step != STEP_PROJECTOR:
+        if target is None or target.step != STEP_PROJECTOR or m.structured:  # (no pattern to watch in white)
             self.light_watch.reset()  # no pattern shown: no evidence (the hint clears with the step)
         elif det is not None:
             self._watch_light(self.light_watch.update(det, target))
@@ -250,8 +255,20 @@ class Station:
         return self.live
 
     def _capture(self, frame, det: LiveDetection, decision: Decision | None, how: str):
+        sequence = None
+        target = self.machine.target
+        if self.machine.structured and target is not None and target.step == STEP_PROJECTOR:
+            # the whole coded sequence while the board stands still
+            sequence = self.sequence.run(frame)
+            if sequence.refused is not None:
+                self.log(f"placement refused: {sequence.refused}")
+                self.machine.log(f"placement refused: {sequence.refused}")
+                self.frames.changed()
+                self.operator.start_over()
+                self.autocap.reset(self.captures.taken_for(self.machine.target))
+                raise ActionRefused("capture", sequence.refused)
         cap = self.captures.write(frame, det, decision, how, self.shown_ticket,
-                                  self.operator.asked_index(self.machine.target))
+                                  self.operator.asked_index(self.machine.target), sequence)
         self.last_capture_s = time.monotonic()
         self.frames.changed()
         return cap

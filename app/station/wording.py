@@ -56,6 +56,12 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
         c = m.counts()
         if tgt is None:
             return f"All {c['projector_total']} projector captures are taken. Press Calibrate."
+        if m.structured:
+            where = (f"Placement {c['projector'] + 1} of at most {c['projector_total']}: hold the board where the "
+                     "projector lights it" + ("" if m.direct else " and the camera sees it in the mirror") +
+                     ", at a new place and tilt, and keep it still while the projector shows its coded sequence "
+                     "(a few seconds).")
+            return where + hint
         where = (f"The projector shows the pattern at position {tgt.pattern_position + 1} of {m.positions}. "
                  f"Pose {tgt.pose_index + 1} of {m.plan.poses_per_position}: hold the board so the pattern "
                  "falls on its blank part")

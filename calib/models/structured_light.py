@@ -183,3 +183,16 @@ def _phase_line(extent: int, period: int, steps: int, k: int) -> np.ndarray:
     line = np.round(255.0 * v).astype(np.uint8)
     line.setflags(write=False)
     return line
+
+
+#: the pattern positions' order when only a few placements are taken: the corners and centre first
+#: (calib.models.pattern's positions), so a few placements still spread over the projector's image
+POSITION_ORDER = (0, 2, 4, 6, 8, 1, 3, 5, 7, 9, 10, 11, 12)
+
+
+def placement_order(positions: int, per_position: int) -> list[tuple[int, int]]:
+    """The (pattern position, pose index in that position) slots a structured projector step asks for, in
+    order: one pose of each position in POSITION_ORDER, then the next pose of each, ... The position
+    names where the board should stand (the circle step's pose for it); the projector shows the sequence."""
+    order = [p for p in POSITION_ORDER if p < positions] + [p for p in range(len(POSITION_ORDER), positions)]
+    return [(p, k) for k in range(per_position) for p in order]

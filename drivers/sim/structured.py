@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.models.structured_light import StructuredLightSpec
+from calib.models.structured_light import StructuredLightSpec, placement_order
 from calib.synthetic import BoardLayout
 from calib.transforms import invert_T, rays_to_board_plane, transform_points
 from drivers.sim.render import PlacedBoard, Renderer, SceneState
@@ -43,18 +43,9 @@ def true_projector_px(renderer: Renderer, layout: BoardLayout, T_cam_board: np.n
     return q
 
 
-#: the pattern positions' order when only a few placements are taken: the corners and centre first
-#: (calib.models.pattern's positions), so a few placements still spread over the projector's image
-POSITION_ORDER = (0, 2, 4, 6, 8, 1, 3, 5, 7, 9, 10, 11, 12)
-
-
 def placement_poses(scenario, n: int) -> list[tuple[int, int]]:
     """(pattern position, pose index in that position) of `n` of the scenario's scripted projector poses:
-    one pose of each position in POSITION_ORDER, then the next pose of each, ..."""
+    one pose of each position in calib.models.structured_light.POSITION_ORDER, then the next pose of each, ..."""
     per = scenario.per_position
-    order = [p for p in POSITION_ORDER if p < scenario.pattern.positions]
     n_poses = len(scenario.projector_poses)
-    out = []
-    for k in range(per):
-        out += [(p, k) for p in order if p * per + k < n_poses]
-    return out[:n]
+    return [(p, k) for p, k in placement_order(scenario.pattern.positions, per) if p * per + k < n_poses][:n]
