@@ -350,16 +350,18 @@ class SessionMachine:
             pts = None
             if frames is not None and tgt.step != STEP_PROJECTOR:
                 raise ActionRefused("capture", "a coded sequence is a projector capture; this step is " + tgt.step)
+            caps = self.manifest.captures  # each capture a placement of its own (the operator moves the board)
+            placement = max([c.placement for c in caps if c.placement is not None] + [len(caps) - 1]) + 1
             if frames is not None:
                 meta["slot_position"] = tgt.pattern_position
-                cap = self.store.add_structured_capture(frames, STATION_SPEC, meta=meta)
+                cap = self.store.add_structured_capture(frames, STATION_SPEC, placement=placement, meta=meta)
             elif tgt.step == STEP_PROJECTOR:
                 w, h = self.manifest.rig.projector_size
                 pts = self.manifest.pattern.points_px(w, h, tgt.pattern_position)
                 if pattern_points_px is not None:
                     pts = pattern_points_px
             if frames is None:
-                cap = self.store.add_capture(tgt.step, image, tgt.pattern_position, pts, meta)
+                cap = self.store.add_capture(tgt.step, image, tgt.pattern_position, pts, meta, placement)
             self.last_capture = cap
             self.retake_target = None
             self._mark_stale()

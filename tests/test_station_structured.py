@@ -1,0 +1,137 @@
+"""The station's structured-light projector step (app/station/structured_step.py) on the simulated rig:
+each placement the whole coded sequence, every frame exposed under its own image only, a board that
+moved during the sequence refused and the placement held again, the step stopping when confident, and
+the session calibrating within the circle session's bounds."""
+
+import numpy as np
+import pytest
+
+import calib.quality.confidence as C
+from app.station.machine import CALIBRATION, PROJECTOR_CAPTURE, Plan
+from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
+from app.station.station import Station, StationOptions
+from app.station.structured_step import STATION_SPEC, slot_of
+from calib.formats.session_captures import placements
+from calib.formats.session_files import GROUND_TRUTH
+from calib.models.observations import STEP_PROJECTOR
+from calib.models.structured_light import placement_order
+from calib.quality.metrics import compare
+from _station_helpers import assert_within_its_uncertainty
+
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+
+PLAN = Plan(real_virtual_captures=5, min_real_virtual=3, structured_placements=4, min_structured_placements=3)
+
+
+def _station(tmp_path, plan=PLAN):
+    req = RigRequest("sim", "nonoverlap-136", 0)
+    rig = open_requested_rig(req)
+    store = create_session(tmp_path / "s", rig, req, plan, projector_pattern="structured")
+    m = make_machine(store, rig, plan)
+    lines = []
+    return rig, m, Station(rig, m, StationOptions(auto=True), log=lines.append), lines
+
+
+def _tick_until(st, cond, max_ticks):
+    for _ in range(max_ticks):
+        if cond():
+            return
+        st.tick()
+    raise AssertionError(f"not reached in {max_ticks} ticks; state {st.machine.state}")
+
+
+def _record_shown(rig, monkeypatch):
+    """Every image the projector is asked to show, with its ticket."""
+    shown = []
+    real = rig.projector.show
+
+    def show(image):
+        t = real(image)
+        shown.append((t, np.asarray(image)))
+        return t
+
+    monkeypatch.setattr(rig.projector, "show", show)
+    return shown
+
+
+def test_each_placement_is_the_whole_sequence_each_frame_under_its_own_image(tmp_path, monkeypatch):
+    rig, m, st, lines = _station(tmp_path)
+    shown = _record_shown(rig, monkeypatch)
+    _tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=600)
+    caps = m.captures_of(STEP_PROJECTOR)
+    assert len(caps) == PLAN.structured_placements and all(c.structured for c in caps)
+    # the slots the shared order asks for (the simulator's structured sessions use the same)
+    assert [slot_of(c) for c in caps] == placement_order(m.positions, PLAN.poses_per_position)[:len(caps)]
+    # one placement per capture, recorded in session.json; the summary's count
+    assert len({c.placement for c in m.manifest.captures}) == len(m.manifest.captures) == placements(m.manifest.captures)
+    assert m.counts()["placements"] == PLAN.real_virtual_captures + PLAN.structured_placements
+    w, h = m.manifest.rig.projector_size
+    images = STATION_SPEC.images(w, h)
+    for cap in caps:
+        assert len(cap.frames) == len(images)
+        numbers = cap.meta["frame_numbers"]
+        # every frame of the sequence (after the opening white one) exposed under the one image it stores
+        for k in range(1, len(images)):
+            seen = rig.frame_truth[numbers[k]]
+            assert len(seen) == 1 and seen[0][1] == pytest.approx(1.0), (cap.id, k, seen)
+            ticket = seen[0][0]
+            img = next(i for t, i in shown if t == ticket)
+            assert np.array_equal(img, images[k]), (cap.id, k)
+        assert cap.meta["motion_px"] < 0.5 and cap.meta["sequence_s"] > 0
+    assert any("placement 1 of at most 4 (structured light, 47 frames)" in ln for ln in lines)
+    # the circle session's bounds (test_station_session.py) and its own uncertainty
+    rig.ground_truth().save_json(m.store.folder / GROUND_TRUTH)
+    mt = compare(m.result, rig.ground_truth())
+    assert mt.distance < 3.2 and mt.angle_deg < 0.18 and mt.mirror_angle_deg < 0.09
+    assert_within_its_uncertainty(m.store.folder)
+
+
+def test_a_board_moved_during_the_sequence_is_refused_and_the_placement_held_again(tmp_path, monkeypatch):
+    plan = Plan(real_virtual_captures=3, min_real_virtual=3, structured_placements=2, min_structured_placements=1)
+    rig, m, st, lines = _station(tmp_path, plan)
+    _tick_until(st, lambda: m.state == PROJECTOR_CAPTURE, max_ticks=300)
+    real = rig.projector.show
+    count = {"n": 0, "moved": False}
+
+    def show(image):
+        count["n"] += 1
+        if count["n"] == 20 and not count["moved"]:  # the operator's hand slips halfway through the sequence
+            b = rig.board
+            T = b.T_cam_board.copy()
+            T[:3, 3] += T[:3, 0] * 2.0  # 2 mm along the board
+            rig._place(b.layout, T)
+            count["moved"] = True
+        return real(image)
+
+    monkeypatch.setattr(rig.projector, "show", show)
+    _tick_until(st, lambda: len(m.captures_of(STEP_PROJECTOR)) == 1, max_ticks=200)
+    assert count["moved"]
+    refused = [ln for ln in lines if ln.startswith("placement refused")]
+    assert len(refused) == 1 and "the board moved during the sequence" in refused[0] and "hold it still" in refused[0]
+    # nothing of the refused sequence on disk; the same slot asked again and kept
+    cap = m.captures_of(STEP_PROJECTOR)[0]
+    assert slot_of(cap) == placement_order(m.positions, 1)[0]
+    frames = sorted(p.name for p in (m.store.folder / "images").glob("s*-f*.png"))
+    assert frames == sorted(f.split("/")[-1] for f in cap.frames)
+    assert cap.meta["motion_px"] < 0.5
+
+
+def test_the_structured_step_stops_when_confident(tmp_path, monkeypatch):
+    monkeypatch.setattr(C, "TARGET_FRACTION", 0.3)  # targets a short session reaches
+    plan = Plan(real_virtual_captures=5, min_real_virtual=3, structured_placements=6, min_structured_placements=3,
+                stop_on_confidence=True)
+    rig, m, st, lines = _station(tmp_path, plan)
+    seen = []
+    real = m.set_projector_confidence
+
+    def recording(conf):
+        seen.append((len(m.captures_of(STEP_PROJECTOR)), conf.all_met))
+        real(conf)
+
+    monkeypatch.setattr(m, "set_projector_confidence", recording)
+    _tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=600)
+    n = len(m.captures_of(STEP_PROJECTOR))
+    assert plan.min_structured_placements <= n < plan.structured_placements
+    assert [k for k, _ in seen] == list(range(1, n + 1))
+    assert seen[-1][1] and not any(ok for k, ok in seen[:-1] if k >= plan.min_structured_placements)
+    assert any("projector step confident after s" in ln for ln in lines)
