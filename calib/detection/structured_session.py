@@ -92,7 +92,7 @@ def job_for(store, capture) -> StructuredJob:
     try:
         paths, refused = tuple(str(store.file_path(capture, f)) for f in capture.frames), None
     except SessionError as e:
-        paths, refused = (), str(e)
+        paths, refused = (), f"{e}; capture this placement again"
     return StructuredJob(capture.id, paths, capture.structured_light, m.projector_board, m.rig.view == VIEW_MIRROR,
                          tuple(m.rig.camera_size), tuple(m.rig.projector_size), refused,
                          recorded_response(m.rig.camera_settings))
