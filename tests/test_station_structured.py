@@ -79,6 +79,11 @@ def test_each_placement_is_the_whole_sequence_each_frame_under_its_own_image(tmp
             assert np.array_equal(img, images[k]), (cap.id, k)
         assert cap.meta["motion_px"] < 0.5 and cap.meta["sequence_s"] > 0
     assert any("placement 1 of at most 4 (structured light, 47 frames)" in ln for ln in lines)
+    from app.station.panel_status import checklist
+
+    text = checklist(m)  # the panel's checklist: the step's placements and the session's
+    assert "**4 / 4** placements, each the structured-light sequence" in text
+    assert "Board placements so far: **9**" in text
     # the circle session's bounds (test_station_session.py) and its own uncertainty
     rig.ground_truth().save_json(m.store.folder / GROUND_TRUTH)
     mt = compare(m.result, rig.ground_truth())

@@ -32,7 +32,10 @@ def _size(text: str) -> tuple[int, int]:
 def add_arguments(p) -> None:
     p.add_argument("--screen", type=_types.screen, default=None, metavar="N",
                    help="screen index from `procam devices` (default: the non-primary one of two screens; required with more)")
-    p.add_argument("--pattern", choices=choices(PatternKind), default=PatternKind.CIRCLES)
+    # the structured-light sequence is not one image at a position: the station shows it (procam session
+    # --projector-pattern structured), so it is not offered here
+    p.add_argument("--pattern", choices=[k for k in choices(PatternKind) if k != PatternKind.STRUCTURED.value],
+                   default=PatternKind.CIRCLES)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--position", type=_types.int_range(0, 999), default=0, metavar="K",
                    help="pattern position (0-based, default 0)")

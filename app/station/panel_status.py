@@ -45,9 +45,10 @@ def checklist(m) -> str:
         method = m.mirror_method or "method not chosen"
         lines.append(f"- {mark(MIRROR_CAPTURE)} **Mirror capture** ({method}): "
                      f"**{c['mirror']} / {c['mirror_total'] or '?'}** captures")
+    what = ("placements, each the structured-light sequence" if m.structured else
+            f"captures, {c['positions_done']} / {c['positions']} pattern positions complete")
     lines.append(f"- {mark(PROJECTOR_CAPTURE)} **Projector capture**: **{c['projector']} / {c['projector_total']}** "
-                 f"captures, {c['positions_done']} / {c['positions']} pattern positions complete"
-                 + (" (at most: ends when confident)" if m.plan.stop_on_confidence else ""))
+                 f"{what}" + (" (at most: ends when confident)" if m.plan.stop_on_confidence else ""))
     if m.plan.stop_on_confidence and m.projector_confidence is not None:
         # each 1-sigma the projector step constrains against its target (calib.quality.confidence)
         lines += [f"    - {line}" for line in m.projector_confidence.lines()]
@@ -67,6 +68,7 @@ def checklist(m) -> str:
         ver = "not available"
     lines.append(f"- {mark(VERIFICATION)} **Verification**: {ver}")
     lines.append(f"- {mark(DONE)} **Done**")
+    lines += ["", f"Board placements so far: **{c['placements']}** (each position the board was put in)"]
     return "\n".join(lines)
 
 
