@@ -65,6 +65,7 @@ class CaptureWriter:
         meta = capture_meta(frame, det, decision, how, projector_ticket, operator_pose_index)
         if sequence is not None:
             meta.update({"frame_numbers": list(sequence.frame_numbers), "sequence_s": round(sequence.duration_s, 3),
+                         "sequence_scheduled": int(sequence.scheduled),
                          "motion_px": round(float(sequence.motion_px), 4)})
         cap = self.machine.record_capture(frame.image, meta, frames=None if sequence is None else sequence.frames)
         self.log(f"captured {cap.id}: {self.describe(cap)}")

@@ -31,6 +31,22 @@ STATION_SPEC = StructuredLightSpec()
 MAX_FRAMES_PER_IMAGE = 30
 
 
+def _exposure_s(frame, period_s: float) -> float:
+    """A frame's exposure time (its meta's `exposure_us`; a whole period when the driver does not say)."""
+    us = frame.meta.get("exposure_us") if isinstance(frame.meta, dict) else None
+    return float(us) * 1e-6 if isinstance(us, (int, float)) and us > 0 else period_s
+
+
+def _visible(projector, ticket) -> float | None:
+    """When the image of an already shown ticket became visible; None if it never was."""
+    from drivers.errors import DeviceError
+
+    try:
+        return projector.wait_presented(ticket, timeout_s=0.5)
+    except DeviceError:
+        return None
+
+
 def is_structured(manifest) -> bool:
     return getattr(manifest.pattern, "kind", None) == PatternKind.STRUCTURED.value
 
@@ -76,6 +92,7 @@ class SequenceResult:
     frame_numbers: tuple[int, ...] = ()
     motion_px: float | None = None
     duration_s: float = 0.0  # from the first image shown to the last frame (the rig's clock)
+    scheduled: int = 0  # images captured on the schedule of frame periods (the others shown one by one)
     refused: str | None = None
 
 
@@ -86,6 +103,7 @@ class SequenceCapture:
         self.station = station
         self.spec = spec
         self._images: list[np.ndarray] | None = None
+        self.pipelined = 0  # images of the last sequence captured on the schedule (the rest one by one)
 
     def images(self) -> list[np.ndarray]:
         if self._images is None:
@@ -107,6 +125,59 @@ class SequenceCapture:
                 return frame
         return None
 
+    def _pipelined(self, first_frame, images) -> list:
+        """Show the images on a schedule of whole frame periods, without waiting each one's latency:
+        image k is kept from the first frame whose exposure lies wholly inside the time it is visible (the
+        projector's own presentation times, read once the schedule is through). Images left without
+        such a frame are None (a camera that cannot time its frames: all of them)."""
+        st = self.station
+        fs, clock, projector = st.frames, st.clock, st.rig.projector
+        n = len(images)
+        got: list = [first_frame] + [None] * (n - 1)
+        probe = fs.grab()
+        if probe is None or first_frame.exposure_start_s is None or probe.exposure_start_s is None \
+                or probe.frame_number <= first_frame.frame_number:
+            return got
+        period = (probe.exposure_start_s - first_frame.exposure_start_s) / (probe.frame_number - first_frame.frame_number)
+        exposure = _exposure_s(probe, period)
+        # each image held two frame periods (three when the exposure is long): the first frame starting
+        # after it is visible ends before the next image is
+        hold = (2 if exposure <= 0.75 * period else 3) * period
+        tickets = [None] * n
+        shown_at = [None] * n
+        tickets[1], shown_at[1] = projector.show(images[1]), clock.now()
+        st.shown_ticket = tickets[1]
+        latency = projector.wait_presented(tickets[1], timeout_s=st.options.frame_timeout_s) - shown_at[1]
+        margin = 0.25 * period
+        k_show, t_next = 2, shown_at[1] + hold
+        while True:
+            if k_show < n and clock.now() >= t_next:
+                tickets[k_show], shown_at[k_show] = projector.show(images[k_show]), clock.now()
+                st.shown_ticket = tickets[k_show]
+                t_next = shown_at[k_show] + hold
+                k_show += 1
+                continue
+            frame = fs.grab()
+            if frame is None or frame.exposure_start_s is None:
+                break
+            start = frame.exposure_start_s
+            for k in range(1, k_show):  # the image this frame should show, by the expected times
+                until = shown_at[k + 1] + latency if k + 1 < k_show else shown_at[k] + latency + hold
+                if got[k] is None and start >= shown_at[k] + latency + margin and start + exposure <= until - margin:
+                    got[k] = frame
+            if k_show >= n and (got[n - 1] is not None or start > shown_at[n - 1] + latency + 2 * hold):
+                break
+        # the projector's own times: a frame counts only wholly inside its image's visible time
+        visible = [None] + [_visible(projector, t) for t in tickets[1:]]
+        for k in range(1, n):
+            f = got[k]
+            if f is None:
+                continue
+            end_ok = k + 1 >= n or (visible[k + 1] is not None and f.exposure_start_s + _exposure_s(f, period) <= visible[k + 1])
+            if visible[k] is None or f.exposure_start_s < visible[k] or not end_ok:
+                got[k] = None
+        return got
+
     def run(self, first_frame) -> SequenceResult:
         """Capture the sequence, `first_frame` (a frame accepted while the white image was shown) its
         opening frame; refuse it when a frame does not arrive or the board moved."""
@@ -115,11 +186,13 @@ class SequenceCapture:
 
         st = self.station
         t0 = st.clock.now()
-        frames, numbers = [first_frame.image], [first_frame.frame_number]
         images = self.images()
+        got = self._pipelined(first_frame, images)
+        self.pipelined = sum(f is not None for f in got[1:])
+        frames, numbers = [first_frame.image], [first_frame.frame_number]
         for k, image in enumerate(images[1:], start=2):
-            visible = st._show(image)
-            frame = self._frame_of(visible)
+            # an image the schedule left without a frame wholly inside its time: shown alone and waited for
+            frame = got[k - 1] or self._frame_of(st._show(image))
             if frame is None:
                 st._shown = None
                 return SequenceResult(refused=f"no camera frame for image {k} of {len(images)} of the sequence; "
@@ -138,4 +211,4 @@ class SequenceCapture:
             return SequenceResult(motion_px=float(moved), duration_s=duration,
                                   refused=f"the board moved during the sequence ({how} between its opening and "
                                           "closing white frames): hold it still for this placement again")
-        return SequenceResult(tuple(frames), tuple(numbers), float(moved), duration)
+        return SequenceResult(tuple(frames), tuple(numbers), float(moved), duration, self.pipelined)
