@@ -17,6 +17,7 @@ simulate --projector-pattern structured` does. A capture records its slot in met
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,15 +141,20 @@ class SequenceCapture:
             return got
         period = (probe.exposure_start_s - first_frame.exposure_start_s) / (probe.frame_number - first_frame.frame_number)
         exposure = _exposure_s(probe, period)
-        # each image held two frame periods (three when the exposure is long): the first frame starting
-        # after it is visible ends before the next image is
-        hold = (2 if exposure <= 0.75 * period else 3) * period
+        refresh = 1.0 / max(float(getattr(projector, "refresh_hz", 60.0) or 60.0), 1.0)
+        # the projector's latency as measured (settle_s) errs long, never short, by up to about a refresh
+        # period or two: a frame must end that much before the next image's measured time (the sequential
+        # capture never meets the next image, so it does not care)
+        guard = 2.0 * refresh
+        # each image held whole frame periods: the first frame starting after it is visible ends, with the
+        # guard, before the next image is
+        hold = period * math.ceil((period + exposure + guard) / period - 1e-6)
         tickets = [None] * n
         shown_at = [None] * n
         tickets[1], shown_at[1] = projector.show(images[1]), clock.now()
         st.shown_ticket = tickets[1]
         latency = projector.wait_presented(tickets[1], timeout_s=st.options.frame_timeout_s) - shown_at[1]
-        margin = 0.25 * period
+        margin = 0.5 * refresh  # the expected times ignore each presentation's wait for its refresh
         k_show, t_next = 2, shown_at[1] + hold
         while True:
             if k_show < n and clock.now() >= t_next:
@@ -163,7 +169,7 @@ class SequenceCapture:
             start = frame.exposure_start_s
             for k in range(1, k_show):  # the image this frame should show, by the expected times
                 until = shown_at[k + 1] + latency if k + 1 < k_show else shown_at[k] + latency + hold
-                if got[k] is None and start >= shown_at[k] + latency + margin and start + exposure <= until - margin:
+                if got[k] is None and start >= shown_at[k] + latency + margin and start + exposure <= until - guard:
                     got[k] = frame
             if k_show >= n and (got[n - 1] is not None or start > shown_at[n - 1] + latency + 2 * hold):
                 break
@@ -173,7 +179,8 @@ class SequenceCapture:
             f = got[k]
             if f is None:
                 continue
-            end_ok = k + 1 >= n or (visible[k + 1] is not None and f.exposure_start_s + _exposure_s(f, period) <= visible[k + 1])
+            end_ok = k + 1 >= n or (visible[k + 1] is not None
+                                    and f.exposure_start_s + _exposure_s(f, period) <= visible[k + 1] - guard)
             if visible[k] is None or f.exposure_start_s < visible[k] or not end_ok:
                 got[k] = None
         return got
