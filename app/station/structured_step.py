@@ -155,24 +155,34 @@ class SequenceCapture:
         st.shown_ticket = tickets[1]
         latency = projector.wait_presented(tickets[1], timeout_s=st.options.frame_timeout_s) - shown_at[1]
         margin = 0.5 * refresh  # the expected times ignore each presentation's wait for its refresh
-        k_show, t_next = 2, shown_at[1] + hold
-        while True:
+        k_show, t_next, k_want = 2, shown_at[1] + hold, 1
+
+        def first_starting_after(t: float) -> int:  # frame numbers follow the camera's period
+            return probe.frame_number + math.ceil((t - probe.exposure_start_s) / period - 1e-9)
+
+        while k_want < n:
             if k_show < n and clock.now() >= t_next:
                 tickets[k_show], shown_at[k_show] = projector.show(images[k_show]), clock.now()
                 st.shown_ticket = tickets[k_show]
                 t_next = shown_at[k_show] + hold
                 k_show += 1
                 continue
+            # only the frame each image needs is read (the others are never asked of the camera), and
+            # only when it arrives before the next image is due
+            number = max(first_starting_after(shown_at[k_want] + latency + margin), fs.last_frame + 1)
+            arrives = probe.exposure_start_s + (number - probe.frame_number + 1) * period
+            if k_want >= k_show or (k_show < n and arrives > t_next):
+                clock.sleep(max(0.0, t_next - clock.now()))
+                continue
+            fs.seen(number - 1)
             frame = fs.grab()
             if frame is None or frame.exposure_start_s is None:
                 break
             start = frame.exposure_start_s
-            for k in range(1, k_show):  # the image this frame should show, by the expected times
-                until = shown_at[k + 1] + latency if k + 1 < k_show else shown_at[k] + latency + hold
-                if got[k] is None and start >= shown_at[k] + latency + margin and start + exposure <= until - guard:
-                    got[k] = frame
-            if k_show >= n and (got[n - 1] is not None or start > shown_at[n - 1] + latency + 2 * hold):
-                break
+            until = shown_at[k_want + 1] + latency if k_want + 1 < k_show else shown_at[k_want] + latency + hold
+            if start >= shown_at[k_want] + latency + margin - 1e-9 and start + exposure <= until - guard:
+                got[k_want] = frame
+            k_want += 1
         # the projector's own times: a frame counts only wholly inside its image's visible time
         visible = [None] + [_visible(projector, t) for t in tickets[1:]]
         for k in range(1, n):
