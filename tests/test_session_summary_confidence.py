@@ -12,9 +12,10 @@ from calib.quality.confidence import Confidence, Quantity
 
 def _machine(plan, conf):
     counts = {"mirror": 3, "mirror_total": 3, "mirror_other": 0, "projector": 9, "projector_total": 13,
-              "positions_done": 0, "positions": 13}
+              "positions_done": 0, "positions": 13, "placements": 12}
     return SimpleNamespace(plan=plan, projector_confidence=conf, counts=lambda: counts, mirror_method="real-virtual",
-                           result=None, report=None, state="calibration", busy=None)
+                           result=None, report=None, state="calibration", busy=None, structured=False,
+                           mirror_captures=lambda: [], captures_of=lambda step: [])
 
 
 def _conf(sigma):
@@ -37,3 +38,4 @@ def test_a_fixed_plan_prints_the_captures_only(tmp_path, monkeypatch):
     monkeypatch.setattr(S, "STATE", lambda m: "calibration")
     text = summary(_machine(Plan(poses_per_position=1), _conf(0.2)), tmp_path, 1.0)
     assert "projector 9 at 0/13 pattern positions" in text and "at most" not in text
+    assert "placements: 12 (the board's positions: mirror 0, projector 0)" in text  # counts() and the steps' own

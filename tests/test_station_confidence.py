@@ -96,13 +96,14 @@ def test_the_checklist_shows_each_1_sigma_against_its_target():
     class M(SimpleNamespace):
         def counts(self):
             return {"mirror": 5, "mirror_total": 5, "projector": 9, "projector_total": 52, "positions_done": 0,
-                    "positions": 13}
+                    "positions": 13, "placements": 14}
 
         def why_not(self, _action):
             return None
 
     m = M(state=PROJECTOR_CAPTURE, rig_checks=(), direct=False, mirror_method="real-virtual", result=None,
-          result_stale=False, camera_intrinsics=None, busy=None, report=None, plan=PLAN, projector_confidence=conf)
+          result_stale=False, camera_intrinsics=None, busy=None, report=None, plan=PLAN, projector_confidence=conf,
+          structured=False)
     text = checklist(m)
     assert "9 / 52" in text and "ends when confident" in text
     assert "projector position: 0.21 mm (target 0.48)" in text
