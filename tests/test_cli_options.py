@@ -53,6 +53,7 @@ NUMBERS = [
     (["station", "--port", "http"], "--port"),
     (["session", "--rig", "sim", "--auto", "--mirror-captures", "-1"], "--mirror-captures"),
     (["session", "--rig", "sim", "--auto", "--poses-per-position", "0"], "--poses-per-position"),
+    (["session", "--rig", "sim", "--auto", "--projector-pattern", "structured", "--placements", "0"], "--placements"),
     (["simulate", "direct", "--blur", "nan"], "--blur"),
     (["simulate", "direct", "--shot", "nan"], "--shot"),
     (["simulate", "direct", "--noise", "nan"], "--noise"),
@@ -67,6 +68,15 @@ def test_absurd_numbers_are_refused_naming_the_option_before_any_folder(tmp_path
     folder_opt = {"station": "--session", "session": "--out", "simulate": "--out"}[args[0]]
     line = refused(*args, folder_opt, str(out))
     assert f"argument {option}: must be" in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command, folder_opt", [("session", "--out"), ("simulate", "--out")])
+def test_placements_without_the_structured_step_are_refused_before_any_folder(tmp_path, command, folder_opt):
+    out = tmp_path / "new"
+    args = [command, "--rig", "sim", "--auto"] if command == "session" else [command, "direct"]
+    line = refused(*args, "--placements", "4", folder_opt, str(out))
+    assert "--placements counts structured-light placements: give it with --projector-pattern structured" in line
     assert not out.exists()
 
 
