@@ -80,6 +80,13 @@ def test_placements_without_the_structured_step_are_refused_before_any_folder(tm
     assert not out.exists()
 
 
+def test_a_recalibration_refuses_the_structured_step(session, tmp_path):
+    out = tmp_path / "new"
+    line = refused("station", "--recalibrate", str(session), "--projector-pattern", "structured",
+                   "--session", str(out), "--port", "0")
+    assert "a recalibration re-measures with the circle step" in line and not out.exists()
+
+
 def test_verify_seed_names_the_option(session):
     line = refused("verify", str(session), "--seed", "-1")
     assert "argument --seed: must be a whole number from 0" in line

@@ -93,6 +93,11 @@ def run(args) -> int:
         args.rig = kind
     args.out = args.session
     if args.recalibrate:
+        if args.projector_pattern is not None or args.placements is not None:
+            from calib.errors import SpecError
+
+            raise SpecError("--projector-pattern and --placements start a new session's projector step; a "
+                            "recalibration re-measures with the circle step (docs/STRUCTURED_LIGHT.md, not yet done)")
         return run_recalibration_mode(args, kind, defaulted)
     rig, store, machine, req = open_session(args, print)
     from drivers.factory import is_simulated
