@@ -159,3 +159,26 @@ def test_the_structured_step_stops_when_confident(tmp_path, monkeypatch):
     assert [k for k, _ in seen] == list(range(1, n + 1))
     assert seen[-1][1] and not any(ok for k, ok in seen[:-1] if k >= plan.min_structured_placements)
     assert any("projector step confident after s" in ln for ln in lines)
+
+
+def test_a_sequence_killed_before_it_was_written_is_asked_again_on_resume(tmp_path):
+    """A kill during a sequence leaves at most frames no manifest names: the resumed session asks for that
+    placement again and never overwrites them."""
+    plan = Plan(real_virtual_captures=3, min_real_virtual=3, structured_placements=3, min_structured_placements=1)
+    rig, m, st, lines = _station(tmp_path, plan)
+    _tick_until(st, lambda: len(m.captures_of(STEP_PROJECTOR)) == 1, max_ticks=300)
+    first = m.captures_of(STEP_PROJECTOR)[0]
+    images = m.store.folder / "images"
+    orphans = [images / f"s0001-f{k:02d}.png" for k in range(5)]  # the killed sequence's partial write
+    for p in orphans:
+        p.write_bytes((images / "s0000-f00.png").read_bytes())
+    st.stop_loop()
+    resumed = make_machine(m.store, rig, plan, resume=True)
+    assert resumed.state == PROJECTOR_CAPTURE and len(resumed.captures_of(STEP_PROJECTOR)) == 1
+    tgt = resumed.target
+    assert (tgt.pattern_position, tgt.pose_index) == placement_order(m.positions, 1)[1] != slot_of(first)
+    st2 = Station(rig, resumed, StationOptions(auto=True), log=lines.append)
+    _tick_until(st2, lambda: len(resumed.captures_of(STEP_PROJECTOR)) == 2, max_ticks=300)
+    second = resumed.captures_of(STEP_PROJECTOR)[1]
+    assert second.id == "s0002" and slot_of(second) == (tgt.pattern_position, tgt.pose_index)
+    assert all(p.exists() for p in orphans)  # the partial write is left as it was, never reused
