@@ -237,3 +237,26 @@ def live_image_updates(page, n=3):
 
     until(updated, every_s=0.02)
     return seen
+
+
+def station_on_sim(folder, plan, *, projector_pattern=None, rig_options=None, scenario="nonoverlap-136", seed=0,
+                   **station_options):
+    """A new session in `folder` on the simulated rig (by default nonoverlap-136, seed 0) and the Station
+    driving it: (rig, machine, station, the station's log lines)."""
+    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
+    from app.station.station import Station, StationOptions
+
+    req = RigRequest("sim", scenario, seed)
+    rig = open_requested_rig(req, **(rig_options or {}))
+    m = make_machine(create_session(folder, rig, req, plan, projector_pattern=projector_pattern), rig, plan)
+    lines = []
+    return rig, m, Station(rig, m, StationOptions(**station_options), log=lines.append), lines
+
+
+def tick_until(st, cond, max_ticks: int) -> None:
+    """Tick the station until `cond()` holds; fails after `max_ticks` ticks (frames, not seconds)."""
+    for _ in range(max_ticks):
+        if cond():
+            return
+        st.tick()
+    raise AssertionError(f"not reached in {max_ticks} ticks; state {st.machine.state}")

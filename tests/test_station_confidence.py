@@ -7,11 +7,9 @@ import pytest
 
 import calib.quality.confidence as C
 from app.station.machine import CALIBRATION, PROJECTOR_CAPTURE, Plan
-from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
-from app.station.station import Station, StationOptions
 from calib.formats.session_files import CALIBRATION as CALIBRATION_FILE, GROUND_TRUTH
 from calib.models.observations import STEP_PROJECTOR
-from _station_helpers import assert_within_its_uncertainty
+from _station_helpers import assert_within_its_uncertainty, station_on_sim, tick_until
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
@@ -20,20 +18,7 @@ PLAN = Plan(poses_per_position=4, real_virtual_captures=5, min_real_virtual=3, m
 
 
 def _station(tmp_path, plan=PLAN):
-    req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_requested_rig(req)
-    store = create_session(tmp_path / "s", rig, req, plan)
-    m = make_machine(store, rig, plan)
-    lines = []
-    return rig, m, Station(rig, m, StationOptions(auto=True), log=lines.append), lines
-
-
-def _tick_until(st, cond, max_ticks):
-    for _ in range(max_ticks):
-        if cond():
-            return
-        st.tick()
-    raise AssertionError(f"not reached in {max_ticks} ticks; state {st.machine.state}")
+    return station_on_sim(tmp_path / "s", plan, auto=True)
 
 
 def test_the_projector_step_ends_at_its_first_confident_capture(tmp_path, monkeypatch):
@@ -48,7 +33,7 @@ def test_the_projector_step_ends_at_its_first_confident_capture(tmp_path, monkey
         real(conf)
 
     monkeypatch.setattr(m, "set_projector_confidence", recording)
-    _tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=900)
+    tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=900)
     caps = m.captures_of(STEP_PROJECTOR)
     n = len(caps)
     assert PLAN.min_projector_captures <= n < m.projector_total  # stopped before the plan's 52
@@ -72,8 +57,8 @@ def test_without_confidence_the_step_takes_every_capture_it_plans(tmp_path, monk
     plan = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, min_projector_captures=6,
                 stop_on_confidence=True)
     rig, m, st, lines = _station(tmp_path, plan)
-    _tick_until(st, lambda: m.state == PROJECTOR_CAPTURE, max_ticks=300)
-    _tick_until(st, lambda: m.state == CALIBRATION, max_ticks=600)
+    tick_until(st, lambda: m.state == PROJECTOR_CAPTURE, max_ticks=300)
+    tick_until(st, lambda: m.state == CALIBRATION, max_ticks=600)
     assert len(m.captures_of(STEP_PROJECTOR)) == m.projector_total == 13
     assert m.projector_confidence is not None and not m.projector_confidence.all_met
     assert any("not yet" in ln for ln in lines if ln.startswith("projector step after"))

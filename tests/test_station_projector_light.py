@@ -3,21 +3,14 @@ simulated rig, its projector blanked (SimProjector.blank) while it shows the pat
 
 from app.station.machine import Plan
 from app.station.projector_light import BACK_MESSAGE, LOST_MESSAGE, ProjectorLightWatch
-from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
-from app.station.station import Station, StationOptions
 from calib.models.observations import STEP_PROJECTOR
-from _station_helpers import tick_until_projector_captures
+from _station_helpers import station_on_sim, tick_until_projector_captures
 
 SMALL = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, min_projector_captures=6)
 
 
 def _station(tmp_path, **opts):
-    req = RigRequest("sim", "nonoverlap-136", 0)
-    rig = open_requested_rig(req)
-    m = make_machine(create_session(tmp_path / "s", rig, req, SMALL), rig, SMALL)
-    lines = []
-    st = Station(rig, m, StationOptions(**opts), log=lines.append)
-    return rig, m, st, lines
+    return station_on_sim(tmp_path / "s", SMALL, **opts)
 
 
 def _ticks(st, n):

@@ -259,7 +259,7 @@ class Station:
         target = self.machine.target
         if self.machine.structured and target is not None and target.step == STEP_PROJECTOR:
             # the whole coded sequence while the board stands still
-            sequence = self.sequence.run(frame)
+            sequence = self.sequence.run(frame, det.board)
             if sequence.refused is not None:
                 self.log(f"placement refused: {sequence.refused}")
                 self.machine.log(f"placement refused: {sequence.refused}")

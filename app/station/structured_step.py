@@ -104,7 +104,6 @@ class SequenceCapture:
         self.station = station
         self.spec = spec
         self._images: list[np.ndarray] | None = None
-        self.pipelined = 0  # images of the last sequence captured on the schedule (the rest one by one)
 
     def images(self) -> list[np.ndarray]:
         if self._images is None:
@@ -146,15 +145,16 @@ class SequenceCapture:
         # period or two: a frame must end that much before the next image's measured time (the sequential
         # capture never meets the next image, so it does not care)
         guard = 2.0 * refresh
-        # each image held whole frame periods: the first frame starting after it is visible ends, with the
-        # guard, before the next image is
-        hold = period * math.ceil((period + exposure + guard) / period - 1e-6)
+        margin = 0.5 * refresh  # the expected times ignore each presentation's wait for its refresh
+        # each image held whole frame periods: the first frame starting `margin` after it is visible ends,
+        # with the guard, before the next image is (the schedule keeps the frames' phase, so a hold that
+        # misses once misses every image)
+        hold = period * math.ceil((period + margin + exposure + guard) / period - 1e-6)
         tickets = [None] * n
         shown_at = [None] * n
         tickets[1], shown_at[1] = projector.show(images[1]), clock.now()
         st.shown_ticket = tickets[1]
         latency = projector.wait_presented(tickets[1], timeout_s=st.options.frame_timeout_s) - shown_at[1]
-        margin = 0.5 * refresh  # the expected times ignore each presentation's wait for its refresh
         k_show, t_next, k_want = 2, shown_at[1] + hold, 1
 
         def first_starting_after(t: float) -> int:  # frame numbers follow the camera's period
@@ -195,17 +195,18 @@ class SequenceCapture:
                 got[k] = None
         return got
 
-    def run(self, first_frame) -> SequenceResult:
-        """Capture the sequence, `first_frame` (a frame accepted while the white image was shown) its
-        opening frame; refuse it when a frame does not arrive or the board moved."""
+    def run(self, first_frame, first_board) -> SequenceResult:
+        """Capture the sequence, `first_frame` (a frame accepted while the white image was shown, its
+        board `first_board` as detected live) its opening frame; refuse it when a frame does not arrive
+        or the board moved."""
         from calib.detection.detect import detect_board
-        from calib.detection.structured_view import MAX_MOTION_PX, board_motion_px
+        from calib.detection.structured_view import board_motion_px, motion_refusal
 
         st = self.station
         t0 = st.clock.now()
         images = self.images()
         got = self._pipelined(first_frame, images)
-        self.pipelined = sum(f is not None for f in got[1:])
+        scheduled = sum(f is not None for f in got[1:])
         frames, numbers = [first_frame.image], [first_frame.frame_number]
         for k, image in enumerate(images[1:], start=2):
             # an image the schedule left without a frame wholly inside its time: shown alone and waited for
@@ -219,13 +220,9 @@ class SequenceCapture:
         duration = st.clock.now() - t0
         st._shown = None  # the white image again for the next placement
         man = st.machine.manifest
-        mirrored = man.rig.view == VIEW_MIRROR
-        first = detect_board(frames[0], man.projector_board, mirrored)
-        last = detect_board(frames[-1], man.projector_board, mirrored)
-        moved = board_motion_px(first, last)
-        if not moved <= MAX_MOTION_PX:
-            how = "out of view" if not np.isfinite(moved) else f"by {moved:.1f} px"
-            return SequenceResult(motion_px=float(moved), duration_s=duration,
-                                  refused=f"the board moved during the sequence ({how} between its opening and "
-                                          "closing white frames): hold it still for this placement again")
-        return SequenceResult(tuple(frames), tuple(numbers), float(moved), duration, self.pipelined)
+        last = detect_board(frames[-1], man.projector_board, man.rig.view == VIEW_MIRROR)
+        moved = board_motion_px(first_board, last)
+        refused = motion_refusal(moved)
+        if refused is not None:
+            return SequenceResult(motion_px=float(moved), duration_s=duration, refused=refused)
+        return SequenceResult(tuple(frames), tuple(numbers), float(moved), duration, scheduled)

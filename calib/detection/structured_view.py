@@ -96,6 +96,15 @@ def board_motion_px(first, last) -> float:
     return float(np.hypot(d[:, 0], d[:, 1]).max())
 
 
+def motion_refusal(moved_px: float) -> str | None:
+    """Why a sequence whose board moved by `moved_px` (board_motion_px) is refused; None when it held still."""
+    if moved_px <= MAX_MOTION_PX:
+        return None
+    how = "out of view" if not np.isfinite(moved_px) else f"by {moved_px:.1f} px"
+    return (f"the board moved during the sequence ({how} between its first and last white frames): hold it "
+            "still and capture this placement again")
+
+
 def lit_share_of(decoded: DecodedMap, corners_px: np.ndarray, min_contrast: float = MIN_CONTRAST) -> float:
     """Share of the image area inside the convex hull of the ChArUco corners that the projector lights:
     `lit` (median-filtered over 5 x 5, so that no noise spike counts) above `min_contrast`, with the holes
@@ -135,11 +144,9 @@ def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec
     obs = detect_board(images[0], board, mirrored, min_corners, response)
     if not obs:
         return DetectionFailure(f"board not found in the sequence's white frame ({obs.reason})")
-    moved = board_motion_px(obs, detect_board(images[-1], board, mirrored, min_corners, response))
-    if not moved <= MAX_MOTION_PX:
-        how = "out of view" if not np.isfinite(moved) else f"by {moved:.1f} px"
-        return DetectionFailure(f"the board moved during the sequence ({how} between its first and last white "
-                                f"frames): hold it still and capture this pose again")
+    moved = motion_refusal(board_motion_px(obs, detect_board(images[-1], board, mirrored, min_corners, response)))
+    if moved is not None:
+        return DetectionFailure(moved)
     n_valid = decoded.counts["valid"]
     if n_valid == 0:
         c = decoded.counts
