@@ -93,3 +93,89 @@ def test_the_checklist_shows_each_1_sigma_against_its_target():
     assert "9 / 52" in text and "ends when confident" in text
     assert "projector position: 0.21 mm (target 0.48)" in text
     assert "projector orientation: 0.05 deg (target 0.0385) not yet" in text
+
+
+def _conf(step, met: bool):
+    from calib.quality.confidence import Quantity
+
+    key, label = ("mirror_normal_deg", "mirror normal") if step != STEP_PROJECTOR else ("t_mm", "projector position")
+    return C.Confidence(step, (Quantity(key, label, "deg", 0.001 if met else 1.0, 0.01),))
+
+
+def test_the_mirror_step_takes_its_first_captures_then_more_after_the_projector_step_until_confident(tmp_path):
+    """The machine alone (fake confidences): the mirror step's first `mirror_first` captures, then the
+    projector step, then mirror captures while the normal is not confident, at most the plan's count."""
+    from app.station.machine import MIRROR_CAPTURE, SessionMachine
+    from app.station.wording import instruction
+    from calib.models.observations import STEP_REAL_VIRTUAL
+    from _station_helpers import TINY, make_store
+    from test_station_machine import OK
+
+    plan = Plan(poses_per_position=1, real_virtual_captures=8, min_real_virtual=3, min_projector_captures=3,
+                stop_on_confidence=True, mirror_first=4)
+    m = SessionMachine(make_store(tmp_path / "s", "mirror", 5), plan, calibrate_fn=lambda *a: None)
+    m.start_session(OK)
+    m.choose_mirror_method("real-virtual")
+    for _ in range(4):
+        assert m.target is not None and m.target.step == STEP_REAL_VIRTUAL
+        assert "of at most 8" in instruction(m, None, None, "")
+        m.record_capture(TINY)
+    # four taken: the projector step next, whatever the (unknown) confidence
+    assert m.target is None and not m.more_mirror_wanted()
+    assert "projector" in instruction(m, None, None, "")
+    m.proceed()
+    for _ in range(3):
+        m.record_capture(TINY)
+    m.set_projector_confidence(_conf(STEP_PROJECTOR, True))
+    m.set_mirror_confidence(_conf(STEP_REAL_VIRTUAL, False))
+    # the projector step is confident; the mirror normal is not: more mirror captures are asked for
+    assert m.target is None and m.more_mirror_wanted()
+    assert "Press 'Back' for more mirror captures" in instruction(m, None, None, "")
+    m.go_back()
+    assert m.state == MIRROR_CAPTURE and m.target is not None and m.target.pose_index == 4
+    m.record_capture(TINY)
+    m.set_mirror_confidence(_conf(STEP_REAL_VIRTUAL, True))
+    assert m.target is None and not m.more_mirror_wanted()
+    assert "confident after 5 mirror captures" in instruction(m, None, None, "")
+    m.proceed()
+    assert m.state == PROJECTOR_CAPTURE and m.target is None
+    # never confident: the plan's count is the maximum
+    m.go_back()
+    m.set_mirror_confidence(_conf(STEP_REAL_VIRTUAL, False))
+    while m.target is not None:
+        m.record_capture(TINY)
+    assert len(m.captures_of(STEP_REAL_VIRTUAL)) == 8
+    m.proceed()
+    assert m.target is None and not m.more_mirror_wanted()
+    # without stopping on confidence the mirror step takes all its captures before the projector step
+    assert Plan(real_virtual_captures=8, mirror_first=4).mirror_before_projector("real-virtual") == 8
+
+
+def test_a_station_goes_back_to_the_mirror_step_while_the_mirror_normal_is_not_confident(tmp_path, monkeypatch):
+    """The simulated station, stopping on confidence: the mirror step's first captures, the projector step
+    until it is confident, then mirror captures again because the normal's target (made unreachable here)
+    is not met, up to the plan's count; then the session calibrates."""
+    from calib.models.observations import STEP_REAL_VIRTUAL
+
+    monkeypatch.setattr(C, "TARGET_FRACTION", 0.3)
+    real_targets = C.targets
+
+    def mirror_unreachable(step, fraction=None, thresholds=None):
+        goal = real_targets(step, fraction, thresholds)
+        return {k: (1e-9 if k == "mirror_normal_deg" else v) for k, v in goal.items()}
+
+    monkeypatch.setattr(C, "targets", mirror_unreachable)
+    plan = Plan(poses_per_position=2, real_virtual_captures=6, min_real_virtual=3, min_projector_captures=6,
+                stop_on_confidence=True, mirror_first=3)
+    rig, m, st, lines = _station(tmp_path, plan)
+    tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=1500)
+    steps = [c.step for c in m.manifest.captures]
+    n_proj = steps.count(STEP_PROJECTOR)
+    assert plan.min_projector_captures <= n_proj < m.projector_total  # the projector step stopped when confident
+    assert steps == [STEP_REAL_VIRTUAL] * 3 + [STEP_PROJECTOR] * n_proj + [STEP_REAL_VIRTUAL] * 3
+    assert any(ln.startswith("mirror step again: mirror normal") for ln in lines)
+    assert m.mirror_confidence is not None and not m.mirror_confidence.all_met
+    # each mirror capture after the projector step was judged, and the projector step stayed confident
+    assert sum(ln.startswith("mirror step after mrv") for ln in lines) == 3
+    assert m.projector_confidence.all_met
+    assert_within_its_uncertainty(m.store.folder) if (m.store.folder / GROUND_TRUTH).exists() else None

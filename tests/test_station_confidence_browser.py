@@ -3,13 +3,16 @@ playwright): a simulated station stopping on confidence (--stop-on-confidence, -
 pattern position, 3 mirror captures) judges the step after each detected projector capture; once the
 step has ended and the session is calibrated, the panel's checklist shows every quantity the step
 constrains with a measured 1-sigma and its target, which must be calib.quality.confidence's targets and
-the 1-sigmas of the calibration of the same captures (calibration.json)."""
+the 1-sigmas of the calibration of the same captures (calibration.json); the mirror step's normal the
+same way, and the board placements session.json records."""
 
 import re
 
 import pytest
 from playwright.sync_api import expect, sync_playwright
 
+from calib.formats.session import SessionStore
+from calib.formats.session_captures import placements
 from calib.formats.session_files import CALIBRATION
 from calib.models.result import CalibrationResult
 from calib.models.vocab import Step
@@ -53,6 +56,14 @@ def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(t
                 expect(node).to_be_visible()
                 m = re.search(pattern, node.inner_text())
                 shown[key] = m.groups()
+            # the mirror step's own quantity, judged by the same calibrations, and the board placements
+            mirror_pattern = LINE.format(label="mirror normal", unit="deg")
+            node = page.get_by_text(re.compile(mirror_pattern)).first
+            expect(node).to_be_visible()
+            shown_mirror = re.search(mirror_pattern, node.inner_text()).groups()
+            node = page.get_by_text(re.compile(r"Board placements so far: [0-9]+")).first
+            expect(node).to_be_visible()
+            shown_placements = int(re.search(r"Board placements so far: ([0-9]+)", node.inner_text()).group(1))
             page.screenshot(path=str(tmp_path / "confidence.png"))
             browser.close()
     finally:
@@ -67,3 +78,9 @@ def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(t
     expected = {q.key: q.line() for q in confidence_of(result, Step.PROJECTOR).quantities}
     for key, (label, sigma, unit, target, not_yet) in shown.items():
         assert expected[key] == f"{label}: {sigma} {unit} (target {target}){not_yet or ''}", (key, expected[key])
+    label, sigma, unit, target, not_yet = shown_mirror
+    mirror = confidence_of(result, Step.REAL_VIRTUAL).quantities[0]
+    assert mirror.line() == f"{label}: {sigma} {unit} (target {target}){not_yet or ''}", mirror.line()
+    # one placement per capture of this circle session: the count session.json's captures give
+    store = SessionStore.open(folder)
+    assert shown_placements == placements(store.manifest.captures) == len(store.manifest.captures)

@@ -122,8 +122,9 @@ def add_rig_options(p) -> None:
                    help="mirror captures to take, %d to %d (default 14, as in the published ProcamCalib "
                         "recordings)" % MIRROR_CAPTURES)
     p.add_argument("--stop-on-confidence", action="store_true", default=None,
-                   help="end the projector step once its 1-sigmas meet their targets (docs/CALIBRATION.md); "
-                        "the plan's counts are then maximums")
+                   help="end each capture step once its 1-sigmas meet their targets (docs/CALIBRATION.md): "
+                        "5 mirror captures, the projector step, then mirror captures until the mirror normal is "
+                        "confident; the plan's counts are then maximums")
     add_projector_pattern_options(p, "pose")
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")

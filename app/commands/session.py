@@ -163,6 +163,15 @@ def _projector_limit(machine, c) -> str:
     return f"of at most {c['projector_total']} ({why}) "
 
 
+def _mirror_limit(machine, c) -> str:
+    """The summary's words on the mirror step's count when it stops on confidence."""
+    if not machine.plan.stop_on_confidence or getattr(machine, "direct", False) or not c["mirror_total"]:
+        return ""
+    conf = getattr(machine, "mirror_confidence", None)
+    why = "stopped when confident" if conf is not None and conf.all_met else "not confident"
+    return f" of at most {c['mirror_total']} ({why})"
+
+
 def placement_split(machine) -> str:
     """The placements of each capture step (a structured placement is one however many frames it took)."""
     from calib.formats.session_captures import placements
@@ -180,7 +189,8 @@ def summary(machine, folder, elapsed_s: float) -> str:
     lines.append(f"session {folder}: {STATE(machine)} after {elapsed_s:.1f} s")
     where = ("structured light" if machine.structured else
              f"at {c['positions_done']}/{c['positions']} pattern positions")
-    lines.append(f"  captures: mirror {c['mirror']} ({machine.mirror_method or 'none'}), projector {c['projector']} "
+    lines.append(f"  captures: mirror {c['mirror']}{_mirror_limit(machine, c)} ({machine.mirror_method or 'none'}), "
+                 f"projector {c['projector']} "
                  + _projector_limit(machine, c) + where)
     lines.append(f"  placements: {c['placements']} (the board's positions: {placement_split(machine)})")
     res = machine.result

@@ -137,12 +137,20 @@ class AutoOperator:
         elif s == MIRROR_CAPTURE:
             if m.mirror_method is None:
                 m.choose_mirror_method(self.mirror_method())
-            elif m.target is None:
-                m.proceed()
-        elif s == PROJECTOR_CAPTURE:
+                return
             if m.plan.stop_on_confidence:
                 st.wait_for_detections()  # the next pose only once the last capture's confidence is known
             if m.target is None:
+                m.proceed()
+        elif s == PROJECTOR_CAPTURE:
+            if m.plan.stop_on_confidence:
+                st.wait_for_detections()
+            if m.target is None and m.more_mirror_wanted():
+                # the projector step is done, the mirror normal not yet confident: more mirror placements
+                lines = m.mirror_confidence.lines() if m.mirror_confidence is not None else ["not judged yet"]
+                st.log("mirror step again: " + "; ".join(lines))
+                m.go_back()
+            elif m.target is None:
                 st.run_long("calibrate", st.calibrate)
         elif s == CALIBRATION:
             if m.result is not None and not m.result_stale:

@@ -1,42 +1,66 @@
-"""The projector step's confidence after each of its captures (Plan.stop_on_confidence): the session so
-far calibrated in the station's detection thread, its 1-sigmas against their targets
-(calib.quality.confidence, docs/CALIBRATION.md "Stopping when confident")."""
+"""The capture steps' confidence after each capture (Plan.stop_on_confidence): the session so far
+calibrated in the station's detection thread, the 1-sigmas of the projector step and of the mirror step
+(the mirror normal) against their targets (calib.quality.confidence, docs/CALIBRATION.md "Stopping when
+confident"). One calibration judges both steps: the mirror normal can be judged only once the projector
+step has captures."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
 from calib.errors import ProcamError
+from calib.models.observations import STEP_PROJECTOR
 from calib.models.vocab import Step
 from calib.quality.confidence import Confidence, confidence_of, unconfident
 
 
-def projector_confidence(machine) -> Confidence:
-    """Calibrate the session's captures so far (its kept detections; joint) and judge the projector step."""
+def step_confidences(machine) -> tuple[Confidence, Confidence | None]:
+    """Calibrate the session's captures so far (its kept detections; joint) and judge the projector step
+    and, on a mirror rig, the mirror step."""
     from calib.pipeline import calibrate_session
 
+    from app.station.session_steps import mirror_step
     from app.station.structured_step import min_projector_captures
 
+    mirror = None if machine.direct or machine.mirror_method is None else mirror_step(machine.mirror_method)
     need = min_projector_captures(machine)
-    if len(machine.captures_of(Step.PROJECTOR)) < need:
-        return unconfident(Step.PROJECTOR, f"fewer than {need} projector captures")
-    try:
-        result = calibrate_session(machine.store.folder, camera_intrinsics=machine.intrinsics_path, workers=1)
-    except ProcamError as e:
-        return unconfident(Step.PROJECTOR, str(e).split("\n")[0])
-    return confidence_of(result, Step.PROJECTOR)
+    why = None
+    if len(machine.captures_of(STEP_PROJECTOR)) < need:
+        why = f"fewer than {need} projector captures"
+    else:
+        try:
+            result = calibrate_session(machine.store.folder, camera_intrinsics=machine.intrinsics_path, workers=1)
+        except ProcamError as e:
+            why = str(e).split("\n")[0]
+    if why is not None:
+        return unconfident(Step.PROJECTOR, why), None if mirror is None else unconfident(mirror, why)
+    return confidence_of(result, Step.PROJECTOR), None if mirror is None else confidence_of(result, mirror)
+
+
+def projector_confidence(machine) -> Confidence:
+    """The projector step's confidence on the session's captures so far."""
+    return step_confidences(machine)[0]
 
 
 def update_after(machine, capture_id: str, log: Callable[[str], None]) -> None:
-    """After `capture_id` was detected: the projector step's confidence, when the plan stops on it."""
+    """After `capture_id` was detected: the steps' confidence, when the plan stops on it (a mirror capture
+    is judged once the projector step has its minimum)."""
     if not machine.plan.stop_on_confidence:
         return
     cap = next((c for c in machine.manifest.captures if c.id == capture_id), None)
-    if cap is None or cap.step != Step.PROJECTOR:
+    if cap is None:
         return
-    conf = projector_confidence(machine)
-    machine.set_projector_confidence(conf)
-    if conf.all_met:
-        log(f"projector step confident after {capture_id}: " + "; ".join(conf.lines()))
-    else:
-        log(f"projector step after {capture_id}, " + "; ".join(conf.lines()))
+    from app.station.structured_step import min_projector_captures
+
+    if cap.step != STEP_PROJECTOR and len(machine.captures_of(STEP_PROJECTOR)) < min_projector_captures(machine):
+        return  # the mirror step before the projector step: nothing to judge yet
+    proj, mirror = step_confidences(machine)
+    machine.set_projector_confidence(proj)
+    if mirror is not None:
+        machine.set_mirror_confidence(mirror)
+    for name, conf in (("projector", proj), ("mirror", mirror)):
+        own = (name == "projector") == (cap.step == STEP_PROJECTOR)
+        if conf is None or (not own and conf.all_met == (name == "projector")):
+            continue  # each step reported after its own captures; the other only when it says something new
+        head = f"{name} step confident after {capture_id}: " if conf.all_met else f"{name} step after {capture_id}, "
+        log(head + "; ".join(conf.lines()))

@@ -105,6 +105,7 @@ class SessionMachine:
         self.retake_target: Target | None = None
         # the projector step's confidence after its latest detected capture (Plan.stop_on_confidence)
         self.projector_confidence = None
+        self.mirror_confidence = None  # the mirror normal's, from the same calibrations (mirror rigs)
         self.last_capture: Capture | None = None
         self.events: list[Event] = []
         self.on_event: Callable[[str], None] | None = None
@@ -227,15 +228,41 @@ class SessionMachine:
             caps = self.captures_of(step)
             if self.retake_target is not None and self.retake_target.step == step:
                 return self.retake_target
-            if len(caps) >= self.mirror_total:
-                return None
-            k = self._free_pose(caps, self.mirror_total + len(caps))
-            return Target(step, None, k)
+            return self._mirror_target(step, caps)
         if self.state == PROJECTOR_CAPTURE:
             if self.retake_target is not None and self.retake_target.step == STEP_PROJECTOR:
                 return self.retake_target
-            return structured_target(self) if self.structured else circle_target(self)
+            return self._projector_target()
         return None
+
+    def _mirror_target(self, step: str, caps: list[Capture]) -> Target | None:
+        n = len(caps)
+        if n >= self.mirror_total:
+            return None
+        if self.plan.stop_on_confidence and n >= self.plan.mirror_before_projector(self.mirror_method):
+            # the first captures taken: the projector step next, then more only while the normal is unsure
+            if self._projector_target() is not None:
+                return None
+            conf = self.mirror_confidence
+            if conf is not None and conf.all_met:
+                return None
+        return Target(step, None, self._free_pose(caps, self.mirror_total + n))
+
+    def _projector_target(self) -> Target | None:
+        return structured_target(self) if self.structured else circle_target(self)
+
+    def more_mirror_wanted(self) -> bool:
+        """Stopping on confidence, with the projector step complete: whether the mirror step asks for more
+        captures (its normal not confident yet, its maximum not reached)."""
+        if self.direct or self.mirror_method is None or not self.plan.stop_on_confidence:
+            return False
+        step = mirror_step(self.mirror_method)
+        return self._projector_target() is None and self._mirror_target(step, self.captures_of(step)) is not None
+
+    def set_mirror_confidence(self, conf) -> None:
+        """The mirror step's confidence after the latest capture (None: not known yet)."""
+        with self._lock:
+            self.mirror_confidence = conf
 
     def set_projector_confidence(self, conf) -> None:
         """The projector step's confidence after its latest capture (None: not known yet)."""

@@ -44,7 +44,10 @@ def checklist(m) -> str:
     else:
         method = m.mirror_method or "method not chosen"
         lines.append(f"- {mark(MIRROR_CAPTURE)} **Mirror capture** ({method}): "
-                     f"**{c['mirror']} / {c['mirror_total'] or '?'}** captures")
+                     f"**{c['mirror']} / {c['mirror_total'] or '?'}** captures"
+                     + (" (at most: ends when the mirror normal is confident)" if m.plan.stop_on_confidence else ""))
+        if m.plan.stop_on_confidence and getattr(m, "mirror_confidence", None) is not None:
+            lines += [f"    - {line}" for line in m.mirror_confidence.lines()]
     what = ("placements, each the structured-light sequence" if m.structured else
             f"captures, {c['positions_done']} / {c['positions']} pattern positions complete")
     lines.append(f"- {mark(PROJECTOR_CAPTURE)} **Projector capture**: **{c['projector']} / {c['projector_total']}** "

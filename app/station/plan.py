@@ -24,6 +24,9 @@ class Plan:
     # end the projector step once its 1-sigmas meet their targets (calib.quality.confidence), the counts
     # above then maximums; its poses are asked one at every pattern position before the next
     stop_on_confidence: bool = False
+    # stopping on confidence, the mirror step takes this many captures before the projector step (the mirror
+    # normal can be judged only with projector captures), then more after it until the normal is confident
+    mirror_first: int = 5
     # a structured-light projector step (PatternKind.STRUCTURED): at most this many board placements, each
     # the whole coded sequence (calib.models.structured_light); with stop_on_confidence at least the minimum
     structured_placements: int = 6
@@ -31,6 +34,11 @@ class Plan:
 
     def mirror_captures(self, method: str) -> int:
         return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures
+
+    def mirror_before_projector(self, method: str) -> int:
+        """Mirror captures taken before the projector step: all of them, or (stop_on_confidence) the first."""
+        total = self.mirror_captures(method)
+        return min(max(self.mirror_first, self.min_mirror(method)), total) if self.stop_on_confidence else total
 
     def min_mirror(self, method: str) -> int:
         need = self.min_real_virtual if method == MirrorMethod.REAL_VIRTUAL else self.min_real_mirror

@@ -42,6 +42,12 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
         tgt = m.target
         c = m.counts()
         if tgt is None:
+            if m.plan.stop_on_confidence and c['mirror'] < c['mirror_total']:
+                conf = m.mirror_confidence
+                if conf is not None and conf.all_met:
+                    return (f"The mirror normal is confident after {c['mirror']} mirror captures. Press 'Next step'.")
+                return (f"The first {c['mirror']} mirror captures are taken. Press 'Next step' to go on to the "
+                        "projector; the mirror step asks for more afterwards if its normal is not confident yet.")
             return f"All {c['mirror_total']} mirror captures are taken. Press 'Next step' to go on to the projector."
         if m.mirror_method == MirrorMethod.REAL_VIRTUAL:
             what = ("Hold the mirror board between the camera and the mirror so that the camera sees it "
@@ -49,12 +55,19 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
         else:
             what = (f"Lay the mirror board flat on the mirror, at a new place and angle (at least "
                     f"{m.plan.min_mirror(MirrorMethod.REAL_MIRROR)} placements: one alone leaves the mirror's tilt uncertain).")
-        head = f"Mirror capture {c['mirror'] + 1} of {c['mirror_total']}: {what}"
+        most = "at most " if m.plan.stop_on_confidence else ""
+        head = f"Mirror capture {c['mirror'] + 1} of {most}{c['mirror_total']}: {what}"
         return head + hint
     if s == PROJECTOR_CAPTURE:
         tgt = m.target
         c = m.counts()
+        if tgt is None and m.more_mirror_wanted():
+            lines = m.mirror_confidence.lines() if m.mirror_confidence is not None else ["not judged yet"]
+            return ("The projector step is complete; the mirror normal is not confident yet ("
+                    + "; ".join(lines) + "). Press 'Back' for more mirror captures, or Calibrate with what is there.")
         if tgt is None:
+            if m.plan.stop_on_confidence and c['projector'] < c['projector_total']:
+                return f"The projector step is confident after {c['projector']} captures. Press Calibrate."
             return f"All {c['projector_total']} projector captures are taken. Press Calibrate."
         if m.structured:
             where = (f"Placement {c['projector'] + 1} of at most {c['projector_total']}: hold the board where the "
