@@ -19,6 +19,7 @@ from app.station.machine import (
     CAPTURE_STATES, MIRROR_CAPTURE, PROJECTOR_CAPTURE, Plan, SessionMachine, Target, write_calibration,
 )
 from app.station.station import Station
+from app.station.structured_step import slot_of
 from app.words import signed
 from calib.errors import CalibrationError, SessionError
 from calib.formats import session_files
@@ -28,7 +29,7 @@ from calib.models.boards import CharucoSpec
 from calib.models.observations import STEP_PROJECTOR, VIEW_DIRECT, VIEW_MIRROR
 from calib.models.pattern import PatternSpec
 from calib.models.result import CalibrationResult
-from calib.models.vocab import MirrorMethod, RigKind
+from calib.models.vocab import MirrorMethod, PatternKind, RigKind
 from drivers.clock import clock_of
 
 PREVIOUS_DIR = session_files.PREVIOUS_DIR
@@ -227,16 +228,25 @@ def check_rig_matches(previous: CalibrationResult, specs: BoardSpecs | None, rig
         from app.station.setup import sim_specs
 
         s = sim_specs(rig)
+        # a structured step's pattern is the circle grid's geometry naming its slots: compare that
+        want_pattern = replace(specs.pattern, kind=s["pattern"].kind) if is_structured_pattern(specs.pattern) \
+            else specs.pattern
         for what, have, want in (("board", s["board"], specs.board), ("mirror board", s["mirror_board"], specs.mirror_board),
-                                 ("pattern", s["pattern"], specs.pattern)):
+                                 ("pattern", s["pattern"], want_pattern)):
             if have != want:
                 raise SessionError(f"the simulated scenario '{scenario}' has the {what} {have}, PREVIOUS was captured "
                                    f"with {want}: choose the scenario PREVIOUS was captured on (--scenario)")
 
 
+def is_structured_pattern(pattern) -> bool:
+    """PREVIOUS's projector step showed the structured-light sequence (its recalibration does too)."""
+    return getattr(pattern, "kind", None) == PatternKind.STRUCTURED.value
+
+
 class RecalibrationMachine(SessionMachine):
     """A session machine whose capture plan is set by the recalibration: `mirror_quota` real-virtual
-    captures and one projector capture per entry of `projector_queue` (pattern positions)."""
+    captures and one projector capture per entry of `projector_queue` (pattern positions; with the
+    structured-light step, the slot each placement's board pose is asked for)."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
@@ -255,6 +265,12 @@ class RecalibrationMachine(SessionMachine):
     def target(self) -> Target | None:
         if self.state == PROJECTOR_CAPTURE:
             caps = self.captures_of(STEP_PROJECTOR)
+            if self.structured:  # one placement per queue entry, each the whole coded sequence
+                if len(caps) >= len(self.projector_queue):
+                    return None
+                pos = self.projector_queue[len(caps)]
+                taken = [k for p, k in map(slot_of, caps) if p == pos]
+                return Target(STEP_PROJECTOR, pos, next(k for k in range(len(taken) + 1) if k not in taken))
             seen: dict[int, int] = {}
             for pos in self.projector_queue:
                 seen[pos] = seen.get(pos, 0) + 1

@@ -84,7 +84,7 @@ def test_a_recalibration_refuses_the_structured_step(session, tmp_path):
     out = tmp_path / "new"
     line = refused("station", "--recalibrate", str(session), "--projector-pattern", "structured",
                    "--session", str(out), "--port", "0")
-    assert "a recalibration re-measures with the circle step" in line and not out.exists()
+    assert "a recalibration re-measures with PREVIOUS's own" in line and not out.exists()
 
 
 def test_verify_seed_names_the_option(session):

@@ -450,6 +450,33 @@ def test_recalibrate_after_a_projector_bump_end_to_end(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_structured_light_session_is_recalibrated_with_its_own_step(tmp_path):
+    """PREVIOUS measured its projector with the structured-light sequence: the recalibration's projector
+    captures are structured placements too (each the whole coded sequence), the check finds the bumped
+    projector and the re-estimate lands on the bumped truth."""
+    from calib.models.result import CalibrationResult
+    from calib.formats.session import SessionStore
+
+    full = tmp_path / "full"
+    r = _procam("session", "--rig", "sim", "--auto", "--projector-pattern", "structured", "--placements", "4",
+                "--mirror-captures", "4", "--out", str(full))
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    d = tmp_path / "recal"
+    r = _procam("recalibrate", str(full), "--rig", "sim", "--auto", "--sim-bump", "projector", "--out", str(d))
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    man = SessionStore.open(d).manifest
+    assert man.pattern.kind == "structured"
+    proj = man.captures_of("projector")
+    assert proj and all(c.structured for c in proj)
+    assert all(len(c.frames) == len(SessionStore.open(full).manifest.captures_of("projector")[0].frames) for c in proj)
+    rec = json.loads((d / "recalibration.json").read_text())
+    assert rec["check"]["parts"]["projector"]["status"] == "moved"
+    assert rec["check"]["parts"]["camera"]["status"] == "unchanged"
+    m = compare(CalibrationResult.load_json(d / "calibration.json"), CalibrationResult.load_json(d / "ground_truth.json"))
+    assert m.distance < 0.5 and m.angle_deg < 0.05
+    assert rec["verification"]["recalibrated"]["passed"] is True
+
+@pytest.mark.slow
 def test_recalibrate_exit_code_3_for_a_low_quality_calibration_0_for_a_good_one(tmp_path):
     """`--sim-bump none` from a previous calibration far more uncertain than a full session: the
     calibration written (the previous one) fails the quality gate, exit 3 with the reasons, as

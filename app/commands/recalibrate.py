@@ -197,7 +197,10 @@ def prepare(args, log) -> Prepared:
 def open_recalibration(args, ready: Prepared, rig, log):
     """(store, machine, station) of the recalibration on the opened rig: a new session folder with
     PREVIOUS's boards, or the stopped one (its captures kept), after checking the rig is PREVIOUS's."""
-    from app.recalibration import RECALIBRATION_PLAN, RecalibrationMachine, RecalibrationStation, check_rig_matches
+    from app.recalibration import (
+        RECALIBRATION_PLAN, RecalibrationMachine, RecalibrationStation, check_rig_matches, is_structured_pattern,
+    )
+    from calib.models.vocab import PatternKind
     from app.station.setup import check_same_rig, create_session
     from app.station.station import StationOptions
     from calib.formats.session import SessionStore
@@ -215,7 +218,10 @@ def open_recalibration(args, ready: Prepared, rig, log):
             f"{c['mirror']}, projector {c['projector']}), step '{machine.state}'")
     else:
         kw = {} if ready.simulated or ready.specs is None else ready.specs.manifest_kw()
-        store = create_session(folder, rig, req, plan, **kw)
+        # the projector step PREVIOUS was measured with: the structured-light sequence, or the circle grid
+        step = PatternKind.STRUCTURED.value if ready.specs is not None and is_structured_pattern(ready.specs.pattern) \
+            else None
+        store = create_session(folder, rig, req, plan, projector_pattern=step, **kw)
         machine = RecalibrationMachine(store, plan)
     machine.persist()
     opts = StationOptions(auto=True, follow_operator=True)

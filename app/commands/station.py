@@ -97,7 +97,8 @@ def run(args) -> int:
             from calib.errors import SpecError
 
             raise SpecError("--projector-pattern and --placements start a new session's projector step; a "
-                            "recalibration re-measures with the circle step (docs/STRUCTURED_LIGHT.md, not yet done)")
+                            "recalibration re-measures with PREVIOUS's own (the circle grid or the structured-light "
+                            "sequence, as its session.json says)")
         return run_recalibration_mode(args, kind, defaulted)
     rig, store, machine, req = open_session(args, print)
     from drivers.factory import is_simulated
