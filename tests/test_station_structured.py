@@ -83,22 +83,51 @@ def test_each_placement_is_the_whole_sequence_each_frame_under_its_own_image(tmp
     assert_within_its_uncertainty(m.store.folder)
 
 
-@pytest.mark.parametrize("scenario, seed", [("nonoverlap-136", 0), ("nonoverlap-90", 1)])
-def test_a_slow_jittery_projector_still_gets_each_image_alone_on_the_schedule(tmp_path, monkeypatch, scenario, seed):
-    """150 ms of latency jittering by a refresh period (the issue's projector): the measured latency errs
-    long, the schedule's guard keeps every frame off the next image, and the sequence stays well under
-    8 s of the rig's time at 30 fps. On nonoverlap-90 (seed 1) the rig check exposes a whole frame
-    period: the hold grows to fit it."""
+def _exposing_refresh_periods(monkeypatch, periods: int):
+    """The rig check's exposure search, then `periods` refresh periods (a dim projector's choice: at 30
+    fps two are a whole frame period)."""
+    import dataclasses
+
+    import drivers.exposure as E
+
+    real = E.search_exposure
+
+    def search(camera, refresh_hz, *a, **kw):
+        choice = real(camera, refresh_hz, *a, **kw)
+        applied = camera.set_manual_exposure(periods * 1e6 / refresh_hz, choice.gain)
+        return dataclasses.replace(choice, exposure_us=float(applied["exposure_us"]), periods=float(periods))
+
+    monkeypatch.setattr(E, "search_exposure", search)
+
+
+def _two_sequences_on_the_schedule(tmp_path, monkeypatch, scenario, seed, periods, **rig_options):
     plan = Plan(real_virtual_captures=3, min_real_virtual=3, structured_placements=3, min_structured_placements=1)
-    rig, m, st, lines = _station(tmp_path, plan, scenario, seed, latency_ms=150.0,
-                                 faults=frozenset({"latency-jitter"}))
+    _exposing_refresh_periods(monkeypatch, periods)
+    rig, m, st, lines = _station(tmp_path, plan, scenario, seed, **rig_options)
     shown = _record_shown(rig, monkeypatch)
     tick_until(st, lambda: len(m.captures_of(STEP_PROJECTOR)) == 2, max_ticks=400)
     caps = m.captures_of(STEP_PROJECTOR)
+    checked = [e.text for e in m.events if "camera exposure ok" in e.text]
+    assert checked and f"({periods}.00 refresh periods)" in checked[0], checked
     _assert_each_frame_under_its_image(rig, m, caps, shown)
     for cap in caps:
         assert cap.meta["sequence_scheduled"] >= 40  # on the schedule, not image by image
         assert cap.meta["sequence_s"] < 8.0
+
+
+def test_a_slow_jittery_projector_still_gets_each_image_alone_on_the_schedule(tmp_path, monkeypatch):
+    """150 ms of latency jittering by a refresh period (the issue's projector): the measured latency errs
+    long, the schedule's guard keeps every frame off the next image, and the sequence stays well under
+    8 s of the rig's time at 30 fps."""
+    _two_sequences_on_the_schedule(tmp_path, monkeypatch, "nonoverlap-136", 0, 1, latency_ms=150.0,
+                                   faults=frozenset({"latency-jitter"}))
+
+
+def test_an_exposure_of_a_whole_frame_period_is_held_long_enough_for_the_schedule(tmp_path, monkeypatch):
+    """Two refresh periods of exposure at 30 fps (a dim projector's): each image is held four frame
+    periods, so the first frame starting after it is visible ends before the next image; with three, on
+    this rig's phase and latency, 1 of 46 images was on the schedule and a placement took 12 s."""
+    _two_sequences_on_the_schedule(tmp_path, monkeypatch, "nonoverlap-90", 1, 2)
 
 
 def test_a_board_moved_during_the_sequence_is_refused_and_the_placement_held_again(tmp_path, monkeypatch):

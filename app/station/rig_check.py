@@ -11,6 +11,8 @@ from __future__ import annotations
 import logging
 import time
 
+import numpy as np
+
 from app.station.activity import CHECK_RIG_NAME
 from app.station.machine import RigCheck
 from calib.errors import ProcamError, SpecError
@@ -133,6 +135,19 @@ class RigChecker:
             except OSError as e:  # the evidence is for diagnosis: its loss stops nothing
                 _log.warning("the rig check's frames were not kept: %s", e)
 
+    def _metering_image(self) -> np.ndarray:
+        """What the projector shows while the exposure is searched: the brightest light the projector step
+        puts on the board, so that no capture saturates. A structured step's white frame lights the whole
+        board; the circle grid's dots at every position at once (one position alone meters one part of
+        the board, and a brighter part, nearer or less vignetted, saturates the dots there)."""
+        st = self.station
+        if st.machine.structured:
+            return st.sequence.white()
+        image = st.pattern_image(0)
+        for p in range(1, st.machine.positions):
+            image = np.maximum(image, st.pattern_image(p))
+        return image
+
     def _timing_checks(self, cam, proj, man, recorded, timing, settings, checks) -> list[RigCheck]:
         from drivers.base import ExposureControl
         from calib.detection.response import recorded_response
@@ -156,7 +171,7 @@ class RigChecker:
                     from drivers.exposure import search_exposure
 
                     self._rig_stage("camera exposure: searching while the pattern lights the board")
-                    self.station._show(self.station.pattern_image(man.pattern.positions // 2))
+                    self.station._show(self._metering_image())
                     time.sleep(0.5)  # any projector's latency: the pattern lights the board now
                     choice = search_exposure(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
                     self.station._change_timing = choice.timing

@@ -1,0 +1,43 @@
+"""The rig check's exposure (app/station/rig_check.py): metered under the brightest light the projector
+step puts on the board, so that no capture of the step saturates. Metering the circle grid at its middle
+position alone left the other positions overexposed on a rig with a brighter part of the board
+(nonoverlap-90, seed 1: its first projector pose was never detected and the session stopped)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from app.station.machine import Plan
+from app.station.rig_check import RigChecker
+from calib.models.observations import STEP_PROJECTOR
+from _station_helpers import station_on_sim, tick_until
+
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+
+PLAN = Plan(poses_per_position=1, real_virtual_captures=3, min_real_virtual=3, structured_placements=3,
+            min_structured_placements=1)
+
+
+@pytest.mark.parametrize("pattern", [None, "structured"])
+def test_the_exposure_is_metered_under_every_light_the_step_shows(tmp_path, pattern):
+    rig, m, st, lines = station_on_sim(tmp_path / "s", PLAN, projector_pattern=pattern, auto=True)
+    image = RigChecker(st)._metering_image()
+    if pattern is None:  # every position's dots, each where that position puts it
+        for p in range(m.positions):
+            assert np.all(image >= st.pattern_image(p))
+        assert np.array_equal(image > 0, np.any([st.pattern_image(p) > 0 for p in range(m.positions)], axis=0))
+    else:  # the structured sequence's white frame
+        assert np.array_equal(image, st.sequence.white())
+
+
+@pytest.mark.parametrize("pattern", [None, "structured"])
+def test_no_capture_of_the_projector_step_saturates_the_board(tmp_path, pattern):
+    """nonoverlap-90 seed 1: the projector step's captures are taken (the session went on) and the lit
+    board in them stays below saturation."""
+    rig, m, st, lines = station_on_sim(tmp_path / "s", PLAN, projector_pattern=pattern, scenario="nonoverlap-90",
+                                       seed=1, auto=True)
+    tick_until(st, lambda: len(m.captures_of(STEP_PROJECTOR)) >= 2, max_ticks=600)
+    for cap in m.captures_of(STEP_PROJECTOR)[:2]:
+        rel = cap.frames[0] if cap.structured else cap.image
+        img = cv2.imread(str(m.store.folder / rel), cv2.IMREAD_UNCHANGED)
+        assert np.mean(img >= 254) < 1e-4, (cap.id, float(np.mean(img >= 254)))
