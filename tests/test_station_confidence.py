@@ -179,3 +179,50 @@ def test_a_station_goes_back_to_the_mirror_step_while_the_mirror_normal_is_not_c
     assert sum(ln.startswith("mirror step after mrv") for ln in lines) == 3
     assert m.projector_confidence.all_met
     assert_within_its_uncertainty(m.store.folder) if (m.store.folder / GROUND_TRUTH).exists() else None
+
+
+def test_a_resumed_session_judges_its_captures_once(tmp_path, monkeypatch):
+    """The judgements are not saved: a session resumed in a capture step judges its captures again, so a
+    step that was confident before the stop is not asked for more."""
+    import app.station.confidence_watch as W
+    from app.station.machine import MIRROR_CAPTURE, SessionMachine
+    from app.station.setup import make_machine
+    from calib.models.observations import STEP_REAL_VIRTUAL
+    from _station_helpers import TINY, make_store
+    from test_station_machine import OK
+
+    plan = Plan(poses_per_position=1, real_virtual_captures=8, min_real_virtual=3, min_projector_captures=3,
+                stop_on_confidence=True, mirror_first=4)
+    store = make_store(tmp_path / "s", "mirror", 5)
+    m = SessionMachine(store, plan, calibrate_fn=lambda *a: None)
+    m.start_session(OK)
+    m.choose_mirror_method("real-virtual")
+    for _ in range(4):
+        m.record_capture(TINY)
+    m.proceed()
+    for _ in range(3):
+        m.record_capture(TINY)
+    judged = []
+
+    def fake(machine):
+        judged.append(len(machine.manifest.captures))
+        return _conf(STEP_PROJECTOR, True), _conf(STEP_REAL_VIRTUAL, True)
+
+    monkeypatch.setattr(W, "step_confidences", fake)
+
+    class Rig:  # make_machine asks the rig only for its verifier
+        pass
+
+    monkeypatch.setattr("app.station.setup.make_verify_fn", lambda rig, folder: None)
+    resumed = make_machine(store, Rig(), resume=True)
+    assert judged == [7]
+    assert resumed.state == PROJECTOR_CAPTURE and resumed.target is None and not resumed.more_mirror_wanted()
+    assert any("projector step on resume confident" in e.text for e in resumed.events)
+    # in the mirror step before the projector step's minimum: nothing to judge
+    judged.clear()
+    store2 = make_store(tmp_path / "t", "mirror", 5)
+    m2 = SessionMachine(store2, plan, calibrate_fn=lambda *a: None)
+    m2.start_session(OK)
+    m2.choose_mirror_method("real-virtual")
+    m2.record_capture(TINY)
+    assert make_machine(store2, Rig(), resume=True).state == MIRROR_CAPTURE and judged == []

@@ -64,3 +64,22 @@ def update_after(machine, capture_id: str, log: Callable[[str], None]) -> None:
             continue  # each step reported after its own captures; the other only when it says something new
         head = f"{name} step confident after {capture_id}: " if conf.all_met else f"{name} step after {capture_id}, "
         log(head + "; ".join(conf.lines()))
+
+
+def judge_resumed(machine, log: Callable[[str], None]) -> None:
+    """A resumed session stopping on confidence, in a capture step: judge its captures once, so that a step
+    confident before the stop is not asked for more (the judgements are not saved: they are recomputed)."""
+    from app.station.session_steps import CAPTURE_STATES
+    from app.station.structured_step import min_projector_captures
+
+    if not machine.plan.stop_on_confidence or machine.state not in CAPTURE_STATES:
+        return
+    if len(machine.captures_of(STEP_PROJECTOR)) < min_projector_captures(machine):
+        return
+    proj, mirror = step_confidences(machine)
+    machine.set_projector_confidence(proj)
+    if mirror is not None:
+        machine.set_mirror_confidence(mirror)
+    for name, conf in (("projector", proj), ("mirror", mirror)):
+        if conf is not None:
+            log(f"{name} step on resume{' confident' if conf.all_met else ''}: " + "; ".join(conf.lines()))

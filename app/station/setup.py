@@ -208,6 +208,9 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
                 m.persist()
             except Exception as e:  # a report that does not load is simply re-measured
                 m.log(f"the saved verification does not load ({e}); verify again")
+        from app.station.confidence_watch import judge_resumed
+
+        judge_resumed(m, m.log)
     else:
         m = SessionMachine(store, plan or Plan.from_dict((store.manifest.state or {}).get("plan")),
                            calibrate_fn=calibrate, verify_fn=verify_fn)
