@@ -37,9 +37,13 @@ def step_confidences(machine) -> tuple[Confidence, Confidence | None]:
     return confidence_of(result, Step.PROJECTOR), None if mirror is None else confidence_of(result, mirror)
 
 
-def projector_confidence(machine) -> Confidence:
-    """The projector step's confidence on the session's captures so far."""
-    return step_confidences(machine)[0]
+def _judge(machine) -> tuple[Confidence, Confidence | None]:
+    """Judge both steps on the captures so far and keep the judgements in the machine."""
+    proj, mirror = step_confidences(machine)
+    machine.set_projector_confidence(proj)
+    if mirror is not None:
+        machine.set_mirror_confidence(mirror)
+    return proj, mirror
 
 
 def update_after(machine, capture_id: str, log: Callable[[str], None]) -> None:
@@ -54,10 +58,7 @@ def update_after(machine, capture_id: str, log: Callable[[str], None]) -> None:
 
     if cap.step != STEP_PROJECTOR and len(machine.captures_of(STEP_PROJECTOR)) < min_projector_captures(machine):
         return  # the mirror step before the projector step: nothing to judge yet
-    proj, mirror = step_confidences(machine)
-    machine.set_projector_confidence(proj)
-    if mirror is not None:
-        machine.set_mirror_confidence(mirror)
+    proj, mirror = _judge(machine)
     for name, conf in (("projector", proj), ("mirror", mirror)):
         own = (name == "projector") == (cap.step == STEP_PROJECTOR)
         if conf is None or (not own and conf.all_met == (name == "projector")):
@@ -76,10 +77,7 @@ def judge_resumed(machine, log: Callable[[str], None]) -> None:
         return
     if len(machine.captures_of(STEP_PROJECTOR)) < min_projector_captures(machine):
         return
-    proj, mirror = step_confidences(machine)
-    machine.set_projector_confidence(proj)
-    if mirror is not None:
-        machine.set_mirror_confidence(mirror)
+    proj, mirror = _judge(machine)
     for name, conf in (("projector", proj), ("mirror", mirror)):
         if conf is not None:
             log(f"{name} step on resume{' confident' if conf.all_met else ''}: " + "; ".join(conf.lines()))
