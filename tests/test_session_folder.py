@@ -293,6 +293,8 @@ def test_far_away_pattern_points_are_refused(tmp_path):
     ({"step": 3}, "state.step"),
     ({"plan": {"poses_per_position": "4"}}, "state.plan.poses_per_position"),
     ({"plan": [1, 2]}, "state.plan"),
+    ({"plan": {"mirror_first": "5"}}, "state.plan.mirror_first"),
+    ({"plan": {"mirror_first": -1}}, "state.plan.mirror_first"),
     ({"retake": {"step": "projector", "pattern_position": "x", "pose_index": 0}}, "state.retake.pattern_position"),
     ({"target": {"step": "elsewhere", "pose_index": 0}}, "state.target.step"),
     ({"rig_request": {"kind": "sim", "seed": "x"}}, "state.rig_request.seed"),

@@ -147,8 +147,7 @@ class AutoOperator:
                 st.wait_for_detections()
             if m.target is None and m.more_mirror_wanted():
                 # the projector step is done, the mirror normal not yet confident: more mirror placements
-                lines = m.mirror_confidence.lines() if m.mirror_confidence is not None else ["not judged yet"]
-                st.log("mirror step again: " + "; ".join(lines))
+                st.log("mirror step again: " + "; ".join(m.mirror_confidence_lines()))
                 m.go_back()
             elif m.target is None:
                 st.run_long("calibrate", st.calibrate)

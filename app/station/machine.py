@@ -259,6 +259,10 @@ class SessionMachine:
         step = mirror_step(self.mirror_method)
         return self._projector_target() is None and self._mirror_target(step, self.captures_of(step)) is not None
 
+    def mirror_confidence_lines(self) -> list[str]:
+        """The mirror normal's 1-sigma against its target, as the log and the instructions say it."""
+        return self.mirror_confidence.lines() if self.mirror_confidence is not None else ["not judged yet"]
+
     def set_mirror_confidence(self, conf) -> None:
         """The mirror step's confidence after the latest capture (None: not known yet)."""
         with self._lock:

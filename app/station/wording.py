@@ -62,9 +62,8 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
         tgt = m.target
         c = m.counts()
         if tgt is None and m.more_mirror_wanted():
-            lines = m.mirror_confidence.lines() if m.mirror_confidence is not None else ["not judged yet"]
             return ("The projector step is complete; the mirror normal is not confident yet ("
-                    + "; ".join(lines) + "). Press 'Back' for more mirror captures, or Calibrate with what is there.")
+                    + "; ".join(m.mirror_confidence_lines()) + "). Press 'Back' for more mirror captures, or Calibrate with what is there.")
         if tgt is None:
             if m.plan.stop_on_confidence and c['projector'] < c['projector_total']:
                 return f"The projector step is confident after {c['projector']} captures. Press Calibrate."
