@@ -47,6 +47,12 @@ def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(t
             # computed from a calibration of the captures so far (before the minimum there is only "-")
             first = LINE.format(label=QUANTITIES["t_mm"][0], unit="mm")
             expect(page.get_by_text(re.compile(first)).first).to_be_visible()
+            # with a projection-uncertainty grid known, the position asked for next is the next-best one,
+            # said and dashed on the projector's coverage map until the step ends
+            nbp = r"Next projector placement: pattern position ([0-9]+), the ([a-z -]+) of the projector's image"
+            node = page.get_by_text(re.compile(nbp)).first
+            expect(node).to_be_visible()
+            chosen = int(re.search(nbp, node.inner_text()).group(1)) - 1
             # then the step's end: the captures are calibrated (the last judgement is of every capture)
             expect(page.get_by_text(re.compile(r"Calibration.*: done")).first).to_be_visible()
             shown = {}
@@ -84,3 +90,6 @@ def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(t
     # one placement per capture of this circle session: the count session.json's captures give
     store = SessionStore.open(folder)
     assert shown_placements == placements(store.manifest.captures) == len(store.manifest.captures)
+    # the next-best position shown was captured, after the plan's first ones (no grid before them)
+    proj = [c.pattern_position for c in store.manifest.captures if c.step == Step.PROJECTOR]
+    assert chosen in proj[6:], (chosen, proj)

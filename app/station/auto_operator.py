@@ -73,6 +73,10 @@ class AutoOperator:
             raise ActionRefused("move the board", "no capture is asked for now")
         if target != self.requested and self.requested is not None:
             self.variant = 0
+        if target != self.requested:
+            best = self.station.machine.next_placement
+            if best is not None and target.pattern_position == best.position:
+                self.station.log(f"next placement: {best.reason()}")
         return self._ask(target)
 
     def retake(self, target: Target) -> str | None:

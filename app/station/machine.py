@@ -33,8 +33,8 @@ from app.station.action_rules import FILE_CHECKED, RULES, Rule
 from app.station.operator_files import checked_intrinsics, copy_into_session
 from app.station.plan import Plan, Target
 from app.station.session_calibration import CALIBRATION_FILE, default_calibrate, keep_rejected, write_calibration
-from app.station.targets import circle_target, free_pose
-from app.station.structured_step import STATION_SPEC, is_structured, slot_of, structured_target
+from app.station.targets import free_pose, projector_choice
+from app.station.structured_step import STATION_SPEC, is_structured, slot_of
 from app.station.session_steps import CAPTURE_STATES  # noqa: F401 (app/recalibration.py imports it from here)
 from app.station.session_steps import (
     ACTIONS, CALIBRATION, CHECK_RIG, DONE, MIRROR_CAPTURE, PROJECTOR_CAPTURE, STATE_TITLES, STATES,
@@ -106,6 +106,9 @@ class SessionMachine:
         # the projector step's confidence after its latest detected capture (Plan.stop_on_confidence)
         self.projector_confidence = None
         self.mirror_confidence = None  # the mirror normal's, from the same calibrations (mirror rigs)
+        # the projector's projection-uncertainty grid from the same calibrations: where the next
+        # placement helps most (calib.quality.next_pose)
+        self.projector_grid: dict | None = None
         self.last_capture: Capture | None = None
         self.events: list[Event] = []
         self.on_event: Callable[[str], None] | None = None
@@ -249,7 +252,7 @@ class SessionMachine:
         return Target(step, None, self._free_pose(caps, self.mirror_total + n))
 
     def _projector_target(self) -> Target | None:
-        return structured_target(self) if self.structured else circle_target(self)
+        return projector_choice(self)[0]
 
     def more_mirror_wanted(self) -> bool:
         """Stopping on confidence, with the projector step complete: whether the mirror step asks for more
@@ -272,6 +275,19 @@ class SessionMachine:
         """The projector step's confidence after its latest capture (None: not known yet)."""
         with self._lock:
             self.projector_confidence = conf
+
+    def set_projector_grid(self, grid: dict | None) -> None:
+        """The projector's projection-uncertainty grid of the latest calibration (None: none known)."""
+        with self._lock:
+            self.projector_grid = grid
+
+    @property
+    def next_placement(self):
+        """Why the projector step's target stands where it does (calib.quality.next_pose.NextPlacement),
+        None when the plan's order chose it."""
+        if self.state != PROJECTOR_CAPTURE or self.retake_target is not None:
+            return None
+        return projector_choice(self)[1]
 
     def counts(self) -> dict:
         """Checklist numbers: captures taken and asked for, per step."""

@@ -83,6 +83,7 @@ from app.station.panel_uncertainty import INTRO as UNCERTAINTY_INTRO
 from app.station.panel_uncertainty import uncertainty_image, uncertainty_text
 from calib.models.observations import STEP_PROJECTOR
 from calib.quality.coverage import GRID_COLUMNS, coverage_fraction
+from calib.quality.next_pose import position_area
 
 LIVE_WIDTH = 640
 IMAGE_RATE_HZ = 25.0  # most live-image updates per second (one per new camera frame)
@@ -281,7 +282,8 @@ class StationPanel:
     def _update_guidance(self) -> None:
         """Coverage maps, bars with their targets and the next-pose suggestion (when the captures changed)."""
         m = self.machine
-        key = (tuple(c.id for c in m.manifest.captures), m.state, m.target)
+        best = m.next_placement
+        key = (tuple(c.id for c in m.manifest.captures), m.state, m.target, best)
         if self._global_cache.get("guidance") == key:
             return
         self._global_cache["guidance"] = key
@@ -297,14 +299,18 @@ class StationPanel:
         cam_img = camera_coverage_image(corners, cam_size, counts, sugg)
         proj_img = projector_coverage_image(m.manifest.pattern, tuple(m.manifest.rig.projector_size),
                                             m.position_counts(), m.plan.poses_per_position,
-                                            None if tgt is None else tgt.pattern_position)
+                                            None if tgt is None else tgt.pattern_position,
+                                            None if best is None else position_area(
+                                                m.manifest.pattern, *m.manifest.rig.projector_size, best.position))
         self.h_cov.image = side_by_side(cam_img, proj_img)
         step = "mirror" if m.state == MIRROR_CAPTURE else "projector"
         self._set(self.h_cov_text, "content",
                   f"**Coverage** (share of each image's {GRID_COLUMNS}-column grid cells holding a point). Camera: "
                   f"{coverage_summary(counts)}. Projector: coverage **{self.coverage_fraction() * 100:.0f}%** "
                   f"(pattern points captured; {m.counts()['positions_done']} of "
-                  f"{m.positions} positions complete)." + (f"\n\n**Next:** {sugg.text}" if sugg else ""))
+                  f"{m.positions} positions complete)." + (f"\n\n**Next:** {sugg.text}" if sugg else "")
+                  + (f"\n\n**Next projector placement:** {best.reason()} (dashed on the projector map)."
+                     if best is not None else ""))
         self._set(self.h_bars_title, "content", f"**Board pose diversity** of the {step} captures (a full bar "
                                                 "meets its target):")
         for (label, bar), b in zip(self.h_bars, bars):

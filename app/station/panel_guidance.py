@@ -138,9 +138,10 @@ def camera_coverage_image(corner_sets, camera_size, counts: np.ndarray, suggesti
 
 
 def projector_coverage_image(pattern, projector_size, counts_per_position, poses_per_position: int,
-                             current: int | None) -> np.ndarray:
+                             current: int | None, chosen_area=None) -> np.ndarray:
     """The projector image's coverage map (BGR): the pattern points of every captured position as dots,
-    each position's area green when complete, orange when started; the position shown now outlined."""
+    each position's area green when complete, orange when started; the position shown now outlined; the
+    area a next-best placement was chosen for (x0, y0, x1, y1 projector pixels) dashed in white."""
     img, s = _map_canvas(projector_size)
     W, H = projector_size
     pad = pattern.radius_px if pattern.kind == PatternKind.CIRCLES else pattern.spacing_px
@@ -160,6 +161,9 @@ def projector_coverage_image(pattern, projector_size, counts_per_position, poses
                     cv2.LINE_AA)
         if current == p:
             cv2.rectangle(img, p0, p1, (255, 255, 255), 2)
+    if chosen_area is not None:
+        x0, y0, x1, y1 = chosen_area
+        dashed_rect(img, ((x0 + 0.5) / W, (y0 + 0.5) / H, (x1 + 0.5) / W, (y1 + 0.5) / H), (255, 255, 255))
     cv2.putText(img, "projector: pattern points", (4, img.shape[0] - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.38,
                 (230, 230, 230), 1, cv2.LINE_AA)
     return img

@@ -28,9 +28,10 @@ class Plan:
     # normal can be judged only with projector captures), then more after it until the normal is confident
     mirror_first: int = 5
     # a structured-light projector step (PatternKind.STRUCTURED): at most this many board placements, each
-    # the whole coded sequence (calib.models.structured_light); with stop_on_confidence at least the minimum
+    # the whole coded sequence (calib.models.structured_light); with stop_on_confidence at least the minimum,
+    # which is what a calibration needs (calib.paper.method.MIN_PROJECTOR_VIEWS: fewer cannot be judged)
     structured_placements: int = 6
-    min_structured_placements: int = 3
+    min_structured_placements: int = 4
 
     def mirror_captures(self, method: str) -> int:
         return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures

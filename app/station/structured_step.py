@@ -9,9 +9,9 @@ the image became visible), and compares the board's ChArUco corners in the openi
 frames: a board that moved is refused with the reason, nothing is written, and the operator is asked to
 hold that placement again.
 
-The slots asked for come from calib.models.structured_light.placement_order (the circle step's poses,
-one per pattern position before the next), so the simulated operator places the board as `procam
-simulate --projector-pattern structured` does. A capture records its slot in meta (`slot_position`,
+The slots asked for are app.station.targets' (calib.models.structured_light.placement_order's, the
+circle step's poses, one per pattern position before the next, as `procam simulate --projector-pattern
+structured` places them; stopping on confidence, the next-best position once a grid is known). A capture records its slot in meta (`slot_position`,
 `pose_index`); session.json records its placement (docs/FORMATS.md).
 """
 
@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.models.observations import STEP_PROJECTOR, VIEW_MIRROR
-from calib.models.structured_light import StructuredLightSpec, placement_order
+from calib.models.observations import VIEW_MIRROR
+from calib.models.structured_light import StructuredLightSpec
 from calib.models.vocab import PatternKind
 
 #: the sequence the station shows (the spec docs/STRUCTURED_LIGHT.md measures)
@@ -56,27 +56,6 @@ def slot_of(capture) -> tuple[int | None, int]:
     """The (pattern position, pose index) slot a structured capture filled."""
     pos = capture.meta.get("slot_position", capture.meta.get("sim_pattern_position"))
     return (None if pos is None else int(pos)), int(capture.meta.get("pose_index", capture.meta.get("sim_pose_index", 0)))
-
-
-def structured_target(machine):
-    """The next placement of a structured projector step, or None when it is complete: the plan's
-    `structured_placements` taken, or (stop_on_confidence) at least `min_structured_placements` and the
-    step confident."""
-    from app.station.plan import Target
-
-    plan = machine.plan
-    caps = machine.captures_of(STEP_PROJECTOR)
-    if len(caps) >= plan.structured_placements:
-        return None
-    conf = machine.projector_confidence
-    if plan.stop_on_confidence and conf is not None and conf.all_met and len(caps) >= plan.min_structured_placements:
-        return None
-    taken = {slot_of(c) for c in caps}
-    slots = placement_order(machine.positions, max(plan.poses_per_position, 1) + len(caps))
-    for pos, k in slots:
-        if (pos, k) not in taken:
-            return Target(STEP_PROJECTOR, pos, k)
-    return None
 
 
 def min_projector_captures(machine) -> int:

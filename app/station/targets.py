@@ -1,11 +1,22 @@
-"""The capture a projector step asks for next (SessionMachine.target): the circle grid's poses at every
-pattern position, in the plan's order or, stopping on confidence, one pose at every position before the
-next; the structured-light step's placements are app.station.structured_step's."""
+"""The capture a projector step asks for next (SessionMachine.target).
+
+The circle (or chessboard) step: the circle grid's poses at every pattern position, in the plan's order
+or, stopping on confidence, one pose at every position before the next. The structured-light step: its
+placements (calib.models.structured_light.placement_order's slots) up to the plan's count, or fewer
+when confident. Stopping on confidence, once a calibration of the captures so far gave the projector's
+projection-uncertainty grid, the position asked for next is the one a board would help most
+(calib.quality.next_pose; within the circle step's round of positions); before that, the plan's order.
+"""
 
 from __future__ import annotations
 
+from collections import Counter
+
 from app.station.plan import Target
+from app.station.structured_step import slot_of
 from calib.models.observations import STEP_PROJECTOR
+from calib.models.structured_light import placement_order
+from calib.quality.next_pose import NextPlacement, next_position
 
 
 def free_pose(caps, n: int) -> int | None:
@@ -14,8 +25,22 @@ def free_pose(caps, n: int) -> int | None:
     return next((k for k in range(n) if k not in used), None)
 
 
-def circle_target(machine) -> Target | None:
-    """The next pose of a circle (or chessboard) projector step, None when it is complete."""
+def _best(machine, candidates: list[int], taken) -> NextPlacement | None:
+    """The next-best position among `candidates`, when the plan stops on confidence and a grid is known."""
+    if not machine.plan.stop_on_confidence or machine.projector_grid is None or not candidates:
+        return None
+    return next_position(machine.projector_grid, machine.manifest.pattern, tuple(machine.manifest.rig.projector_size),
+                         candidates, taken)
+
+
+def _confident(machine, n: int, minimum: int) -> bool:
+    conf = machine.projector_confidence
+    return bool(machine.plan.stop_on_confidence and conf is not None and conf.all_met and n >= minimum)
+
+
+def circle_choice(machine) -> tuple[Target | None, NextPlacement | None]:
+    """The next pose of a circle (or chessboard) projector step (None when it is complete), and the
+    next-best choice that placed it (None: the plan's order did)."""
     plan = machine.plan
     caps = machine.captures_of(STEP_PROJECTOR)
     counts = machine.position_counts()
@@ -25,9 +50,40 @@ def circle_target(machine) -> Target | None:
         return Target(STEP_PROJECTOR, p, free_pose(mine, plan.poses_per_position + len(mine)))
 
     if not plan.stop_on_confidence:
-        return next((at(p) for p in range(machine.positions) if counts[p] < plan.poses_per_position), None)
-    conf = machine.projector_confidence
-    if conf is not None and conf.all_met and len(caps) >= plan.min_projector_captures:
-        return None  # confident (at least the plan's minimum): the counts were maximums
-    return next((at(p) for k in range(plan.poses_per_position) for p in range(machine.positions) if counts[p] <= k),
-                None)
+        return next((at(p) for p in range(machine.positions) if counts[p] < plan.poses_per_position), None), None
+    if _confident(machine, len(caps), plan.min_projector_captures):
+        return None, None  # confident (at least the plan's minimum): the counts were maximums
+    for k in range(plan.poses_per_position):  # one pose at every position before the next
+        round_ = [p for p in range(machine.positions) if counts[p] <= k]
+        if round_:
+            best = _best(machine, round_, dict(enumerate(counts)))
+            return at(round_[0] if best is None else best.position), best
+    return None, None
+
+
+def structured_choice(machine) -> tuple[Target | None, NextPlacement | None]:
+    """The next placement of a structured projector step, or None when it is complete: the plan's
+    `structured_placements` taken, or (stop_on_confidence) at least `min_structured_placements` and the
+    step confident; and the next-best choice that placed it (None: placement_order's order did)."""
+    plan = machine.plan
+    caps = machine.captures_of(STEP_PROJECTOR)
+    if len(caps) >= plan.structured_placements:
+        return None, None
+    if _confident(machine, len(caps), plan.min_structured_placements):
+        return None, None
+    taken = {slot_of(c) for c in caps}
+    free = [s for s in placement_order(machine.positions, max(plan.poses_per_position, 1) + len(caps))
+            if s not in taken]
+    if not free:
+        return None, None
+    first = {}
+    for pos, k in free:  # each position's lowest free pose index, positions in the plan's order
+        first.setdefault(pos, k)
+    best = _best(machine, list(first), Counter(p for p, _ in taken))
+    pos = free[0][0] if best is None else best.position
+    return Target(STEP_PROJECTOR, pos, first[pos]), best
+
+
+def projector_choice(machine) -> tuple[Target | None, NextPlacement | None]:
+    """The projector step's next target and the next-best choice behind it."""
+    return structured_choice(machine) if machine.structured else circle_choice(machine)

@@ -68,18 +68,22 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
             if m.plan.stop_on_confidence and c['projector'] < c['projector_total']:
                 return f"The projector step is confident after {c['projector']} captures. Press Calibrate."
             return f"All {c['projector_total']} projector captures are taken. Press Calibrate."
+        best = m.next_placement
+        why = f" Next-best: {best.reason()} (dashed on the projector map)." if best is not None else ""
         if m.structured:
+            place = (f"towards the {best.where} of the projector's image" if best is not None else
+                     "at a new place")
             where = (f"Placement {c['projector'] + 1} of at most {c['projector_total']}: hold the board where the "
                      "projector lights it" + ("" if m.direct else " and the camera sees it in the mirror") +
-                     ", at a new place and tilt, and keep it still while the projector shows its coded sequence "
+                     f", {place} and a new tilt, and keep it still while the projector shows its coded sequence "
                      "(a few seconds).")
-            return where + hint
+            return where + why + hint
         where = (f"The projector shows the pattern at position {tgt.pattern_position + 1} of {m.positions}. "
                  f"Pose {tgt.pose_index + 1} of {m.plan.poses_per_position}: hold the board so the pattern "
                  "falls on its blank part")
         where += " and the camera sees the board in the mirror" if not m.direct else ""
         where += "; tilt it differently from the poses already taken."
-        return where + hint
+        return where + why + hint
     if s == CALIBRATION:
         if m.calibration_error:
             return f"The calibration failed: {m.calibration_error}. Retake or add captures, then calibrate again."
