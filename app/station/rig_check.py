@@ -9,7 +9,6 @@ change), so it is given the station, and it is the only module besides the stati
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -172,7 +171,7 @@ class RigChecker:
 
                     self._rig_stage("camera exposure: searching while the pattern lights the board")
                     self.station._show(self._metering_image())
-                    time.sleep(0.5)  # any projector's latency: the pattern lights the board now
+                    self.station.clock.sleep(0.5)  # any projector's latency (the rig's clock): the pattern lights the board now
                     choice = search_exposure(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0))
                     self.station._change_timing = choice.timing
                     applied = {"exposure_us": choice.exposure_us, "gain": choice.gain}
@@ -273,7 +272,7 @@ class RigChecker:
         try:
             self._rig_stage("camera response: measuring a bracket of gains under the projector's white")
             self.station._show(white(self.station.projector_size))
-            time.sleep(0.5)  # any projector's latency: the white lights the board now
+            self.station.clock.sleep(0.5)  # any projector's latency (the rig's clock): the white lights the board now
             fit = measure_response(cam, float(getattr(proj, "refresh_hz", 60.0) or 60.0), timing=self.station._change_timing)
         except (DeviceError, ProcamError) as e:
             text = f"camera response not measured ({e}): centroids use the camera's levels uncorrected"
