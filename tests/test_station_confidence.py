@@ -68,6 +68,19 @@ def test_the_plan_keeps_the_switch_across_a_resume():
     d = PLAN.to_dict()
     assert d["stop_on_confidence"] is True
     assert Plan.from_dict(d) == PLAN and Plan.from_dict({}).stop_on_confidence is False
+    nb = Plan(stop_on_confidence=True, next_best=True)
+    assert Plan.from_dict(nb.to_dict()).next_best is True and Plan.from_dict({}).next_best is False
+
+
+def test_next_best_without_stopping_on_confidence_is_refused_with_the_reason():
+    from argparse import Namespace
+
+    from app.commands.session import plan_from_args
+    from calib.errors import OptionError
+
+    with pytest.raises(OptionError, match="--next-best .* only --stop-on-confidence computes: give both"):
+        plan_from_args(Namespace(next_best=True, stop_on_confidence=None))
+    assert plan_from_args(Namespace(next_best=True, stop_on_confidence=True)).next_best
 
 
 def test_the_checklist_shows_each_1_sigma_against_its_target():

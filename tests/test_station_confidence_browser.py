@@ -33,7 +33,7 @@ QUANTITIES = {"t_mm": ("projector position", "mm"), "rot_deg": ("projector orien
 
 def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(tmp_path):
     folder = tmp_path / "session"
-    st = StationProcess("--rig", "sim", "--auto", "--stop-on-confidence", "--poses-per-position", "1",
+    st = StationProcess("--rig", "sim", "--auto", "--stop-on-confidence", "--next-best", "--poses-per-position", "1",
                         "--mirror-captures", "3", "--session", str(folder))
     goal = targets(Step.PROJECTOR)
     try:
@@ -49,7 +49,7 @@ def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(t
             expect(page.get_by_text(re.compile(first)).first).to_be_visible()
             # with a projection-uncertainty grid known, the position asked for next is the next-best one,
             # said and dashed on the projector's coverage map until the step ends
-            nbp = r"Next projector placement: pattern position ([0-9]+), the ([a-z -]+) of the projector's image"
+            nbp = r"Next projector placement: pattern position ([0-9]+), at the ([a-z -]+) of the projector's image"
             node = page.get_by_text(re.compile(nbp)).first
             expect(node).to_be_visible()
             chosen = int(re.search(nbp, node.inner_text()).group(1)) - 1

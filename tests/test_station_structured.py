@@ -3,6 +3,9 @@ each placement the whole coded sequence, every frame exposed under its own image
 moved during the sequence refused and the placement held again, the step stopping when confident, and
 the session calibrating within the circle session's bounds."""
 
+from dataclasses import replace
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -181,51 +184,53 @@ def test_the_structured_step_stops_when_confident(tmp_path, monkeypatch):
     assert any("projector step confident after s" in ln for ln in lines)
 
 
-def test_once_a_grid_is_known_each_placement_goes_where_the_projector_is_least_certain(tmp_path, monkeypatch):
-    """Stopping on confidence (never confident here): the first placements in the plan's order, then each
+def test_once_a_grid_is_known_each_placement_goes_where_the_uncertainty_is_largest(tmp_path, monkeypatch):
+    """Plan.next_best, stopping on confidence (never confident here): the first placements in the plan's order, then each
     next one at the position calib.quality.next_pose chooses on the latest calibration's projection-
-    uncertainty grid; the simulated operator is asked for that slot, the panel's instruction says why."""
+    uncertainty grids; the simulated operator is asked for that slot, the log and the panel's instruction
+    say why."""
     from collections import Counter
 
+    from app.station.targets import uncertainty_grids
     from app.station.wording import instruction
     from calib.quality.next_pose import next_position
 
     monkeypatch.setattr(C, "TARGET_FRACTION", 1e-9)
     plan = Plan(real_virtual_captures=5, min_real_virtual=3, structured_placements=6, min_structured_placements=4,
-                stop_on_confidence=True)
+                stop_on_confidence=True, next_best=True)
     rig, m, st, lines = _station(tmp_path, plan)
-    grids, asked, said = [], [], []
-    real_grid, real_ask = m.set_projector_grid, rig.operator.request_pose
-
-    def recording_grid(grid):
-        grids.append((len(m.captures_of(STEP_PROJECTOR)), grid))
-        real_grid(grid)
+    asked = []  # (slot asked for, the next-best choice then, what next_position says on the grids then, instruction)
+    real_ask = rig.operator.request_pose
 
     def recording_ask(step, pos, index):
         if step == STEP_PROJECTOR:
-            asked.append((pos, index))
-            said.append(instruction(m, None, None, ""))
+            taken = Counter(slot_of(c)[0] for c in m.captures_of(STEP_PROJECTOR))
+            grids = uncertainty_grids(m)
+            expected = next_position(grids, range(m.positions), taken) if grids else None
+            asked.append(((pos, index), m.next_placement, expected, instruction(m, None, None, "")))
         return real_ask(step, pos, index)
 
-    monkeypatch.setattr(m, "set_projector_grid", recording_grid)
     monkeypatch.setattr(rig.operator, "request_pose", recording_ask)
     tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=900)
     caps = m.captures_of(STEP_PROJECTOR)
     assert len(caps) == plan.structured_placements
     slots = [slot_of(c) for c in caps]
     assert slots[:4] == placement_order(m.positions, 1)[:4]  # no grid before the minimum: the plan's order
-    size = tuple(m.manifest.rig.projector_size)
-    for k in range(4, len(caps)):
-        n, grid = grids[[g[0] for g in grids].index(k)]
-        assert grid is not None and grid["sigma_px"] is not None
-        taken = Counter(p for p, _ in slots[:k])
-        best = next_position(grid, m.manifest.pattern, size, range(m.positions), taken)
-        assert slots[k][0] == best.position, (k, slots, best)
-        assert asked.count(slots[k]) >= 1  # the operator was asked for that slot
-        assert any(ln == f"next placement: {best.reason()}" for ln in lines)
+    first_asked = {}
+    for slot, best, expected, said in asked:
+        first_asked.setdefault(slot, (best, expected, said))
+    for k, slot in enumerate(slots):
+        best, expected, said = first_asked[slot]  # the operator was asked for each slot captured
+        if k < 4:
+            assert best is None and "Next-best" not in said
+            continue
+        assert best is not None and best == expected and slot[0] == best.position, (k, slot, best, expected)
+        assert f"Next-best: {best.reason()}" in said
+        assert f"next placement: {best.reason()}" in lines
     assert sum(ln.startswith("next placement: pattern position") for ln in lines) == len(caps) - 4
-    assert sum("Next-best: pattern position" in t for t in said) >= len(caps) - 4
-    assert not any("Next-best" in t for t in said[:4])
+    assert [g.device for g in uncertainty_grids(m)] == ["projector"]
+    # without Plan.next_best the same grid changes nothing: the plan's order
+    assert uncertainty_grids(SimpleNamespace(plan=replace(plan, next_best=False), projection_uncertainty={})) == []
 
 
 def test_a_sequence_killed_before_it_was_written_is_asked_again_on_resume(tmp_path):

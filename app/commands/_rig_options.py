@@ -125,6 +125,10 @@ def add_rig_options(p) -> None:
                    help="end each capture step once its 1-sigmas meet their targets (docs/CALIBRATION.md): "
                         "5 mirror captures, the projector step, then mirror captures until the mirror normal is "
                         "confident; the plan's counts are then maximums")
+    p.add_argument("--next-best", action="store_true", default=None,
+                   help="with --stop-on-confidence: once the captures so far are calibrated, ask for the pattern "
+                        "position where the projector's projection uncertainty is largest instead of the plan's "
+                        "order (docs/CALIBRATION.md; no more accurate than the plan's order, docs/BENCHMARKS.md)")
     add_projector_pattern_options(p, "pose")
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")

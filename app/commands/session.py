@@ -46,6 +46,13 @@ def plan_from_args(args, base=None):
         kw["poses_per_position"] = args.poses_per_position
     if getattr(args, "stop_on_confidence", None):
         kw["stop_on_confidence"] = True
+    if getattr(args, "next_best", None):
+        if not kw["stop_on_confidence"]:
+            from calib.errors import OptionError
+
+            raise OptionError("--next-best chooses each pose from the calibration of the captures so far, which "
+                              "only --stop-on-confidence computes: give both")
+        kw["next_best"] = True
     if getattr(args, "placements", None) is not None:
         kw["structured_placements"] = args.placements
     if getattr(args, "mirror_captures", None) is not None:

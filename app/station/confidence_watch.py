@@ -16,8 +16,9 @@ from calib.quality.confidence import Confidence, confidence_of, unconfident
 
 def step_confidences(machine) -> tuple[Confidence, Confidence | None, dict | None]:
     """Calibrate the session's captures so far (its kept detections; joint) and judge the projector step
-    and, on a mirror rig, the mirror step; with the projector's projection-uncertainty grid of that
-    calibration (None when it failed or gave none), where the next placement helps most."""
+    and, on a mirror rig, the mirror step; with that calibration's projection-uncertainty grids
+    (calibration.json's "projection_uncertainty"; None when it failed or gave none), where the next
+    placement helps most."""
     from calib.pipeline import calibrate_session
 
     from app.station.session_steps import mirror_step
@@ -36,15 +37,13 @@ def step_confidences(machine) -> tuple[Confidence, Confidence | None, dict | Non
     if why is not None:
         return unconfident(Step.PROJECTOR, why), None if mirror is None else unconfident(mirror, why), None
     pu = result.projection_uncertainty if isinstance(result.projection_uncertainty, dict) else None
-    grid = pu.get("projector") if pu else None
-    return (confidence_of(result, Step.PROJECTOR), None if mirror is None else confidence_of(result, mirror),
-            grid if isinstance(grid, dict) else None)
+    return confidence_of(result, Step.PROJECTOR), None if mirror is None else confidence_of(result, mirror), pu
 
 
 def _judge(machine) -> tuple[Confidence, Confidence | None]:
-    """Judge both steps on the captures so far and keep the judgements (and the grid) in the machine."""
-    proj, mirror, grid = step_confidences(machine)
-    machine.set_projector_grid(grid)
+    """Judge both steps on the captures so far and keep the judgements (and the grids) in the machine."""
+    proj, mirror, pu = step_confidences(machine)
+    machine.set_projection_uncertainty(pu)
     machine.set_projector_confidence(proj)
     if mirror is not None:
         machine.set_mirror_confidence(mirror)

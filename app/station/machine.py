@@ -106,9 +106,9 @@ class SessionMachine:
         # the projector step's confidence after its latest detected capture (Plan.stop_on_confidence)
         self.projector_confidence = None
         self.mirror_confidence = None  # the mirror normal's, from the same calibrations (mirror rigs)
-        # the projector's projection-uncertainty grid from the same calibrations: where the next
-        # placement helps most (calib.quality.next_pose)
-        self.projector_grid: dict | None = None
+        # the devices' projection-uncertainty grids from the same calibrations (calibration.json's
+        # "projection_uncertainty"): where the next placement helps most (calib.quality.next_pose)
+        self.projection_uncertainty: dict | None = None
         self.last_capture: Capture | None = None
         self.events: list[Event] = []
         self.on_event: Callable[[str], None] | None = None
@@ -276,10 +276,10 @@ class SessionMachine:
         with self._lock:
             self.projector_confidence = conf
 
-    def set_projector_grid(self, grid: dict | None) -> None:
-        """The projector's projection-uncertainty grid of the latest calibration (None: none known)."""
+    def set_projection_uncertainty(self, pu: dict | None) -> None:
+        """The projection-uncertainty grids of the latest calibration (None: none known)."""
         with self._lock:
-            self.projector_grid = grid
+            self.projection_uncertainty = pu
 
     @property
     def next_placement(self):

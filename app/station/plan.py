@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from calib.models.vocab import MirrorMethod
 
 
+_SWITCHES = ("stop_on_confidence", "next_best")
+
+
 @dataclass(frozen=True)
 class Plan:
     """How many captures each step asks for. The projector step takes `poses_per_position` board poses
@@ -32,6 +35,10 @@ class Plan:
     # which is what a calibration needs (calib.paper.method.MIN_PROJECTOR_VIEWS: fewer cannot be judged)
     structured_placements: int = 6
     min_structured_placements: int = 4
+    # with stop_on_confidence: once a calibration of the captures so far is known, ask for the pattern
+    # position where the projector's projection uncertainty is largest (calib.quality.next_pose) instead
+    # of the plan's order
+    next_best: bool = False
 
     def mirror_captures(self, method: str) -> int:
         return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures
@@ -51,7 +58,7 @@ class Plan:
     @classmethod
     def from_dict(cls, d: dict | None) -> Plan:
         d = d or {}
-        return cls(**{k: (bool(v) if k == "stop_on_confidence" else int(v)) for k, v in d.items()
+        return cls(**{k: (bool(v) if k in _SWITCHES else int(v)) for k, v in d.items()
                       if k in cls.__dataclass_fields__})
 
 

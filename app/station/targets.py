@@ -3,9 +3,10 @@
 The circle (or chessboard) step: the circle grid's poses at every pattern position, in the plan's order
 or, stopping on confidence, one pose at every position before the next. The structured-light step: its
 placements (calib.models.structured_light.placement_order's slots) up to the plan's count, or fewer
-when confident. Stopping on confidence, once a calibration of the captures so far gave the projector's
-projection-uncertainty grid, the position asked for next is the one a board would help most
-(calib.quality.next_pose; within the circle step's round of positions); before that, the plan's order.
+when confident. With Plan.next_best (stopping on confidence), once a calibration of the captures so far
+gave the projector's projection-uncertainty grid, the position asked for next is the one a board would
+help most (calib.quality.next_pose; within the circle step's round of positions); before that, and
+without it, the plan's order.
 """
 
 from __future__ import annotations
@@ -16,7 +17,9 @@ from app.station.plan import Target
 from app.station.structured_step import slot_of
 from calib.models.observations import STEP_PROJECTOR
 from calib.models.structured_light import placement_order
-from calib.quality.next_pose import NextPlacement, next_position
+from calib.models.vocab import Step
+from calib.quality.confidence import targets
+from calib.quality.next_pose import DeviceGrid, NextPlacement, next_position, position_area
 
 
 def free_pose(caps, n: int) -> int | None:
@@ -25,12 +28,22 @@ def free_pose(caps, n: int) -> int | None:
     return next((k for k in range(n) if k not in used), None)
 
 
+def uncertainty_grids(machine) -> list[DeviceGrid]:
+    """The projector's grid of the latest calibration (Plan.next_best), with the board's area at each
+    pattern position and the projector's target; [] when none is known."""
+    pu = machine.projection_uncertainty
+    if not machine.plan.next_best or not isinstance(pu, dict) or not isinstance(pu.get("projector"), dict):
+        return []
+    man = machine.manifest
+    W, H = man.rig.projector_size
+    areas = {p: position_area(man.pattern, W, H, p) for p in range(machine.positions)}
+    return [DeviceGrid("projector", pu["projector"], areas, targets(Step.PROJECTOR)["projection_projector_max_px"])]
+
+
 def _best(machine, candidates: list[int], taken) -> NextPlacement | None:
-    """The next-best position among `candidates`, when the plan stops on confidence and a grid is known."""
-    if not machine.plan.stop_on_confidence or machine.projector_grid is None or not candidates:
-        return None
-    return next_position(machine.projector_grid, machine.manifest.pattern, tuple(machine.manifest.rig.projector_size),
-                         candidates, taken)
+    """The next-best position among `candidates`, when the plan asks for it and a grid is known."""
+    grids = uncertainty_grids(machine)
+    return next_position(grids, candidates, taken) if grids and candidates else None
 
 
 def _confident(machine, n: int, minimum: int) -> bool:

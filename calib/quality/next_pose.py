@@ -1,19 +1,23 @@
-"""The next-best placement of a projector step: the pattern position whose part of the projector's image
-a board would help most, from the projection-uncertainty grid of the calibration so far.
+"""The next-best placement of a projector step: the pattern position where a board would reduce the
+largest remaining uncertainty, from the projection-uncertainty grids of the calibration so far.
 
 Each pattern position names where in the projector's image the board stands (the circle grid lands on its
 blank area; a structured-light sequence is decoded over the whole board). A placement there adds points
-over that area, so it reduces the projector's projection uncertainty (calib.quality.projection_uncertainty:
-intrinsics and distortion, rotation-compensated) mostly there. The choice: for each candidate position,
-the largest 1-sigma of the grid over the area a board at that position covers (the pattern's extent
-widened by `BOARD_MARGIN` on every side), and the reduction one more placement would bring if the
-information there grew like the count of placements over it, sigma * (1 - sqrt((n + 1) / (n + 2))) with n
-the placements taken at that position. An image corner no placement reached has the grid's largest
-sigma (distortion extrapolated), so it is chosen before a place already measured.
+over that area, so it reduces the device's projection uncertainty (calib.quality.projection_uncertainty:
+intrinsics and distortion, rotation-compensated) mostly there. For each candidate position and each
+device grid given (`DeviceGrid`: the station gives the projector's): the grid's largest 1-sigma over the
+board's area in that device's image, divided by the device's target (calib.quality.confidence's "over
+its image" targets); the worst is the position's need, and the choice is the position whose need one
+more placement would reduce most if the information there grew like the count of placements over it,
+need * (1 - sqrt((n + 1) / (n + 2))), n the placements taken at that position. An image corner no board
+reached has its grid's largest sigma (distortion extrapolated), so it is chosen before a place already
+measured. The area in the projector's image: the pattern's extent widened by `BOARD_MARGIN` on every side.
 
-What it does not do: predict the board's view in the camera (a position's area in the camera image
-follows from the mirror and the working distance) or choose a tilt; the pose index picks the operator's
-variant for the position, as before. Pure computation: `next_position` is the entry point.
+What it does not do: predict the projector's pose or intrinsics (what these grids leave out), the
+camera's view of the board (which side of the blank area a person holds the printed part is theirs to
+choose, so the board's place in the camera's image is known only to about a board), or choose a tilt;
+the pose index picks the operator's variant for the position, as before. benchmarks/next_pose.py
+measures it against the plan's order. Pure computation: `next_position` is the entry point.
 """
 
 from __future__ import annotations
@@ -31,18 +35,31 @@ BOARD_MARGIN = 0.25
 
 
 @dataclass(frozen=True)
+class DeviceGrid:
+    """One device's grid (calib.quality.projection_uncertainty), the board's area in its image at each
+    candidate position (x0, y0, x1, y1 pixels), and the device's target 1-sigma (px)."""
+
+    device: str  # "projector" / "camera"
+    grid: Mapping
+    areas: Mapping[int, tuple[float, float, float, float]]
+    target_px: float
+
+
+@dataclass(frozen=True)
 class NextPlacement:
     """The position chosen and why."""
 
     position: int
-    sigma_px: float  # the grid's largest 1-sigma over the position's area
-    where: str  # the part of the projector's image it is in (corner, edge, centre)
+    device: str  # whose grid needs the placement most
+    sigma_px: float  # that grid's largest 1-sigma over the board's area there
+    target_px: float
+    where: str  # the part of that device's image it is in (corner, edge, centre)
     taken: int  # placements already taken at that position
 
     def reason(self) -> str:
-        return (f"pattern position {self.position + 1}, the {self.where} of the projector's image, where its "
-                f"projection 1-sigma is largest ({self.sigma_px:.3f} px; {self.taken} placement"
-                f"{'' if self.taken == 1 else 's'} there so far)")
+        return (f"pattern position {self.position + 1}, at the {self.where} of the {self.device}'s image, where its "
+                f"projection 1-sigma is largest against its target ({self.sigma_px:.3f} px, target "
+                f"{self.target_px:.3g}; {self.taken} placement{'' if self.taken == 1 else 's'} there so far)")
 
 
 def position_area(pattern, width: int, height: int, position: int) -> tuple[float, float, float, float]:
@@ -86,32 +103,37 @@ def area_sigma(grid: Mapping, rect) -> float | None:
     return float(np.max(s[np.ix_(rows, cols)]))
 
 
-def _gain(sigma: float, taken: int) -> float:
-    return sigma * (1.0 - math.sqrt((taken + 1.0) / (taken + 2.0)))
+def _usable(g: DeviceGrid) -> bool:
+    return bool(g.grid) and not g.grid.get("fixed") and g.grid.get("sigma_px") is not None and g.target_px > 0
 
 
-def next_position(grid: Mapping | None, pattern, size: tuple[int, int], candidates: Iterable[int],
-                  taken: Mapping[int, int]) -> NextPlacement | None:
-    """The candidate position a placement would help most (ties: the earlier candidate), or None when the
-    grid says nothing (no covariance, the projector held fixed) or there is no candidate."""
-    if not grid or grid.get("fixed") or grid.get("sigma_px") is None:
-        return None
-    width, height = size
+def next_position(grids: Iterable[DeviceGrid], candidates: Iterable[int], taken: Mapping[int, int]) \
+        -> NextPlacement | None:
+    """The candidate position a placement would help most (ties: the earlier candidate), or None when no
+    grid says anything (no covariance, the devices held fixed) or there is no candidate."""
+    grids = [g for g in grids if _usable(g)]
     best, best_gain = None, -math.inf
     for p in candidates:
-        sigma = area_sigma(grid, position_area(pattern, width, height, p))
-        if sigma is None:
+        need = None
+        for g in grids:
+            if p not in g.areas:
+                continue
+            sigma = area_sigma(g.grid, g.areas[p])
+            if sigma is None:
+                continue
+            sigma = sigma if math.isfinite(sigma) else 1e9  # unconstrained there: first
+            if need is None or sigma / g.target_px > need[0]:
+                need = (sigma / g.target_px, g, sigma)
+        if need is None:
             continue
-        sigma = sigma if math.isfinite(sigma) else 1e9  # unconstrained there: first
         n = int(taken.get(p, 0))
-        g = _gain(sigma, n)
-        if g > best_gain:
-            best, best_gain = (p, sigma, n), g
+        gain = need[0] * (1.0 - math.sqrt((n + 1.0) / (n + 2.0)))
+        if gain > best_gain:
+            best, best_gain = (p, need[1], need[2], n), gain
     if best is None:
         return None
-    p, sigma, n = best
-    where = _where(grid, position_area(pattern, width, height, p)) or "middle"
-    return NextPlacement(p, sigma, where, n)
+    p, g, sigma, n = best
+    return NextPlacement(p, g.device, sigma, g.target_px, _where(g.grid, g.areas[p]) or "middle", n)
 
 
 def _where(grid: Mapping, rect) -> str | None:
