@@ -87,6 +87,19 @@ def test_a_recalibration_refuses_the_structured_step(session, tmp_path):
     assert "a recalibration re-measures with PREVIOUS's own" in line and not out.exists()
 
 
+@pytest.mark.parametrize("option", ["--stop-on-confidence", "--next-best"])
+def test_a_recalibration_refuses_a_new_sessions_plan_switches(session, tmp_path, option):
+    out = tmp_path / "new"
+    line = refused("station", "--recalibrate", str(session), option, "--session", str(out), "--port", "0")
+    assert "plan a new session's capture steps" in line and not out.exists()
+
+
+def test_next_best_without_stopping_on_confidence_is_refused_before_any_folder(tmp_path):
+    out = tmp_path / "new"
+    line = refused("session", "--rig", "sim", "--auto", "--next-best", "--out", str(out))
+    assert "only --stop-on-confidence computes: give both" in line and not out.exists()
+
+
 def test_verify_seed_names_the_option(session):
     line = refused("verify", str(session), "--seed", "-1")
     assert "argument --seed: must be a whole number from 0" in line
