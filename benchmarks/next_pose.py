@@ -18,9 +18,11 @@ against its target (calib.quality.confidence) is least: what choosing the pose i
 "asked" is what a station that asks for a whole pose could do (run_asked): candidate poses (3 per
 position, tilted as a person would) drawn from the calibration so far, each one's exact observations
 predicted through that estimate, the one whose calibration has the least worst 1-sigma against its
-target taken and held by the operator exactly; "asked, order" takes the plan's next position with such
+target taken and held by the operator exactly ("asked, sum": the least sum of the squared
+1-sigma/target ratios, all the step's quantities at once); "asked, order" takes the plan's next position with such
 a pose (the pose distribution without the choice). Means over seeds of the errors against the ground
-truth; in brackets, the seeds where the arm beats "order". The default arms leave out the "asked" ones
+truth; in brackets, the seeds where the arm beats "order" (the asked arms: "asked, order" when that arm runs).
+--follow DEG MM makes the operator hold an asked pose off by that much (1-sigma). The default arms leave out the "asked" ones
 (a minute per seed): name them with --arms.
 """
 
@@ -43,7 +45,8 @@ from calib.pipeline import calibrate_observations  # noqa: E402
 from calib.quality.confidence import confidence_of, targets  # noqa: E402
 from calib.quality.metrics import compare  # noqa: E402
 from calib.quality.next_pose import DeviceGrid, next_position, position_area  # noqa: E402
-from calib.synthetic import SyntheticSession, observe, projector_pose  # noqa: E402
+from calib.synthetic import SyntheticSession, projector_pose_ok, observe, projector_pose  # noqa: E402
+from calib.transforms import make_T, rotation_about  # noqa: E402
 from drivers.sim.scenarios import get_scenario  # noqa: E402
 
 METRICS = (("distance", "distance mm"), ("angle_deg", "angle deg"), ("proj_k_px", "ProjK px"),
@@ -115,7 +118,25 @@ def _observe(sc, rig, poses, mirror: bool, noise, seed):
     return observe(ss, noise, seed, circle_centroids=True)
 
 
-def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variants: int = 3):
+def _held(sc, pos, T, follow, rng):
+    """The pose the operator holds when asked for T: off by a rotation of `follow[0]` degrees (1-sigma,
+    about a random axis through the board's blank centre) and a shift of `follow[1]` mm (1-sigma per
+    axis), redrawn until the pattern lands on the blank area through the true rig."""
+    deg, mm = follow
+    if deg == 0 and mm == 0:
+        return T
+    c = T[:3, :3] @ sc.layout.blank_centre + T[:3, 3]
+    for _ in range(50):
+        axis = rng.normal(size=3)
+        R = rotation_about(axis / np.linalg.norm(axis), rng.normal(0.0, deg))
+        H = make_T(R @ T[:3, :3], R @ (T[:3, 3] - c) + c + rng.normal(0.0, mm, 3))
+        if projector_pose_ok(sc.rig, sc.layout, sc.pattern, pos, H):
+            return H
+    return T
+
+
+def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variants: int = 3,
+              follow: tuple[float, float] = (0.0, 0.0)):
     """The station asks for a pose (position and tilt), the operator holds it: candidate poses drawn
     from the calibration so far (the rig as estimated; the mirror's extent the true one), each one's
     exact observations predicted through that estimate added to the real ones, the candidate whose
@@ -156,10 +177,11 @@ def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variant
                 conf = confidence_of(calibrate_observations(merged, "joint"), Step.PROJECTOR)
             except ProcamError:
                 continue
-            need = max(q.sigma / q.target for q in conf.quantities)
+            ratios = [q.sigma / q.target for q in conf.quantities]
+            need = float(np.sum(np.square(ratios))) if arm == "asked, sum" else max(ratios)
             if best_need is None or need < best_need:
                 best, best_need = cand, need
-        poses.append(best)
+        poses.append((best[0], _held(sc, best[0], best[1], follow, np.random.default_rng(seed * 7919 + step))))
     return compare(calibrate_observations(_observe(sc, sc.rig, poses, True, noise, seed), "joint"),
                    sc.ground_truth()), poses
 
@@ -172,10 +194,12 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=4)
     ap.add_argument("--arms", nargs="+", default=["order", "next-best", "oracle"])
     ap.add_argument("--noise", type=float, default=0.05)
+    ap.add_argument("--follow", type=float, nargs=2, default=[0.0, 0.0], metavar=("DEG", "MM"),
+                    help="the asked arms' operator holds the asked pose off by this 1-sigma rotation and shift")
     ap.add_argument("--density", type=int, default=2, help="pattern points per circle-grid spacing (default 2)")
     args = ap.parse_args()
     print(f"{args.placements} projector placements ({args.first} in the plan's order first), pattern density "
-          f"{args.density}, noise {args.noise} px, "
+          f"{args.density}, noise {args.noise} px, asked poses held to {args.follow[0]} deg / {args.follow[1]} mm, "
           f"{args.seeds} seeds; means (in brackets: the seeds where the arm beats order)")
     print("| scenario | arm | " + " | ".join(label for _, label in METRICS) + " |")
     print("|---|---|" + "---|" * len(METRICS))
@@ -186,8 +210,11 @@ def main() -> None:
             for seed in range(args.seeds):
                 sc = dense(get_scenario(name, seed), args.density)
                 try:
-                    run = run_asked if arm.startswith("asked") else run_arm
-                    m, _ = run(sc, arm, args.placements, args.first, args.noise, seed)
+                    if arm.startswith("asked"):
+                        m, _ = run_asked(sc, arm, args.placements, args.first, args.noise, seed,
+                                         follow=tuple(args.follow))
+                    else:
+                        m, _ = run_arm(sc, arm, args.placements, args.first, args.noise, seed)
                 except (ProcamError, RuntimeError) as e:
                     print(f"  {name} seed {seed} {arm}: failed ({str(e).splitlines()[0]})", file=sys.stderr)
                     vals.append(None)
@@ -202,8 +229,9 @@ def main() -> None:
                     cells.append("-")
                     continue
                 cell = f"{np.mean(xs):.3f}"
-                if arm != "order":
-                    wins = sum(1 for a, b in zip(vals, rows["order"]) if a and b and a[k] is not None and a[k] < b[k])
+                base = "asked, order" if arm.startswith("asked") and arm != "asked, order" and "asked, order" in rows else "order"
+                if arm != base and base in rows:
+                    wins = sum(1 for a, b in zip(vals, rows[base]) if a and b and a[k] is not None and a[k] < b[k])
                     cell += f" ({wins})"
                 cells.append(cell)
             print(f"| {name} | {arm} | " + " | ".join(cells) + " |")

@@ -206,12 +206,14 @@ def projector_pose(rig: SyntheticRig, layout: BoardLayout, pattern: PatternSpec,
         R = inplane @ R
         T = make_T(R, C - R @ layout.blank_centre)
         T[:3, 3] += R @ np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), 0])
-        if _projector_pose_ok(rig, layout, pattern, position, T):
+        if projector_pose_ok(rig, layout, pattern, position, T):
             return T
     raise RuntimeError(f"no valid board pose found for pattern position {position}")
 
 
-def _projector_pose_ok(rig, layout, pattern, pos, T_cam_board) -> bool:
+def projector_pose_ok(rig, layout, pattern, pos, T_cam_board) -> bool:
+    """Whether a board at T_cam_board is a valid placement for pattern position `pos`: the board's
+    corners and the pattern (inside the blank area, with a margin) seen by the camera."""
     corners = transform_points(T_cam_board, layout.charuco.corner_points())
     if not _visible(rig, corners, T_cam_board):
         return False

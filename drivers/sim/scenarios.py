@@ -23,7 +23,7 @@ from calib.synthetic import (
     BoardLayout,
     SyntheticRig,
     _frame_from_normal,
-    _projector_pose_ok,
+    projector_pose_ok,
     make_direct_rig,
     make_rig,
     mirror_poses,
@@ -184,7 +184,7 @@ class Scenario:
             if attempt % 2 == 1:
                 R = rotation_about(R[:, 2], 180.0) @ R
             T = make_T(R, C - R @ self.layout.blank_centre)
-            if _projector_pose_ok(rig, self.layout, self.pattern, self.centre_position, T):
+            if projector_pose_ok(rig, self.layout, self.pattern, self.centre_position, T):
                 return T
         raise RuntimeError(f"no valid verification pose for scenario '{self.name}'")
 
