@@ -19,7 +19,9 @@ against its target (calib.quality.confidence) is least: what choosing the pose i
 position, tilted as a person would) drawn from the calibration so far, each one's exact observations
 predicted through that estimate, the one whose calibration has the least worst 1-sigma against its
 target taken and held by the operator exactly ("asked, sum": the least sum of the squared
-1-sigma/target ratios, all the step's quantities at once); "asked, order" takes the plan's next position with such
+1-sigma/target ratios, all the step's quantities at once; "asked, linear": the least worst, each candidate's
+1-sigmas predicted by calib.joint.predict, linearised at the calibration so far, instead of calibrated,
+as a live station could afford); "asked, order" takes the plan's next position with such
 a pose (the pose distribution without the choice). Means over seeds of the errors against the ground
 truth; in brackets, the seeds where the arm beats "order" (the asked arms: "asked, order" when that arm runs).
 --follow DEG MM makes the operator hold an asked pose off by that much (1-sigma). The default arms leave out the "asked" ones
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections import Counter
 from dataclasses import replace
 from pathlib import Path
@@ -39,6 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calib.errors import ProcamError  # noqa: E402
+from calib.joint.predict import predict_uncertainty  # noqa: E402
 from calib.models.structured_light import placement_order  # noqa: E402
 from calib.models.vocab import Step  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
@@ -142,8 +146,9 @@ def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variant
     exact observations predicted through that estimate added to the real ones, the candidate whose
     calibration has the least worst 1-sigma against its target taken ("asked"), or the plan's next
     position with the first candidate pose ("asked, order"). The pose taken is observed through the
-    true rig with noise."""
+    true rig with noise. Returns (metrics, poses, seconds per choice)."""
     order = placement_order(13, 4)
+    spent = []
     by_slot = {}
     for p, T in sc.projector_poses:
         by_slot.setdefault(p, []).append(T)
@@ -167,6 +172,7 @@ def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variant
                     except RuntimeError:
                         break
         best, best_need = None, None
+        t0 = time.perf_counter()
         for cand in cands:
             if len(cands) == 1:
                 best = cand
@@ -174,16 +180,19 @@ def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variant
             extra = _observe(sc, rig, [cand], False, 0.0, seed).projector_views
             merged = replace(obs, projector_views=obs.projector_views + extra)
             try:
-                conf = confidence_of(calibrate_observations(merged, "joint"), Step.PROJECTOR)
+                judged = predict_uncertainty(merged, est) if arm == "asked, linear" else \
+                    calibrate_observations(merged, "joint")
+                conf = confidence_of(judged, Step.PROJECTOR)
             except ProcamError:
                 continue
             ratios = [q.sigma / q.target for q in conf.quantities]
             need = float(np.sum(np.square(ratios))) if arm == "asked, sum" else max(ratios)
             if best_need is None or need < best_need:
                 best, best_need = cand, need
+        spent.append(time.perf_counter() - t0)
         poses.append((best[0], _held(sc, best[0], best[1], follow, np.random.default_rng(seed * 7919 + step))))
     return compare(calibrate_observations(_observe(sc, sc.rig, poses, True, noise, seed), "joint"),
-                   sc.ground_truth()), poses
+                   sc.ground_truth()), poses, float(np.mean(spent)) if spent else 0.0
 
 
 def main() -> None:
@@ -201,8 +210,8 @@ def main() -> None:
     print(f"{args.placements} projector placements ({args.first} in the plan's order first), pattern density "
           f"{args.density}, noise {args.noise} px, asked poses held to {args.follow[0]} deg / {args.follow[1]} mm, "
           f"{args.seeds} seeds; means (in brackets: the seeds where the arm beats order)")
-    print("| scenario | arm | " + " | ".join(label for _, label in METRICS) + " |")
-    print("|---|---|" + "---|" * len(METRICS))
+    print("| scenario | arm | " + " | ".join(label for _, label in METRICS) + " | s per choice |")
+    print("|---|---|" + "---|" * (len(METRICS) + 1))
     for name in args.scenarios:
         rows = {}
         for arm in args.arms:
@@ -210,16 +219,17 @@ def main() -> None:
             for seed in range(args.seeds):
                 sc = dense(get_scenario(name, seed), args.density)
                 try:
+                    spent = None
                     if arm.startswith("asked"):
-                        m, _ = run_asked(sc, arm, args.placements, args.first, args.noise, seed,
-                                         follow=tuple(args.follow))
+                        m, _, spent = run_asked(sc, arm, args.placements, args.first, args.noise, seed,
+                                                follow=tuple(args.follow))
                     else:
                         m, _ = run_arm(sc, arm, args.placements, args.first, args.noise, seed)
                 except (ProcamError, RuntimeError) as e:
                     print(f"  {name} seed {seed} {arm}: failed ({str(e).splitlines()[0]})", file=sys.stderr)
                     vals.append(None)
                     continue
-                vals.append({k: getattr(m, k) for k, _ in METRICS})
+                vals.append({k: getattr(m, k) for k, _ in METRICS} | {"choice_s": spent})
             rows[arm] = vals
         for arm, vals in rows.items():
             cells = []
@@ -234,6 +244,8 @@ def main() -> None:
                     wins = sum(1 for a, b in zip(vals, rows[base]) if a and b and a[k] is not None and a[k] < b[k])
                     cell += f" ({wins})"
                 cells.append(cell)
+            spent = [v["choice_s"] for v in vals if v is not None and v["choice_s"] is not None]
+            cells.append(f"{np.mean(spent):.1f}" if spent else "-")
             print(f"| {name} | {arm} | " + " | ".join(cells) + " |")
 
 

@@ -27,7 +27,7 @@ def _sym_inv(A: np.ndarray) -> np.ndarray:
     return inv / s[:, None] / s[None, :]
 
 
-def marginal_covariance(prob, x: np.ndarray, unit_noise: bool = False):
+def marginal_covariance(prob, x: np.ndarray, unit_noise: bool = False, variance_factor: float | None = None):
     """(Cov of the global parameters, variance factor, dof) at x, the board poses marginalised:
     Cov = s^2 (A - B D^-1 B^T)^-1 with J^T J = [[A, B^T], [B, D]] (D block-diagonal per pose) and
     s^2 = r.r / (N - P) of the (whitened) residuals.
@@ -49,7 +49,12 @@ def marginal_covariance(prob, x: np.ndarray, unit_noise: bool = False):
     pi, pl = prior_terms(prob)  # a zero-mean prior (k3 shrinkage) adds its precision
     schur[pi, pi] += pl
     dof = max(r.size - prob.n_params, 1)
-    s2 = 1.0 if unit_noise else float(np.einsum("i,i->", r, r)) / dof
+    if unit_noise:
+        s2 = 1.0
+    elif variance_factor is not None:
+        s2 = float(variance_factor)
+    else:
+        s2 = float(np.einsum("i,i->", r, r)) / dof
     return s2 * _sym_inv(schur), s2, dof
 
 
@@ -73,9 +78,10 @@ def _summary(prob, cov: np.ndarray, unit_to_mm: float = 1.0) -> dict:
     return out
 
 
-def joint_uncertainty(prob, x: np.ndarray) -> dict:
-    """1-sigma values of the joint adjustment (prob rebased at its solution x)."""
-    cov, sigma2, dof = marginal_covariance(prob, x)
+def joint_uncertainty(prob, x: np.ndarray, variance_factor: float | None = None) -> dict:
+    """1-sigma values of the joint adjustment (prob rebased at its solution x); `variance_factor` as
+    marginal_covariance's."""
+    cov, sigma2, dof = marginal_covariance(prob, x, variance_factor=variance_factor)
     names = prob.global_names
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     idx = {n: i for i, n in enumerate(names)}
