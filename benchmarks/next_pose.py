@@ -21,7 +21,8 @@ predicted through that estimate, the one whose calibration has the least worst 1
 target taken and held by the operator exactly ("asked, sum": the least sum of the squared
 1-sigma/target ratios, all the step's quantities at once; "asked, linear": the least worst, each candidate's
 1-sigmas predicted by calib.joint.predict, linearised at the calibration so far, instead of calibrated,
-as a live station could afford); "asked, order" takes the plan's next position with such
+as a live station could afford: calib.quality.asked_pose, its candidates 15% about the boards' median
+distance); "asked, order" takes the plan's next position with such
 a pose (the pose distribution without the choice). Means over seeds of the errors against the ground
 truth; in brackets, the seeds where the arm beats "order" (the asked arms: "asked, order" when that arm runs).
 --follow DEG MM makes the operator hold an asked pose off by that much (1-sigma). The default arms leave out the "asked" ones
@@ -42,10 +43,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calib.errors import ProcamError  # noqa: E402
-from calib.joint.predict import predict_uncertainty  # noqa: E402
 from calib.models.structured_light import placement_order  # noqa: E402
 from calib.models.vocab import Step  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
+from calib.quality.asked_pose import ask_pose, candidate_poses  # noqa: E402
 from calib.quality.confidence import confidence_of, targets  # noqa: E402
 from calib.quality.metrics import compare  # noqa: E402
 from calib.quality.next_pose import DeviceGrid, next_position, position_area  # noqa: E402
@@ -139,6 +140,38 @@ def _held(sc, pos, T, follow, rng):
     return T
 
 
+def _asked_by_calibration(sc, arm, obs, est, poses, order, seed, variants):
+    """The "asked", "asked, sum" and "asked, order" choices: each candidate calibrated with its exact
+    predicted observations added (the first candidate of the plan's next position for "asked, order")."""
+    rig = replace(sc.rig, camera=est.camera, projector=est.projector, T_cam_proj=np.asarray(est.T_cam_proj),
+                  mirror=est.mirror if sc.rig.mirror is not None else None)
+    if arm == "asked, order":
+        taken = {p for p, _ in poses}
+        pos = next(p for p, _ in order if p not in taken)
+        return pos, projector_pose(rig, sc.layout, sc.pattern, pos, np.random.default_rng(seed * 1000 + pos))
+    cands = []
+    for pos in range(13):
+        rng = np.random.default_rng(seed * 1000 + pos)
+        for _k in range(variants):
+            try:
+                cands.append((pos, projector_pose(rig, sc.layout, sc.pattern, pos, rng)))
+            except RuntimeError:
+                break
+    best, best_need = None, None
+    for cand in cands:
+        extra = _observe(sc, rig, [cand], False, 0.0, seed).projector_views
+        merged = replace(obs, projector_views=obs.projector_views + extra)
+        try:
+            conf = confidence_of(calibrate_observations(merged, "joint"), Step.PROJECTOR)
+        except ProcamError:
+            continue
+        ratios = [q.sigma / q.target for q in conf.quantities]
+        need = float(np.sum(np.square(ratios))) if arm == "asked, sum" else max(ratios)
+        if best_need is None or need < best_need:
+            best, best_need = cand, need
+    return best
+
+
 def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variants: int = 3,
               follow: tuple[float, float] = (0.0, 0.0)):
     """The station asks for a pose (position and tilt), the operator holds it: candidate poses drawn
@@ -156,39 +189,16 @@ def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variant
     for step in range(n - first):
         obs = _observe(sc, sc.rig, poses, True, noise, seed)
         est = calibrate_observations(obs, "joint")
-        rig = replace(sc.rig, camera=est.camera, projector=est.projector, T_cam_proj=np.asarray(est.T_cam_proj),
-                      mirror=est.mirror if sc.rig.mirror is not None else None)
-        taken = {p for p, _ in poses}
-        if arm == "asked, order":
-            pos = next(p for p, _ in order if p not in taken)
-            cands = [(pos, projector_pose(rig, sc.layout, sc.pattern, pos, np.random.default_rng(seed * 1000 + pos)))]
-        else:
-            cands = []
-            for pos in range(13):
-                rng = np.random.default_rng(seed * 1000 + pos)
-                for _k in range(variants):
-                    try:
-                        cands.append((pos, projector_pose(rig, sc.layout, sc.pattern, pos, rng)))
-                    except RuntimeError:
-                        break
-        best, best_need = None, None
         t0 = time.perf_counter()
-        for cand in cands:
-            if len(cands) == 1:
-                best = cand
-                break
-            extra = _observe(sc, rig, [cand], False, 0.0, seed).projector_views
-            merged = replace(obs, projector_views=obs.projector_views + extra)
-            try:
-                judged = predict_uncertainty(merged, est) if arm == "asked, linear" else \
-                    calibrate_observations(merged, "joint")
-                conf = confidence_of(judged, Step.PROJECTOR)
-            except ProcamError:
-                continue
-            ratios = [q.sigma / q.target for q in conf.quantities]
-            need = float(np.sum(np.square(ratios))) if arm == "asked, sum" else max(ratios)
-            if best_need is None or need < best_need:
-                best, best_need = cand, need
+        if arm == "asked, linear":  # what a station would run: calib.quality.asked_pose
+            pool = []
+            for pos in range(13):
+                pool += candidate_poses(obs, est, sc.layout, sc.pattern, [pos], np.random.default_rng(seed * 1000 + pos),
+                                        variants, mirror_rect=sc.rig.mirror_rect)
+            asked = ask_pose(obs, est, pool)
+            best = (asked.position, asked.candidate.T_cam_board)
+        else:
+            best = _asked_by_calibration(sc, arm, obs, est, poses, order, seed, variants)
         spent.append(time.perf_counter() - t0)
         poses.append((best[0], _held(sc, best[0], best[1], follow, np.random.default_rng(seed * 7919 + step))))
     return compare(calibrate_observations(_observe(sc, sc.rig, poses, True, noise, seed), "joint"),
