@@ -10,7 +10,9 @@ scenario: its mirror views, and projector placements drawn from its 13 x 4 proje
 pattern position, pose index), each with a circle grid `--density` times as dense as the scenario's over
 the same extent (a stand-in for a structured placement's points all over the board). Every arm takes
 placement_order's first `--first` slots; then "order" takes the next slots of placement_order;
-"next-best" calibrates (joint) after each placement and takes the position next_position chooses on the
+"predicted" takes the position whose typical poses (3 drawn through the estimated rig) leave the least mean
+predicted worst 1-sigma against its target (calib.joint.predict: every quantity of the step, not only the
+grid), at its lowest pose index not taken (the operator's own pose there); "next-best" calibrates (joint) after each placement and takes the position next_position chooses on the
 projector's grid, at that position's lowest pose index not taken, as the station does with --next-best
 (app/station/targets.py); "oracle" calibrates with each candidate slot's own observations (the pose the
 operator will hold there, which no station knows beforehand) and takes the one whose worst 1-sigma
@@ -22,7 +24,8 @@ target taken and held by the operator exactly ("asked, sum": the least sum of th
 1-sigma/target ratios, all the step's quantities at once; "asked, linear": the least worst, each candidate's
 1-sigmas predicted by calib.joint.predict, linearised at the calibration so far, instead of calibrated,
 as a live station could afford: calib.quality.asked_pose, its candidates 15% about the boards' median
-distance); "asked, order" takes the plan's next position with such
+distance, seen in the part of the mirror boards were seen in so far; "asked, linear, true mirror": seen
+in the whole mirror); "asked, order" takes the plan's next position with such
 a pose (the pose distribution without the choice). Means over seeds of the errors against the ground
 truth; in brackets, the seeds where the arm beats "order" (the asked arms: "asked, order" when that arm runs).
 --follow DEG MM makes the operator hold an asked pose off by that much (1-sigma). The default arms leave out the "asked" ones
@@ -46,7 +49,7 @@ from calib.errors import ProcamError  # noqa: E402
 from calib.models.structured_light import placement_order  # noqa: E402
 from calib.models.vocab import Step  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
-from calib.quality.asked_pose import ask_pose, candidate_poses  # noqa: E402
+from calib.quality.asked_pose import ask_pose, candidate_poses, mirror_seen  # noqa: E402
 from calib.quality.confidence import confidence_of, targets  # noqa: E402
 from calib.quality.metrics import compare  # noqa: E402
 from calib.quality.next_pose import DeviceGrid, next_position, position_area  # noqa: E402
@@ -69,14 +72,38 @@ def dense(sc, density: int):
     return replace(sc, pattern=pattern)
 
 
-def _calibrate(sc, slots, noise, seed):
+def _slot_obs(sc, slots, noise, seed):
     by_slot = {}
     for p, T in sc.projector_poses:
         by_slot.setdefault(p, []).append(T)
     poses = [(p, by_slot[p][k]) for p, k in slots]
     ss = SyntheticSession(sc.rig, sc.layout, sc.mirror_board, sc.pattern, poses, sc.mirror_poses, sc.mirror_method,
                           sc.board_thickness_mm)
-    return calibrate_observations(observe(ss, noise, seed, circle_centroids=True), "joint")
+    return observe(ss, noise, seed, circle_centroids=True)
+
+
+def _calibrate(sc, slots, noise, seed):
+    return calibrate_observations(_slot_obs(sc, slots, noise, seed), "joint")
+
+
+def _predicted_position(sc, slots, noise, seed, variants: int = 3):
+    """The free position whose typical poses (candidates drawn through the estimated rig) leave the least
+    mean predicted worst 1-sigma / target (calib.quality.asked_pose's prediction, the pose left to the
+    operator): (position, mean need)."""
+    obs = _slot_obs(sc, slots, noise, seed)
+    est = calibrate_observations(obs, "joint")
+    best = None
+    for pos in range(13):
+        cands = candidate_poses(obs, est, sc.layout, sc.pattern, [pos], np.random.default_rng(seed * 1000 + pos),
+                                variants, mirror_rect=mirror_seen(obs, est))
+        needs = []
+        for c in cands:
+            a = ask_pose(obs, est, [c])
+            if a is not None:
+                needs.append(a.need)
+        if needs and (best is None or np.mean(needs) < best[1]):
+            best = (pos, float(np.mean(needs)))
+    return best
 
 
 def _grids(sc, result):
@@ -108,6 +135,13 @@ def run_arm(sc, arm: str, n: int, first: int, noise: float, seed: int):
                 if best_need is None or need < best_need:
                     best_slot, best_need = cand, need
             slots.append(best_slot)
+            continue
+        if arm == "predicted":
+            pos = _predicted_position(sc, slots, noise, seed)[0]
+            k = next((k for k in range(4) if (pos, k) not in slots), None)
+            if k is None:
+                raise RuntimeError(f"every pose of position {pos} taken")
+            slots.append((pos, k))
             continue
         result = _calibrate(sc, slots, noise, seed)
         taken = Counter(p for p, _ in slots)
@@ -190,11 +224,12 @@ def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variant
         obs = _observe(sc, sc.rig, poses, True, noise, seed)
         est = calibrate_observations(obs, "joint")
         t0 = time.perf_counter()
-        if arm == "asked, linear":  # what a station would run: calib.quality.asked_pose
+        if arm.startswith("asked, linear"):  # what a station would run: calib.quality.asked_pose
+            rect = sc.rig.mirror_rect if arm.endswith("true mirror") else mirror_seen(obs, est)
             pool = []
             for pos in range(13):
                 pool += candidate_poses(obs, est, sc.layout, sc.pattern, [pos], np.random.default_rng(seed * 1000 + pos),
-                                        variants, mirror_rect=sc.rig.mirror_rect)
+                                        variants, mirror_rect=rect)
             asked = ask_pose(obs, est, pool)
             best = (asked.position, asked.candidate.T_cam_board)
         else:

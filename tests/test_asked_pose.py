@@ -13,7 +13,7 @@ from calib.joint.predict import predict_uncertainty
 from calib.models.structured_light import placement_order
 from calib.models.vocab import Step
 from calib.pipeline import calibrate_observations
-from calib.quality.asked_pose import Candidate, ask_pose, candidate_poses
+from calib.quality.asked_pose import Candidate, ask_pose, candidate_poses, mirror_seen
 from calib.quality.confidence import confidence_of
 from calib.synthetic import SyntheticSession, observe, projector_pose_ok
 from drivers.sim.scenarios import get_scenario
@@ -81,3 +81,22 @@ def test_the_candidate_leaving_the_least_worst_sigma_is_asked_for_and_said_why()
     assert asked.sigma / asked.target == pytest.approx(asked.need)
     assert f"pattern position {asked.position + 1}" in asked.reason() and asked.worst in asked.reason()
     assert ask_pose(obs, est, []) is None
+
+
+def test_the_mirror_seen_so_far_lies_on_the_mirror_and_holds_every_mirrored_observation():
+    obs, est = _so_far()
+    seen = mirror_seen(obs, est)
+    true = SC.rig.mirror_rect
+    corners = np.array([seen.centre + a * seen.size[0] / 2 * seen.axis_u + b * seen.size[1] / 2 * seen.axis_v
+                        for a in (-1, 1) for b in (-1, 1)])
+    assert true.contains(corners).all()  # no more than the mirror
+    assert seen.size[0] * seen.size[1] > 0.2 * true.size[0] * true.size[1]  # and a good part of it
+    # every board corner seen through the mirror, cast back, lands in it (true rig: the same to 1 mm)
+    uv = np.concatenate([pv.board.corners_px for pv in obs.projector_views])
+    rays = est.camera.rays(uv)
+    n, d = est.mirror.normal, est.mirror.d
+    X = rays * (-d / (rays @ n))[:, None]
+    assert replace(seen, size=(seen.size[0] + 2, seen.size[1] + 2)).contains(X).all()
+    wider = mirror_seen(obs, est, margin_mm=30.0)
+    assert wider.size == pytest.approx((seen.size[0] + 60, seen.size[1] + 60))
+    assert mirror_seen(obs, est.with_(mirror=None)) is None  # a direct rig: no mirror to bound

@@ -11,8 +11,8 @@ per candidate, not an adjustment.
 candidate_poses draws candidates as a person would hold the board (calib.synthetic.projector_pose,
 through the estimated rig), a few per pattern position, and predicts each one's observations. What
 the estimated rig does not know is the mirror's extent: `mirror_rect` bounds where a mirrored board
-can be seen (None: the mirror is taken as unbounded, and a candidate can ask for a board the camera
-only sees past the mirror's edge). benchmarks/next_pose.py measures the choice against the plan's
+can be seen; mirror_seen gives the part of the mirror boards were seen in so far (None: the mirror is
+taken as unbounded, and a candidate can ask for a board the camera only sees past the mirror's edge). benchmarks/next_pose.py measures the choice against the plan's
 order with an operator who holds the asked pose off by a few degrees and millimetres.
 """
 
@@ -87,6 +87,44 @@ def ask_pose(obs: SessionObservations, result: CalibrationResult, candidates: It
     return None if best is None else replace(best, considered=considered)
 
 
+def mirror_seen(obs: SessionObservations, result: CalibrationResult, margin_mm: float = 0.0):
+    """The part of the mirror the camera has seen a board in so far, as a rectangle on the estimated
+    mirror plane (calib.synthetic.MirrorRect): every pixel observed through the mirror (the projector
+    step's boards and pattern points on a mirrored rig, the mirror step's virtual views) cast through the
+    estimated camera onto the plane, their least-area rectangle widened by `margin_mm` on every side.
+    What a station knows of the mirror's extent: a candidate seen inside it is seen in the mirror. None
+    without a mirror or mirrored pixels."""
+    import cv2
+
+    from calib.synthetic import MirrorRect
+    from calib.transforms import tangent_basis
+
+    if result.mirror is None:
+        return None
+    uv = [pv.board.corners_px for pv in obs.projector_views if pv.board is not None and pv.board.mirrored]
+    uv += [pv.pattern_cam_px for pv in obs.projector_views if pv.board is not None and pv.board.mirrored]
+    uv += [mv.virtual.corners_px for mv in obs.mirror_views if mv.virtual is not None]
+    uv = [np.asarray(a, float).reshape(-1, 2) for a in uv if len(a)]
+    if not uv:
+        return None
+    rays = result.camera.rays(np.concatenate(uv))
+    n, d = np.asarray(result.mirror.normal, float), float(result.mirror.d)
+    along = rays @ n
+    ok = np.abs(along) > 1e-9
+    t = -d / along[ok]
+    X = rays[ok] * t[:, None]
+    X = X[t > 0]
+    if len(X) < 3:
+        return None
+    u, v = tangent_basis(n)
+    foot = -d * n
+    (cx, cy), (w, h), angle = cv2.minAreaRect(np.stack([(X - foot) @ u, (X - foot) @ v], 1).astype(np.float32))
+    a = np.radians(angle)
+    axis_u = np.cos(a) * u + np.sin(a) * v
+    axis_v = -np.sin(a) * u + np.cos(a) * v
+    return MirrorRect(foot + cx * u + cy * v, axis_u, axis_v, (w + 2 * margin_mm, h + 2 * margin_mm))
+
+
 def _unbounded(mirror) -> "object":
     """The estimated mirror plane as a rectangle larger than any rig: a mirror of unknown extent."""
     from calib.synthetic import MirrorRect
@@ -142,4 +180,4 @@ def candidate_poses(obs: SessionObservations, result: CalibrationResult, layout,
     return out
 
 
-__all__ = ["AskedPose", "Candidate", "ask_pose", "candidate_poses"]
+__all__ = ["AskedPose", "Candidate", "ask_pose", "candidate_poses", "mirror_seen"]
