@@ -46,16 +46,21 @@ class HumanOperator:
         self.pattern_positions = pattern_positions
         self.last_request: tuple | None = None
 
-    def request_pose(self, step: str, pattern_position: int | None, pose_index: int) -> str:
+    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None) -> str:
         pose = int(pose_index) + 1
         if step == STEP_PROJECTOR:
             if pattern_position is None or int(pattern_position) < 0:
                 raise SpecError("the projector step needs a pattern position (0-based)")
             k = int(pattern_position) + 1
             of = f" of {self.pattern_positions}" if self.pattern_positions else ""
-            text = (f"Pattern position {k}{of}, pose {pose}: hold the board so the projected pattern lands "
-                    "completely on its blank area, at a different angle from the previous poses, and keep it "
-                    "still until the capture is taken.")
+            if asked is not None:
+                text = (f"Pattern position {k}{of}, the pose asked for: hold the board on the dashed outline in the "
+                        "camera image, the projected pattern on its blank area, and keep it still until the "
+                        "capture is taken.")
+            else:
+                text = (f"Pattern position {k}{of}, pose {pose}: hold the board so the projected pattern lands "
+                        "completely on its blank area, at a different angle from the previous poses, and keep it "
+                        "still until the capture is taken.")
         elif step == STEP_REAL_VIRTUAL:
             text = (f"Mirror placement {pose}: hold the small board between the camera and the mirror so the "
                     "camera sees it both directly and in the mirror, and keep it still.")

@@ -87,17 +87,26 @@ def test_a_recalibration_refuses_the_structured_step(session, tmp_path):
     assert "a recalibration re-measures with PREVIOUS's own" in line and not out.exists()
 
 
-@pytest.mark.parametrize("option", ["--stop-on-confidence", "--next-best"])
+@pytest.mark.parametrize("option", ["--stop-on-confidence", "--next-best", "--ask-pose"])
 def test_a_recalibration_refuses_a_new_sessions_plan_switches(session, tmp_path, option):
     out = tmp_path / "new"
     line = refused("station", "--recalibrate", str(session), option, "--session", str(out), "--port", "0")
     assert "plan a new session's capture steps" in line and not out.exists()
 
 
-def test_next_best_without_stopping_on_confidence_is_refused_before_any_folder(tmp_path):
+@pytest.mark.parametrize("option", ["--next-best", "--ask-pose"])
+def test_choosing_the_next_pose_without_stopping_on_confidence_is_refused_before_any_folder(tmp_path, option):
     out = tmp_path / "new"
-    line = refused("session", "--rig", "sim", "--auto", "--next-best", "--out", str(out))
-    assert "only --stop-on-confidence computes: give both" in line and not out.exists()
+    line = refused("session", "--rig", "sim", "--auto", option, "--out", str(out))
+    assert f"{option} chooses each pose" in line and "only --stop-on-confidence computes: give both" in line
+    assert not out.exists()
+
+
+def test_asking_for_the_pose_and_the_next_best_position_together_is_refused(tmp_path):
+    out = tmp_path / "new"
+    line = refused("session", "--rig", "sim", "--auto", "--stop-on-confidence", "--ask-pose", "--next-best",
+                   "--out", str(out))
+    assert "both choose where the board goes next: give one" in line and not out.exists()
 
 
 def test_verify_seed_names_the_option(session):

@@ -98,6 +98,32 @@ def test_operator_places_the_scripted_poses(rig):
     assert np.allclose(rig.board.T_cam_board, sc.verification_pose)
     with pytest.raises(SpecError):
         rig.operator.request_pose("dance", None, 0)
+
+
+def test_asked_for_a_pose_the_operator_holds_it_a_few_degrees_and_millimetres_off(rig):
+    """A person holding a board on a shown outline: off by SimOperator.FOLLOW_DEG / FOLLOW_MM (1-sigma),
+    always a valid placement, the same for the same request, and never a pose that is not finite."""
+    from calib.synthetic import projector_pose_ok
+    from calib.transforms import rotation_angle_deg
+
+    sc = rig.scenario
+    T = [T for p, T in sc.projector_poses if p == 6][0]
+    centre = lambda P: P[:3, :3] @ sc.layout.blank_centre + P[:3, 3]  # noqa: E731
+    degs, mms = [], []
+    for index in range(12):
+        text = rig.operator.request_pose("projector", 6, index, asked=T)
+        held = rig.board.T_cam_board
+        assert "the pose asked for" in text and "dashed outline" in text
+        assert np.allclose(held, rig.operator.last_pose) and projector_pose_ok(sc.rig, sc.layout, sc.pattern, 6, held)
+        degs.append(rotation_angle_deg(held[:3, :3] @ T[:3, :3].T))
+        mms.append(float(np.linalg.norm(centre(held) - centre(T))))
+    # rotation about a random axis, 1-sigma FOLLOW_DEG; shift 1-sigma FOLLOW_MM per axis (~1.6x in 3D)
+    assert 0.3 * rig.operator.FOLLOW_DEG < np.median(degs) < 3 * rig.operator.FOLLOW_DEG
+    assert 0.5 * rig.operator.FOLLOW_MM < np.median(mms) < 3 * rig.operator.FOLLOW_MM
+    again = rig.operator.request_pose("projector", 6, 11, asked=T) and rig.board.T_cam_board
+    assert np.allclose(again, held)
+    with pytest.raises(SpecError, match="not a finite 4x4"):
+        rig.operator.request_pose("projector", 6, 0, asked=np.full((4, 4), np.nan))
     with pytest.raises(SpecError):
         rig.operator.request_pose("projector", 13, 0)
 

@@ -219,7 +219,7 @@ def test_a_resumed_session_judges_its_captures_once(tmp_path, monkeypatch):
 
     def fake(machine):
         judged.append(len(machine.manifest.captures))
-        return _conf(STEP_PROJECTOR, True), _conf(STEP_REAL_VIRTUAL, True), None
+        return _conf(STEP_PROJECTOR, True), _conf(STEP_REAL_VIRTUAL, True), None, None
 
     monkeypatch.setattr(W, "step_confidences", fake)
 

@@ -116,6 +116,28 @@ def test_coverage_and_the_next_pose_goes_where_nothing_landed_yet():
     assert "left" in s.text and s.tilt_deg is not None  # no poses yet: the tilt target is not met
 
 
+def test_the_asked_pose_is_dashed_on_the_live_image_along_its_outline():
+    from types import SimpleNamespace
+
+    from app.station.panel_live import draw_asked_outline
+
+    img = np.zeros((400, 640, 3), np.uint8)
+    quad = np.array([[0.25, 0.4], [0.75, 0.4], [0.75, 0.8], [0.25, 0.8]])  # fractions of the image
+    draw_asked_outline(img, SimpleNamespace(outline=quad))
+    white = (img == 255).all(axis=2)
+    for (ax, ay), (bx, by) in zip(quad, np.roll(quad, -1, axis=0)):  # dashes along every edge
+        t = np.linspace(0.1, 0.9, 40)
+        xs = np.round((ax + (bx - ax) * t) * 640 - 0.5).astype(int)
+        ys = np.round((ay + (by - ay) * t) * 400 - 0.5).astype(int)
+        hits = [white[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].any() for x, y in zip(xs, ys)]
+        assert 0.3 < np.mean(hits) < 0.95  # dashed: lit along about half of it, not all of it
+    assert not white[200:300, 200:440].any()  # nothing inside it
+    assert white[:150].any()  # the label above it
+    blank = np.zeros_like(img)
+    draw_asked_outline(blank, None)
+    assert not blank.any()
+
+
 def test_unmet_targets_name_the_bar():
     bars = [Bar("size", 0.3, "24-31% of the image", "25% of the image"), Bar("tilt", 1.0, "0-40 deg", "25 deg")]
     unmet = unmet_targets(bars)

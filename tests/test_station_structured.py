@@ -233,6 +233,60 @@ def test_once_a_grid_is_known_each_placement_goes_where_the_uncertainty_is_large
     assert uncertainty_grids(SimpleNamespace(plan=replace(plan, next_best=False), projection_uncertainty={})) == []
 
 
+def test_with_ask_pose_each_placement_after_the_first_calibration_is_the_whole_pose_asked_for(tmp_path, monkeypatch):
+    """Plan.ask_pose, stopping on confidence (never confident here): the first placements in the plan's order,
+    then each next one the pose calib.quality.asked_pose predicts best on the latest calibration; the
+    simulated operator is asked for that pose and holds it a few degrees and millimetres off, as a person
+    following an outline would; the log and the panel's instruction say why."""
+    from app.station.wording import instruction
+    from calib.transforms import rotation_angle_deg
+
+    monkeypatch.setattr(C, "TARGET_FRACTION", 1e-9)
+    plan = Plan(real_virtual_captures=5, min_real_virtual=3, structured_placements=6, min_structured_placements=4,
+                stop_on_confidence=True, ask_pose=True)
+    rig, m, st, lines = _station(tmp_path, plan)
+    asked = []  # (slot asked for, the pose asked (None: the operator's), what the machine asks, instruction)
+    real_ask = rig.operator.request_pose
+
+    def recording_ask(step, pos, index, asked_pose=None, **kw):
+        pose = kw.get("asked", asked_pose)
+        if step == STEP_PROJECTOR:
+            asked.append(((pos, index), pose, m.asked_pose, instruction(m, None, None, "")))
+        text = real_ask(step, pos, index, **({} if pose is None else {"asked": pose}))
+        if step == STEP_PROJECTOR:
+            asked[-1] += (rig.operator.last_pose,)
+        return text
+
+    monkeypatch.setattr(rig.operator, "request_pose", recording_ask)
+    tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=900)
+    caps = m.captures_of(STEP_PROJECTOR)
+    assert len(caps) == plan.structured_placements
+    slots = [slot_of(c) for c in caps]
+    assert slots[:4] == placement_order(m.positions, 1)[:4]  # no calibration before the minimum: the plan's order
+    first_asked = {}
+    for slot, pose, target, said, held in asked:
+        first_asked.setdefault(slot, (pose, target, said, held))
+    for k, slot in enumerate(slots):
+        pose, target, said, held = first_asked[slot]
+        if k < 4:
+            assert pose is None and target is None and "Asked pose" not in said
+            continue
+        assert target is not None and pose is target.T_cam_board and slot[0] == target.position, (k, slot)
+        assert target.for_captures == k  # computed after the captures taken before it
+        assert f"Asked pose: {target.reason()}" in said and "dashed outline" in said
+        assert f"asked pose: {target.reason()}" in lines
+        # held off the asked pose by a person's few degrees and millimetres, not exactly
+        off_deg = rotation_angle_deg(held[:3, :3] @ pose[:3, :3].T)
+        c_asked = pose[:3, :3] @ rig.scenario.layout.blank_centre + pose[:3, 3]
+        c_held = held[:3, :3] @ rig.scenario.layout.blank_centre + held[:3, 3]
+        assert 0.0 < off_deg < 20.0 and 0.0 < np.linalg.norm(c_held - c_asked) < 80.0, (off_deg, c_held - c_asked)
+        # the outline drawn: the asked board imaged through the estimated mirror, inside the camera image
+        assert target.outline.shape[1] == 2 and ((target.outline > 0) & (target.outline < 1)).all()
+    assert sum(ln.startswith("asked pose: a board at pattern position") for ln in lines) == len(caps) - 4
+    # once the next capture is taken the asked pose no longer applies: the target falls back to the plan
+    assert m.asked is None or m.asked.for_captures == len(caps)
+
+
 def test_a_sequence_killed_before_it_was_written_is_asked_again_on_resume(tmp_path):
     """A kill during a sequence leaves at most frames no manifest names: the resumed session asks for that
     placement again and never overwrites them."""

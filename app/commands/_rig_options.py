@@ -129,6 +129,10 @@ def add_rig_options(p) -> None:
                    help="with --stop-on-confidence: once the captures so far are calibrated, ask for the pattern "
                         "position where the projector's projection uncertainty is largest instead of the plan's "
                         "order (docs/CALIBRATION.md; no more accurate than the plan's order, docs/BENCHMARKS.md)")
+    p.add_argument("--ask-pose", action="store_true", default=None,
+                   help="with --stop-on-confidence: once the captures so far are calibrated, ask for the whole board "
+                        "pose (position and tilt, its outline dashed on the camera image) predicted to leave the "
+                        "projector step's worst 1-sigma least (docs/CALIBRATION.md \"Asking for the pose\")")
     add_projector_pattern_options(p, "pose")
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")

@@ -53,6 +53,16 @@ def plan_from_args(args, base=None):
             raise OptionError("--next-best chooses each pose from the calibration of the captures so far, which "
                               "only --stop-on-confidence computes: give both")
         kw["next_best"] = True
+    if getattr(args, "ask_pose", None):
+        from calib.errors import OptionError
+
+        if not kw["stop_on_confidence"]:
+            raise OptionError("--ask-pose chooses each pose from the calibration of the captures so far, which "
+                              "only --stop-on-confidence computes: give both")
+        if kw["next_best"]:
+            raise OptionError("--ask-pose and --next-best both choose where the board goes next: give one "
+                              "(--ask-pose chooses the whole pose, --next-best the position only)")
+        kw["ask_pose"] = True
     if getattr(args, "placements", None) is not None:
         kw["structured_placements"] = args.placements
     if getattr(args, "mirror_captures", None) is not None:

@@ -60,7 +60,12 @@ class AutoOperator:
 
     def _ask(self, target: Target) -> str:
         index = target.pose_index + VARIANT_STRIDE * self.variant
-        self.says = self.station.rig.operator.request_pose(target.step, target.pattern_position, index) or ""
+        asked = self.station.machine.asked_pose
+        if asked is not None:  # the whole pose (Plan.ask_pose): the operator holds the dashed outline
+            self.says = self.station.rig.operator.request_pose(target.step, target.pattern_position, index,
+                                                               asked=asked.T_cam_board) or ""
+        else:
+            self.says = self.station.rig.operator.request_pose(target.step, target.pattern_position, index) or ""
         self.requested = target
         self.pose_index = index
         self.station.frames.changed()
@@ -77,6 +82,9 @@ class AutoOperator:
             best = self.station.machine.next_placement
             if best is not None and target.pattern_position == best.position:
                 self.station.log(f"next placement: {best.reason()}")
+            asked = self.station.machine.asked_pose
+            if asked is not None:
+                self.station.log(f"asked pose: {asked.reason()}")
         return self._ask(target)
 
     def retake(self, target: Target) -> str | None:

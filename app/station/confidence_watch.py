@@ -14,11 +14,11 @@ from calib.models.vocab import Step
 from calib.quality.confidence import Confidence, confidence_of, unconfident
 
 
-def step_confidences(machine) -> tuple[Confidence, Confidence | None, dict | None]:
+def step_confidences(machine) -> tuple[Confidence, Confidence | None, dict | None, object]:
     """Calibrate the session's captures so far (its kept detections; joint) and judge the projector step
     and, on a mirror rig, the mirror step; with that calibration's projection-uncertainty grids
     (calibration.json's "projection_uncertainty"; None when it failed or gave none), where the next
-    placement helps most."""
+    placement helps most, and the calibration itself (None when it failed)."""
     from calib.pipeline import calibrate_session
 
     from app.station.session_steps import mirror_step
@@ -35,19 +35,35 @@ def step_confidences(machine) -> tuple[Confidence, Confidence | None, dict | Non
         except ProcamError as e:
             why = str(e).split("\n")[0]
     if why is not None:
-        return unconfident(Step.PROJECTOR, why), None if mirror is None else unconfident(mirror, why), None
+        return unconfident(Step.PROJECTOR, why), None if mirror is None else unconfident(mirror, why), None, None
     pu = result.projection_uncertainty if isinstance(result.projection_uncertainty, dict) else None
-    return confidence_of(result, Step.PROJECTOR), None if mirror is None else confidence_of(result, mirror), pu
+    return (confidence_of(result, Step.PROJECTOR), None if mirror is None else confidence_of(result, mirror), pu,
+            result)
 
 
 def _judge(machine) -> tuple[Confidence, Confidence | None]:
-    """Judge both steps on the captures so far and keep the judgements (and the grids) in the machine."""
-    proj, mirror, pu = step_confidences(machine)
+    """Judge both steps on the captures so far and keep the judgements (and the grids, and with
+    Plan.ask_pose the pose to ask for next) in the machine."""
+    proj, mirror, pu, result = step_confidences(machine)
+    if machine.plan.ask_pose:
+        machine.set_asked(_asked(machine, result, proj))
     machine.set_projection_uncertainty(pu)
     machine.set_projector_confidence(proj)
     if mirror is not None:
         machine.set_mirror_confidence(mirror)
     return proj, mirror
+
+
+def _asked(machine, result, proj: Confidence):
+    """The pose the projector step asks for next (app/station/asked.py), None when it asks for none: its
+    calibration failed, it is confident, or no candidate could be predicted."""
+    from app.station.asked import asked_target, board_layout
+    from app.station.targets import candidate_positions
+
+    if result is None or proj.all_met:
+        return None
+    layout = getattr(machine, "board_layout", None) or board_layout(None, machine.manifest)
+    return asked_target(machine, result, layout, candidate_positions(machine))
 
 
 def update_after(machine, capture_id: str, log: Callable[[str], None]) -> None:

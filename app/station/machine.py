@@ -109,6 +109,10 @@ class SessionMachine:
         # the devices' projection-uncertainty grids from the same calibrations (calibration.json's
         # "projection_uncertainty"): where the next placement helps most (calib.quality.next_pose)
         self.projection_uncertainty: dict | None = None
+        # the whole pose asked for next (Plan.ask_pose; app/station/asked.AskedTarget), from the same calibrations
+        self.asked = None
+        # the projector board's layout, where the asked pose puts the pattern (set by app/station/setup.py)
+        self.board_layout = None
         self.last_capture: Capture | None = None
         self.events: list[Event] = []
         self.on_event: Callable[[str], None] | None = None
@@ -280,6 +284,23 @@ class SessionMachine:
         """The projection-uncertainty grids of the latest calibration (None: none known)."""
         with self._lock:
             self.projection_uncertainty = pu
+
+    def set_asked(self, asked) -> None:
+        """The pose to ask for next (app/station/asked.AskedTarget; None: none known)."""
+        with self._lock:
+            self.asked = asked
+
+    @property
+    def asked_pose(self):
+        """The asked pose (app/station/asked.AskedTarget) the projector step's target is for now, None when
+        the target is not one (no pose computed after the captures there are now, a retake, another step)."""
+        a = self.asked
+        if a is None or self.state != PROJECTOR_CAPTURE or self.retake_target is not None:
+            return None
+        tgt = self.target
+        if tgt is None or a.for_captures != len(self.captures_of(STEP_PROJECTOR)) or tgt.pattern_position != a.position:
+            return None
+        return a
 
     @property
     def next_placement(self):

@@ -61,6 +61,7 @@ from app.station.panel_guidance import (
 )
 from app.station.panel_live import (
     LEGEND,
+    draw_asked_outline,
     draw_banner,
     draw_checks,
     draw_detection,
@@ -283,7 +284,8 @@ class StationPanel:
         """Coverage maps, bars with their targets and the next-pose suggestion (when the captures changed)."""
         m = self.machine
         best = m.next_placement
-        key = (tuple(c.id for c in m.manifest.captures), m.state, m.target, best)
+        asked = m.asked_pose
+        key = (tuple(c.id for c in m.manifest.captures), m.state, m.target, best, id(asked))
         if self._global_cache.get("guidance") == key:
             return
         self._global_cache["guidance"] = key
@@ -296,12 +298,13 @@ class StationPanel:
         sugg = suggest_next(counts, feats, bars) if m.state in CAPTURE_STATES and m.target is not None else None
         self.suggestion = sugg
         tgt = m.target if m.state == PROJECTOR_CAPTURE else None
+        dashed = best.position if best is not None else asked.position if asked is not None else None
         cam_img = camera_coverage_image(corners, cam_size, counts, sugg)
         proj_img = projector_coverage_image(m.manifest.pattern, tuple(m.manifest.rig.projector_size),
                                             m.position_counts(), m.plan.poses_per_position,
                                             None if tgt is None else tgt.pattern_position,
-                                            None if best is None else position_area(
-                                                m.manifest.pattern, *m.manifest.rig.projector_size, best.position))
+                                            None if dashed is None else position_area(
+                                                m.manifest.pattern, *m.manifest.rig.projector_size, dashed))
         self.h_cov.image = side_by_side(cam_img, proj_img)
         step = "mirror" if m.state == MIRROR_CAPTURE else "projector"
         self._set(self.h_cov_text, "content",
@@ -310,7 +313,9 @@ class StationPanel:
                   f"(pattern points captured; {m.counts()['positions_done']} of "
                   f"{m.positions} positions complete)." + (f"\n\n**Next:** {sugg.text}" if sugg else "")
                   + (f"\n\n**Next projector placement:** {best.reason()} (dashed on the projector map)."
-                     if best is not None else ""))
+                     if best is not None else "")
+                  + (f"\n\n**Asked pose:** {asked.reason()} (its outline dashed on the camera image)."
+                     if asked is not None else ""))
         self._set(self.h_bars_title, "content", f"**Board pose diversity** of the {step} captures (a full bar "
                                                 "meets its target):")
         for (label, bar), b in zip(self.h_bars, bars):
@@ -352,7 +357,8 @@ class StationPanel:
         verifying = m.state in (CALIBRATION, VERIFICATION, DONE)
         rep = m.report if verifying and getattr(m.report, "checks", None) else None
         pc = st.pixel_check if verifying else None
-        key = (number, None if live is None else live.frame_number, m.state, id(self.suggestion),
+        asked = m.asked_pose if m.state in CAPTURE_STATES else None
+        key = (number, None if live is None else live.frame_number, m.state, id(self.suggestion), id(asked),
                id(rep), len(self._predicted.get(id(rep), {})), id(pc), len(self._predicted.get(id(pc), {})))
         if key == unless_key:
             return None
@@ -366,6 +372,7 @@ class StationPanel:
         draw_detection(small, det, s)
         if m.state in CAPTURE_STATES:
             draw_suggestion(small, self.suggestion)
+            draw_asked_outline(small, asked)
         footer = ""
         if rep is not None or pc is not None:
             thr, factor = panel_status.verdict_threshold(m.report)

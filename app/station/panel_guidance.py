@@ -182,7 +182,13 @@ def dashed_rect(img: np.ndarray, rect, colour, dash: int = 8, thickness: int = 2
     """A dashed rectangle over `img` at `rect` (fractions of the image)."""
     h, w = img.shape[:2]
     x0, y0, x1, y1 = int(rect[0] * (w - 1)), int(rect[1] * (h - 1)), int(rect[2] * (w - 1)), int(rect[3] * (h - 1))
-    for (ax, ay), (bx, by) in (((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))):
+    dashed_polygon(img, [(x0, y0), (x1, y0), (x1, y1), (x0, y1)], colour, dash, thickness)
+
+
+def dashed_polygon(img: np.ndarray, points, colour, dash: int = 8, thickness: int = 2) -> None:
+    """A closed dashed polygon over `img` through `points` (pixels of `img`)."""
+    pts = [(float(x), float(y)) for x, y in points]
+    for (ax, ay), (bx, by) in zip(pts, pts[1:] + pts[:1]):
         n = max(1, int(np.hypot(bx - ax, by - ay) // dash))
         for i in range(0, n, 2):
             p = (int(ax + (bx - ax) * i / n), int(ay + (by - ay) * i / n))

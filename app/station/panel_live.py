@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from app.station.panel_guidance import dashed_rect
+from app.station.panel_guidance import dashed_polygon, dashed_rect
 from app.station.panel_results import check_passes
 
 GREEN = (60, 220, 60)
@@ -25,7 +25,7 @@ PASS = (60, 210, 60)
 NOT_MEASURED = (170, 170, 170)  # grey: no verdict, not a failure
 
 LEGEND = ("Green: board corners; yellow: the board in the mirror; violet: projected pattern; dashed box: where "
-          "to hold the board next. Verification: cyan predicted curve, orange detected stroke, pixel green "
+          "to hold the board next; dashed outline: the board pose asked for. Verification: cyan predicted curve, orange detected stroke, pixel green "
           "(pass) or red (fail) with its distance and unit beside it; a grey circle: not measured (no verdict).")
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -153,6 +153,26 @@ def draw_suggestion(img: np.ndarray, suggestion) -> None:
     y = int(suggestion.rect[3] * (h - 1)) + th + 8
     if y > h - 4:
         y = int(suggestion.rect[1] * (h - 1)) - 8
+    cv2.rectangle(img, (x, y - th - 4), (x + tw + 6, y + 4), (0, 0, 0), -1)
+    cv2.putText(img, label, (x + 3, y), FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def draw_asked_outline(img: np.ndarray, asked) -> None:
+    """The asked pose's board outline (app/station/asked.AskedTarget.outline, fractions of the camera
+    image), dashed in white, labelled on a dark band beside its top-left corner."""
+    if asked is None:
+        return
+    h, w = img.shape[:2]
+    pts = np.asarray(asked.outline, float) * np.array([w, h]) - 0.5  # pixel centres of the drawn image
+    if not np.isfinite(pts).all():
+        return
+    dashed_polygon(img, pts, (255, 255, 255))
+    label = "hold the board on this outline"
+    (tw, th), _ = cv2.getTextSize(label, FONT, 0.4, 1)
+    x = int(min(max(pts[:, 0].min(), 0), w - tw - 6))
+    y = int(pts[:, 1].min()) - 8
+    if y < th + 4:
+        y = int(min(pts[:, 1].max() + th + 8, h - 4))
     cv2.rectangle(img, (x, y - th - 4), (x + tw + 6, y + 4), (0, 0, 0), -1)
     cv2.putText(img, label, (x + 3, y), FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from calib.models.vocab import MirrorMethod
 
 
-_SWITCHES = ("stop_on_confidence", "next_best")
+_SWITCHES = ("stop_on_confidence", "next_best", "ask_pose")
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,10 @@ class Plan:
     # position where the projector's projection uncertainty is largest (calib.quality.next_pose) instead
     # of the plan's order
     next_best: bool = False
+    # with stop_on_confidence: once the captures so far are calibrated, ask for a whole board pose (pattern
+    # position and tilt) whose predicted observations leave the step's worst 1-sigma least
+    # (calib.quality.asked_pose); the panel dashes the board's outline where it is to be held
+    ask_pose: bool = False
 
     def mirror_captures(self, method: str) -> int:
         return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures

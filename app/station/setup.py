@@ -181,6 +181,7 @@ def make_verify_fn(rig, folder):
 
 def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: bool = False,
                  workers: int = 2, method: str | None = None) -> SessionMachine:
+    from app.station.asked import board_layout
     from app.station.machine import default_calibrate
 
     if method is not None:
@@ -196,6 +197,7 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
     if resume:
         saved = dict(store.manifest.state or {})  # before the machine rewrites it
         m = SessionMachine.from_store(store, plan, calibrate_fn=calibrate, verify_fn=verify_fn)
+        m.board_layout = board_layout(rig, store.manifest)
         vfile = Path(store.folder) / VERIFICATION_FILE
         if m.result is not None and not m.result_stale and saved.get("verified") is not None and vfile.exists():
             try:
@@ -214,6 +216,7 @@ def make_machine(store: SessionStore, rig, plan: Plan | None = None, resume: boo
     else:
         m = SessionMachine(store, plan or Plan.from_dict((store.manifest.state or {}).get("plan")),
                            calibrate_fn=calibrate, verify_fn=verify_fn)
+        m.board_layout = board_layout(rig, store.manifest)
     m.persist()
     return m
 

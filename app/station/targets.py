@@ -6,7 +6,8 @@ placements (calib.models.structured_light.placement_order's slots) up to the pla
 when confident. With Plan.next_best (stopping on confidence), once a calibration of the captures so far
 gave the projector's projection-uncertainty grid, the position asked for next is the one a board would
 help most (calib.quality.next_pose; within the circle step's round of positions); before that, and
-without it, the plan's order.
+without it, the plan's order. With Plan.ask_pose, the position of the whole pose asked for
+(app/station/asked.py), when one was computed after the captures there are now; else the plan's order.
 """
 
 from __future__ import annotations
@@ -46,6 +47,45 @@ def _best(machine, candidates: list[int], taken) -> NextPlacement | None:
     return next_position(grids, candidates, taken) if grids and candidates else None
 
 
+def _asked_position(machine, candidates: list[int]) -> int | None:
+    """The asked pose's position (Plan.ask_pose), when one applies to the captures there are now and
+    stands among `candidates`."""
+    a = getattr(machine, "asked", None)
+    if not machine.plan.ask_pose or a is None or a.for_captures != len(machine.captures_of(STEP_PROJECTOR)):
+        return None
+    return a.position if a.position in candidates else None
+
+
+def candidate_positions(machine) -> list[int]:
+    """The pattern positions a projector step stopping on confidence may ask for next (the circle step's
+    current round; the structured step's free positions, in the plan's order); [] when the step is
+    complete or does not stop on confidence (its order is fixed)."""
+    plan = machine.plan
+    caps = machine.captures_of(STEP_PROJECTOR)
+    if not plan.stop_on_confidence:
+        return []
+    if machine.structured:
+        if len(caps) >= plan.structured_placements:
+            return []
+        return list(_structured_free(machine, caps))
+    counts = machine.position_counts()
+    for k in range(plan.poses_per_position):
+        round_ = [p for p in range(machine.positions) if counts[p] <= k]
+        if round_:
+            return round_
+    return []
+
+
+def _structured_free(machine, caps) -> dict[int, int]:
+    """{position: its lowest free pose index}, positions in placement_order's order."""
+    taken = {slot_of(c) for c in caps}
+    first: dict[int, int] = {}
+    for pos, k in placement_order(machine.positions, max(machine.plan.poses_per_position, 1) + len(caps)):
+        if (pos, k) not in taken:
+            first.setdefault(pos, k)
+    return first
+
+
 def _confident(machine, n: int, minimum: int) -> bool:
     conf = machine.projector_confidence
     return bool(machine.plan.stop_on_confidence and conf is not None and conf.all_met and n >= minimum)
@@ -69,6 +109,9 @@ def circle_choice(machine) -> tuple[Target | None, NextPlacement | None]:
     for k in range(plan.poses_per_position):  # one pose at every position before the next
         round_ = [p for p in range(machine.positions) if counts[p] <= k]
         if round_:
+            asked = _asked_position(machine, round_)
+            if asked is not None:
+                return at(asked), None
             best = _best(machine, round_, dict(enumerate(counts)))
             return at(round_[0] if best is None else best.position), best
     return None, None
@@ -84,16 +127,14 @@ def structured_choice(machine) -> tuple[Target | None, NextPlacement | None]:
         return None, None
     if _confident(machine, len(caps), plan.min_structured_placements):
         return None, None
-    taken = {slot_of(c) for c in caps}
-    free = [s for s in placement_order(machine.positions, max(plan.poses_per_position, 1) + len(caps))
-            if s not in taken]
-    if not free:
+    first = _structured_free(machine, caps)  # each position's lowest free pose index, in the plan's order
+    if not first:
         return None, None
-    first = {}
-    for pos, k in free:  # each position's lowest free pose index, positions in the plan's order
-        first.setdefault(pos, k)
-    best = _best(machine, list(first), Counter(p for p, _ in taken))
-    pos = free[0][0] if best is None else best.position
+    asked = _asked_position(machine, list(first))
+    if asked is not None:
+        return Target(STEP_PROJECTOR, asked, first[asked]), None
+    best = _best(machine, list(first), Counter(p for p, _ in {slot_of(c) for c in caps}))
+    pos = next(iter(first)) if best is None else best.position
     return Target(STEP_PROJECTOR, pos, first[pos]), best
 
 

@@ -70,19 +70,24 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
             return f"All {c['projector_total']} projector captures are taken. Press Calibrate."
         best = m.next_placement
         why = f" Next-best: {best.reason()} (dashed on the projector map)." if best is not None else ""
+        asked = m.asked_pose
+        if asked is not None:
+            why = f" Asked pose: {asked.reason()}."
         if m.structured:
             place = (f"towards the {best.where} of the projector's image" if best is not None else
                      "at a new place")
-            where = (f"Placement {c['projector'] + 1} of at most {c['projector_total']}: hold the board where the "
-                     "projector lights it" + ("" if m.direct else " and the camera sees it in the mirror") +
-                     f", {place} and a new tilt, and keep it still while the projector shows its coded sequence "
-                     "(a few seconds).")
+            how = ("on the dashed outline in the camera image" if asked is not None else
+                   "where the projector lights it" + ("" if m.direct else " and the camera sees it in the mirror") +
+                   f", {place} and a new tilt")
+            where = (f"Placement {c['projector'] + 1} of at most {c['projector_total']}: hold the board {how}, "
+                     "and keep it still while the projector shows its coded sequence (a few seconds).")
             return where + why + hint
         where = (f"The projector shows the pattern at position {tgt.pattern_position + 1} of {m.positions}. "
                  f"Pose {tgt.pose_index + 1} of {m.plan.poses_per_position}: hold the board so the pattern "
                  "falls on its blank part")
         where += " and the camera sees the board in the mirror" if not m.direct else ""
-        where += "; tilt it differently from the poses already taken."
+        where += ("; hold it on the dashed outline in the camera image." if asked is not None else
+                  "; tilt it differently from the poses already taken.")
         return where + why + hint
     if s == CALIBRATION:
         if m.calibration_error:

@@ -226,7 +226,7 @@ def _check_state(state, path) -> None:
     if isinstance(state.get("rig_request"), dict):
         _check_fields(state["rig_request"], _RIG_REQUEST_FIELDS, "state.rig_request.", path)
     for key, value in (state.get("plan") or {}).items():
-        if key in ("stop_on_confidence", "next_best"):  # the plan's switches (app.station.plan.Plan)
+        if key in ("stop_on_confidence", "next_best", "ask_pose"):  # the plan's switches (app.station.plan.Plan)
             if not isinstance(value, bool):
                 raise FormatError(path, f"state.plan.{key}", "must be true or false")
             continue

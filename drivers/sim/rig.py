@@ -314,8 +314,31 @@ class SimOperator:
         self._rig = rig
         self.settling_frames = int(settling_frames)
         self.last_request: tuple | None = None
+        self.last_pose: np.ndarray | None = None
 
-    def request_pose(self, step: str, pattern_position: int | None, pose_index: int) -> str:
+    #: how far a person holds a pose shown as an outline from it: 1-sigma rotation (degrees, about a random
+    #: axis through the board's blank centre) and shift (mm per axis)
+    FOLLOW_DEG = 3.0
+    FOLLOW_MM = 10.0
+
+    def _held(self, pos: int, T: np.ndarray, pose_index: int) -> np.ndarray:
+        """The pose the scripted person holds when asked for T: off by FOLLOW_DEG / FOLLOW_MM (drawn from
+        the scenario's seed, the position and the pose index), redrawn until the pattern lands on the
+        blank area and the camera sees the board; T itself when no draw does."""
+        from calib.synthetic import projector_pose_ok
+
+        sc = self._rig.scenario
+        rng = np.random.default_rng([sc.seed, 7919, pos, int(pose_index)])
+        c = T[:3, :3] @ sc.layout.blank_centre + T[:3, 3]
+        for _ in range(50):
+            axis = rng.normal(size=3)
+            R = rotation_about(axis / np.linalg.norm(axis), rng.normal(0.0, self.FOLLOW_DEG))
+            H = make_T(R @ T[:3, :3], R @ (T[:3, 3] - c) + c + rng.normal(0.0, self.FOLLOW_MM, 3))
+            if projector_pose_ok(sc.rig, sc.layout, sc.pattern, pos, H):
+                return H
+        return np.array(T, float)
+
+    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None) -> str:
         sc = self._rig.scenario
         if step not in OPERATOR_STEPS:
             raise SpecError(f"unknown step '{step}' (one of {', '.join(OPERATOR_STEPS)})")
@@ -324,11 +347,19 @@ class SimOperator:
             if pattern_position is None or not 0 <= int(pattern_position) < sc.pattern.positions:
                 raise SpecError(f"projector step needs a pattern position in 0..{sc.pattern.positions - 1}")
             pos = int(pattern_position)
-            scripted = [T for p, T in sc.projector_poses if p == pos]
-            T = scripted[pose_index] if pose_index < len(scripted) else sc.extra_projector_pose(pos, pose_index)
             layout = sc.layout
-            text = (f"Pattern position {pos + 1} of {sc.pattern.positions}, pose {pose_index + 1}: hold the board so "
-                    f"the projected pattern lands on its blank area; {self._describe(T)}.")
+            if asked is not None:
+                A = np.asarray(asked, float).reshape(4, 4)
+                if not np.isfinite(A).all():
+                    raise SpecError("the asked board pose is not a finite 4x4 matrix")
+                T = self._held(pos, A, pose_index)
+                text = (f"Pattern position {pos + 1} of {sc.pattern.positions}, the pose asked for: hold the board on "
+                        f"the dashed outline; {self._describe(T)}.")
+            else:
+                scripted = [T for p, T in sc.projector_poses if p == pos]
+                T = scripted[pose_index] if pose_index < len(scripted) else sc.extra_projector_pose(pos, pose_index)
+                text = (f"Pattern position {pos + 1} of {sc.pattern.positions}, pose {pose_index + 1}: hold the board "
+                        f"so the projected pattern lands on its blank area; {self._describe(T)}.")
         elif step == STEP_VERIFICATION:
             T = sc.verification_pose_for(pose_index)
             layout = sc.layout
@@ -350,6 +381,7 @@ class SimOperator:
                 text = f"Mirror placement {pose_index + 1}: lay the small board flat on the mirror, printed side up."
         self._rig._place(layout, T)
         self.last_request = (step, pattern_position, pose_index)
+        self.last_pose = T  # where the board was put (T_cam_board)
         return text
 
     def move_out(self) -> str:
