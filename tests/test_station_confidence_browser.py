@@ -1,6 +1,7 @@
 """The projector step's 1-sigmas against their targets in the panel, in a real Chromium (Debian's, through
 playwright): a simulated station stopping on confidence (--stop-on-confidence, --auto, one pose per
-pattern position, 3 mirror captures) judges the step after each detected projector capture; once the
+pattern position, 3 mirror captures, --ask-pose) judges the step after each detected projector capture
+and says the pose it asks for next; once the
 step has ended and the session is calibrated, the panel's checklist shows every quantity the step
 constrains with a measured 1-sigma and its target, which must be calib.quality.confidence's targets and
 the 1-sigmas of the calibration of the same captures (calibration.json); the mirror step's normal the
@@ -33,7 +34,7 @@ QUANTITIES = {"t_mm": ("projector position", "mm"), "rot_deg": ("projector orien
 
 def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(tmp_path):
     folder = tmp_path / "session"
-    st = StationProcess("--rig", "sim", "--auto", "--stop-on-confidence", "--next-best", "--poses-per-position", "1",
+    st = StationProcess("--rig", "sim", "--auto", "--stop-on-confidence", "--ask-pose", "--poses-per-position", "1",
                         "--mirror-captures", "3", "--session", str(folder))
     goal = targets(Step.PROJECTOR)
     try:
@@ -47,12 +48,12 @@ def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(t
             # computed from a calibration of the captures so far (before the minimum there is only "-")
             first = LINE.format(label=QUANTITIES["t_mm"][0], unit="mm")
             expect(page.get_by_text(re.compile(first)).first).to_be_visible()
-            # with a projection-uncertainty grid known, the position asked for next is the next-best one,
-            # said and dashed on the projector's coverage map until the step ends
-            nbp = r"Next projector placement: pattern position ([0-9]+), at the ([a-z -]+) of the projector's image"
-            node = page.get_by_text(re.compile(nbp)).first
+            # with a calibration of the captures so far known, the whole pose asked for next is said (its
+            # outline dashed on the camera image, its position on the projector's map) until the step ends
+            asked = r"Asked pose: a board at pattern position ([0-9]+), held at the pose shown, leaves the worst predicted"
+            node = page.get_by_text(re.compile(asked)).first
             expect(node).to_be_visible()
-            chosen = int(re.search(nbp, node.inner_text()).group(1)) - 1
+            chosen = int(re.search(asked, node.inner_text()).group(1)) - 1
             # then the step's end: the captures are calibrated (the last judgement is of every capture)
             expect(page.get_by_text(re.compile(r"Calibration.*: done")).first).to_be_visible()
             shown = {}
@@ -90,6 +91,6 @@ def test_the_panel_shows_each_1_sigma_of_the_projector_step_against_its_target(t
     # one placement per capture of this circle session: the count session.json's captures give
     store = SessionStore.open(folder)
     assert shown_placements == placements(store.manifest.captures) == len(store.manifest.captures)
-    # the next-best position shown was captured, after the plan's first ones (no grid before them)
+    # the asked pose's position shown was captured, after the plan's first ones (no calibration before them)
     proj = [c.pattern_position for c in store.manifest.captures if c.step == Step.PROJECTOR]
     assert chosen in proj[6:], (chosen, proj)
