@@ -23,7 +23,7 @@ predicted through that estimate, the one whose calibration has the least worst 1
 target taken and held by the operator exactly ("asked, sum": the least sum of the squared
 1-sigma/target ratios, all the step's quantities at once; "asked, linear": the least worst, each candidate's
 1-sigmas predicted by calib.joint.predict, linearised at the calibration so far, instead of calibrated,
-as a live station could afford: calib.quality.asked_pose, its candidates 15% about the boards' median
+as a live station could afford: calib.asked_pose, its candidates 15% about the boards' median
 distance, seen in the part of the mirror boards were seen in so far; "asked, linear, true mirror": seen
 in the whole mirror); "asked, order" takes the plan's next position with such
 a pose (the pose distribution without the choice). Means over seeds of the errors against the ground
@@ -49,7 +49,7 @@ from calib.errors import ProcamError  # noqa: E402
 from calib.models.structured_light import placement_order  # noqa: E402
 from calib.models.vocab import Step  # noqa: E402
 from calib.pipeline import calibrate_observations  # noqa: E402
-from calib.quality.asked_pose import ask_pose, candidate_poses, mirror_seen  # noqa: E402
+from calib.asked_pose import ask_pose, candidate_poses, mirror_seen  # noqa: E402
 from calib.quality.confidence import confidence_of, targets  # noqa: E402
 from calib.quality.metrics import compare  # noqa: E402
 from calib.quality.next_pose import DeviceGrid, next_position, position_area  # noqa: E402
@@ -88,7 +88,7 @@ def _calibrate(sc, slots, noise, seed):
 
 def _predicted_position(sc, slots, noise, seed, variants: int = 3):
     """The free position whose typical poses (candidates drawn through the estimated rig) leave the least
-    mean predicted worst 1-sigma / target (calib.quality.asked_pose's prediction, the pose left to the
+    mean predicted worst 1-sigma / target (calib.asked_pose's prediction, the pose left to the
     operator): (position, mean need)."""
     obs = _slot_obs(sc, slots, noise, seed)
     est = calibrate_observations(obs, "joint")
@@ -224,7 +224,7 @@ def run_asked(sc, arm: str, n: int, first: int, noise: float, seed: int, variant
         obs = _observe(sc, sc.rig, poses, True, noise, seed)
         est = calibrate_observations(obs, "joint")
         t0 = time.perf_counter()
-        if arm.startswith("asked, linear"):  # what a station would run: calib.quality.asked_pose
+        if arm.startswith("asked, linear"):  # what a station would run: calib.asked_pose
             rect = sc.rig.mirror_rect if arm.endswith("true mirror") else mirror_seen(obs, est)
             pool = []
             for pos in range(13):

@@ -1,4 +1,4 @@
-"""The board pose a projector step asks for (calib.quality.asked_pose): candidates drawn through the
+"""The board pose a projector step asks for (calib.asked_pose): candidates drawn through the
 estimated rig, each one's effect on the step's 1-sigmas predicted, the least worst one chosen."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from calib.joint.predict import predict_uncertainty
 from calib.models.structured_light import placement_order
 from calib.models.vocab import Step
 from calib.pipeline import calibrate_observations
-from calib.quality.asked_pose import Candidate, ask_pose, candidate_poses, mirror_seen
+from calib.asked_pose import Candidate, ask_pose, candidate_poses, mirror_seen
 from calib.quality.confidence import confidence_of
 from calib.synthetic import SyntheticSession, observe, projector_pose_ok
 from drivers.sim.scenarios import get_scenario

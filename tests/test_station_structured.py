@@ -235,7 +235,7 @@ def test_once_a_grid_is_known_each_placement_goes_where_the_uncertainty_is_large
 
 def test_with_ask_pose_each_placement_after_the_first_calibration_is_the_whole_pose_asked_for(tmp_path, monkeypatch):
     """Plan.ask_pose, stopping on confidence (never confident here): the first placements in the plan's order,
-    then each next one the pose calib.quality.asked_pose predicts best on the latest calibration; the
+    then each next one the pose calib.asked_pose predicts best on the latest calibration; the
     simulated operator is asked for that pose and holds it a few degrees and millimetres off, as a person
     following an outline would; the log and the panel's instruction say why."""
     from app.station.wording import instruction

@@ -4,7 +4,7 @@ After each calibration of the captures so far (app/station/confidence_watch.py, 
 confidence), while the projector step is not confident: candidate poses at the positions the step may
 ask for next (app/station/targets.candidate_positions), drawn through the estimated rig as a person
 would hold the board and seen in the part of the mirror boards were seen in so far, each ranked by the
-1-sigmas its observations are predicted to leave (calib.quality.asked_pose); the least worst one is
+1-sigmas its observations are predicted to leave (calib.asked_pose); the least worst one is
 asked for. The panel dashes that board's outline on the camera image (through the mirror on a mirror
 rig), the instruction and the log say why, and the simulated operator holds it as a person would:
 a few degrees and millimetres off.
@@ -32,10 +32,10 @@ OUTLINE_POINTS = 12
 
 @dataclass(frozen=True, eq=False)
 class AskedTarget:
-    """The pose asked for (calib.quality.asked_pose.AskedPose), the projector captures it was computed
+    """The pose asked for (calib.asked_pose.AskedPose), the projector captures it was computed
     after, and the board's outline on the camera image (fractions of its width and height)."""
 
-    asked: object  # calib.quality.asked_pose.AskedPose
+    asked: object  # calib.asked_pose.AskedPose
     for_captures: int
     outline: np.ndarray  # (M, 2) fractions of the camera image, a closed polygon
 
@@ -80,7 +80,7 @@ def asked_target(machine, result, layout, positions) -> AskedTarget | None:
     """The pose to ask for next among `positions`, from `result` (the joint calibration of the session's
     captures so far); None when no candidate could be drawn or predicted."""
     from calib.detection.session_jobs import detect_session
-    from calib.quality.asked_pose import ask_pose, candidate_poses, mirror_seen
+    from calib.asked_pose import ask_pose, candidate_poses, mirror_seen
 
     if not positions:
         return None

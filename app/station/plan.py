@@ -41,7 +41,7 @@ class Plan:
     next_best: bool = False
     # with stop_on_confidence: once the captures so far are calibrated, ask for a whole board pose (pattern
     # position and tilt) whose predicted observations leave the step's worst 1-sigma least
-    # (calib.quality.asked_pose); the panel dashes the board's outline where it is to be held
+    # (calib.asked_pose); the panel dashes the board's outline where it is to be held
     ask_pose: bool = False
 
     def mirror_captures(self, method: str) -> int:
