@@ -53,8 +53,7 @@ from calib.asked_pose import ask_pose, candidate_poses, mirror_seen  # noqa: E40
 from calib.quality.confidence import confidence_of, targets  # noqa: E402
 from calib.quality.metrics import compare  # noqa: E402
 from calib.quality.next_pose import DeviceGrid, next_position, position_area  # noqa: E402
-from calib.synthetic import SyntheticSession, projector_pose_ok, observe, projector_pose  # noqa: E402
-from calib.transforms import make_T, rotation_about  # noqa: E402
+from calib.synthetic import SyntheticSession, held_pose, observe, projector_pose  # noqa: E402
 from drivers.sim.scenarios import get_scenario  # noqa: E402
 
 METRICS = (("distance", "distance mm"), ("angle_deg", "angle deg"), ("proj_k_px", "ProjK px"),
@@ -158,20 +157,8 @@ def _observe(sc, rig, poses, mirror: bool, noise, seed):
 
 
 def _held(sc, pos, T, follow, rng):
-    """The pose the operator holds when asked for T: off by a rotation of `follow[0]` degrees (1-sigma,
-    about a random axis through the board's blank centre) and a shift of `follow[1]` mm (1-sigma per
-    axis), redrawn until the pattern lands on the blank area through the true rig."""
-    deg, mm = follow
-    if deg == 0 and mm == 0:
-        return T
-    c = T[:3, :3] @ sc.layout.blank_centre + T[:3, 3]
-    for _ in range(50):
-        axis = rng.normal(size=3)
-        R = rotation_about(axis / np.linalg.norm(axis), rng.normal(0.0, deg))
-        H = make_T(R @ T[:3, :3], R @ (T[:3, 3] - c) + c + rng.normal(0.0, mm, 3))
-        if projector_pose_ok(sc.rig, sc.layout, sc.pattern, pos, H):
-            return H
-    return T
+    """The pose the operator holds when asked for T (calib.synthetic.held_pose, `follow` = (deg, mm))."""
+    return held_pose(sc.rig, sc.layout, sc.pattern, pos, T, follow[0], follow[1], rng)
 
 
 def _asked_by_calibration(sc, arm, obs, est, poses, order, seed, variants):

@@ -228,6 +228,25 @@ def projector_pose_ok(rig, layout, pattern, pos, T_cam_board) -> bool:
     return _visible(rig, Xc, T_cam_board)
 
 
+def held_pose(rig, layout, pattern, pos: int, T_cam_board: np.ndarray, deg: float, mm: float,
+              rng: np.random.Generator, tries: int = 50) -> np.ndarray:
+    """The pose a person holds when shown T_cam_board (an outline to follow): off by a rotation of `deg`
+    degrees (1-sigma, about a random axis through the board's blank centre) and a shift of `mm` (1-sigma
+    per axis), redrawn until it is a valid placement for pattern position `pos` (projector_pose_ok);
+    T_cam_board itself when no draw is, or when both are 0."""
+    T = np.asarray(T_cam_board, float)
+    if deg == 0 and mm == 0:
+        return T.copy()
+    c = T[:3, :3] @ layout.blank_centre + T[:3, 3]
+    for _ in range(tries):
+        axis = rng.normal(size=3)
+        R = rotation_about(axis / np.linalg.norm(axis), rng.normal(0.0, deg))
+        H = make_T(R @ T[:3, :3], R @ (T[:3, 3] - c) + c + rng.normal(0.0, mm, 3))
+        if projector_pose_ok(rig, layout, pattern, pos, H):
+            return H
+    return T.copy()
+
+
 def _visible(rig: SyntheticRig, X_cam: np.ndarray, T_cam_board: np.ndarray, max_oblique_deg: float = 65.0) -> bool:
     """All points imaged inside the camera (through the mirror rectangle when there is one), with
     the board's face towards the (virtual) camera at an angle below `max_oblique_deg`."""

@@ -29,6 +29,25 @@ def observations(rig: str = "136", noise_px: float = 0.0, noise_seed: int = 0, m
     return observe(session(rig, mirror_method, per_position, seed, thickness_mm), noise_px, noise_seed)
 
 
+@lru_cache(maxsize=8)
+def placements_observations(scenario: str, seed: int, placements: int, noise_px: float) -> SessionObservations:
+    """A scenario's mirror views and its first `placements` projector placements in the structured step's
+    order (calib.models.structured_light.placement_order), observed with `noise_px` of noise (circle
+    centroids, noise seed `seed`)."""
+    from calib.models.structured_light import placement_order
+    from calib.synthetic import SyntheticSession
+    from drivers.sim.scenarios import get_scenario
+
+    sc = get_scenario(scenario, seed)
+    by_slot = {}
+    for p, T in sc.projector_poses:
+        by_slot.setdefault(p, []).append(T)
+    poses = [(p, by_slot[p][k]) for p, k in placement_order(sc.pattern.positions, 4)[:placements]]
+    ss = SyntheticSession(sc.rig, sc.layout, sc.mirror_board, sc.pattern, poses, sc.mirror_poses, sc.mirror_method,
+                          sc.board_thickness_mm)
+    return observe(ss, noise_px, seed, circle_centroids=True)
+
+
 def metrics(result, rig: str = "136", mirror_method: str = "real-virtual", per_position: int = 4, seed: int = 0):
     return compare(result, session(rig, mirror_method, per_position, seed).rig.ground_truth())
 

@@ -9,14 +9,14 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
+from calib.asked_pose import Candidate, ask_pose, candidate_poses, mirror_seen
 from calib.joint.predict import predict_uncertainty
-from calib.models.structured_light import placement_order
 from calib.models.vocab import Step
 from calib.pipeline import calibrate_observations
-from calib.asked_pose import Candidate, ask_pose, candidate_poses, mirror_seen
 from calib.quality.confidence import confidence_of
-from calib.synthetic import SyntheticSession, observe, projector_pose_ok
+from calib.synthetic import projector_pose_ok
 from drivers.sim.scenarios import get_scenario
+from _calib_helpers import placements_observations
 
 SC = get_scenario("nonoverlap-136", 0)
 
@@ -25,13 +25,7 @@ SC = get_scenario("nonoverlap-136", 0)
 def _so_far():
     """The 14 mirror views and the structured step's first 4 placements (0.05 px), and their joint
     calibration."""
-    by_slot = {}
-    for p, T in SC.projector_poses:
-        by_slot.setdefault(p, []).append(T)
-    poses = [(p, by_slot[p][k]) for p, k in placement_order(13, 4)[:4]]
-    ss = SyntheticSession(SC.rig, SC.layout, SC.mirror_board, SC.pattern, poses, SC.mirror_poses, SC.mirror_method,
-                          SC.board_thickness_mm)
-    obs = observe(ss, 0.05, 0, circle_centroids=True)
+    obs = placements_observations("nonoverlap-136", 0, 4, 0.05)
     return obs, calibrate_observations(obs, "joint")
 
 

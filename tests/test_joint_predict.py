@@ -10,25 +10,15 @@ import pytest
 
 from calib.errors import CalibrationError
 from calib.joint.predict import predict_uncertainty
-from calib.models.structured_light import placement_order
 from calib.pipeline import calibrate_observations
 from calib.quality.confidence import sigmas
-from calib.synthetic import SyntheticSession, observe
-from drivers.sim.scenarios import get_scenario
+from _calib_helpers import placements_observations
 
 
-@lru_cache(maxsize=None)
 def _session():
-    """nonoverlap-136's 14 mirror views and 6 projector placements in the structured step's order, 0.05 px
-    of noise: (observations of the first 4 placements, of all 6)."""
-    sc = get_scenario("nonoverlap-136", 0)
-    by_slot = {}
-    for p, T in sc.projector_poses:
-        by_slot.setdefault(p, []).append(T)
-    poses = [(p, by_slot[p][k]) for p, k in placement_order(13, 4)[:6]]
-    ss = SyntheticSession(sc.rig, sc.layout, sc.mirror_board, sc.pattern, poses, sc.mirror_poses, sc.mirror_method,
-                          sc.board_thickness_mm)
-    six = observe(ss, 0.05, 0, circle_centroids=True)
+    """nonoverlap-136's 14 mirror views with the structured step's first 4, and first 6, projector placements
+    (0.05 px of noise): the 4-placement observations are the 6's first views."""
+    six = placements_observations("nonoverlap-136", 0, 6, 0.05)
     return replace(six, projector_views=six.projector_views[:4]), six
 
 

@@ -325,18 +325,11 @@ class SimOperator:
         """The pose the scripted person holds when asked for T: off by FOLLOW_DEG / FOLLOW_MM (drawn from
         the scenario's seed, the position and the pose index), redrawn until the pattern lands on the
         blank area and the camera sees the board; T itself when no draw does."""
-        from calib.synthetic import projector_pose_ok
+        from calib.synthetic import held_pose
 
         sc = self._rig.scenario
         rng = np.random.default_rng([sc.seed, 7919, pos, int(pose_index)])
-        c = T[:3, :3] @ sc.layout.blank_centre + T[:3, 3]
-        for _ in range(50):
-            axis = rng.normal(size=3)
-            R = rotation_about(axis / np.linalg.norm(axis), rng.normal(0.0, self.FOLLOW_DEG))
-            H = make_T(R @ T[:3, :3], R @ (T[:3, 3] - c) + c + rng.normal(0.0, self.FOLLOW_MM, 3))
-            if projector_pose_ok(sc.rig, sc.layout, sc.pattern, pos, H):
-                return H
-        return np.array(T, float)
+        return held_pose(sc.rig, sc.layout, sc.pattern, pos, T, self.FOLLOW_DEG, self.FOLLOW_MM, rng)
 
     def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None) -> str:
         sc = self._rig.scenario
