@@ -242,7 +242,7 @@ def test_with_ask_pose_each_placement_after_the_first_calibration_is_the_whole_p
     from calib.transforms import rotation_angle_deg
 
     monkeypatch.setattr(C, "TARGET_FRACTION", 1e-9)
-    plan = Plan(real_virtual_captures=5, min_real_virtual=3, structured_placements=5, min_structured_placements=4,
+    plan = Plan(real_virtual_captures=3, min_real_virtual=3, structured_placements=5, min_structured_placements=4,
                 stop_on_confidence=True, ask_pose=True)
     rig, m, st, lines = _station(tmp_path, plan)
     asked = []  # (slot asked for, the pose asked (None: the operator's), what the machine asks, instruction)
