@@ -273,6 +273,8 @@ def test_with_ask_pose_each_placement_after_the_first_calibration_is_the_whole_p
             continue
         assert target is not None and pose is target.T_cam_board and slot[0] == target.position, (k, slot)
         assert target.for_captures == k  # computed after the captures taken before it
+        # session.json records the pose asked for with the capture taken there
+        assert np.allclose(caps[k].meta["asked_T_cam_board"], pose, atol=1e-6)
         assert f"Asked pose: {target.reason()}" in said and "dashed outline" in said
         assert f"asked pose: {target.reason()}" in lines
         # held off the asked pose by a person's few degrees and millimetres, not exactly
@@ -283,6 +285,10 @@ def test_with_ask_pose_each_placement_after_the_first_calibration_is_the_whole_p
         # the outline drawn: the asked board imaged through the estimated mirror, inside the camera image
         assert target.outline.shape[1] == 2 and ((target.outline > 0) & (target.outline < 1)).all()
     assert sum(ln.startswith("asked pose: a board at pattern position") for ln in lines) == len(caps) - 4
+    assert not any("asked_T_cam_board" in c.meta for c in caps[:4])
+    from app.commands.session import placement_split
+
+    assert placement_split(m).endswith(f"projector {len(caps)}, {len(caps) - 4} of them at the pose asked for")
     # once the next capture is taken the asked pose no longer applies: the target falls back to the plan
     assert m.asked is None or m.asked.for_captures == len(caps)
 

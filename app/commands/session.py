@@ -195,7 +195,9 @@ def placement_split(machine) -> str:
     from calib.models.observations import STEP_PROJECTOR
 
     mirror = placements(machine.mirror_captures())
-    return f"mirror {mirror}, projector {placements(machine.captures_of(STEP_PROJECTOR))}"
+    proj = machine.captures_of(STEP_PROJECTOR)
+    asked = sum(1 for c in proj if "asked_T_cam_board" in (c.meta or {}))
+    return f"mirror {mirror}, projector {placements(proj)}" + (f", {asked} of them at the pose asked for" if asked else "")
 
 
 def summary(machine, folder, elapsed_s: float) -> str:

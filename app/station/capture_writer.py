@@ -63,6 +63,9 @@ class CaptureWriter:
         a structured step's from its captured `sequence` (structured_step.SequenceResult), `frame` its
         opening frame."""
         meta = capture_meta(frame, det, decision, how, projector_ticket, operator_pose_index)
+        asked = self.machine.asked_pose
+        if asked is not None:  # the pose the station asked for (--ask-pose): what the operator was to hold
+            meta["asked_T_cam_board"] = np.round(np.asarray(asked.T_cam_board, float), 6).tolist()
         if sequence is not None:
             meta.update({"frame_numbers": list(sequence.frame_numbers), "sequence_s": round(sequence.duration_s, 3),
                          "sequence_scheduled": int(sequence.scheduled),
