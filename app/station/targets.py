@@ -68,8 +68,13 @@ def candidate_positions(machine) -> list[int]:
         if len(caps) >= plan.structured_placements:
             return []
         return list(_structured_free(machine, caps))
-    counts = machine.position_counts()
-    for k in range(plan.poses_per_position):
+    return _circle_round(machine, machine.position_counts())
+
+
+def _circle_round(machine, counts) -> list[int]:
+    """The circle step's current round, stopping on confidence: the positions with the fewest poses,
+    one pose at every position before the next ([] when every position has its poses)."""
+    for k in range(machine.plan.poses_per_position):
         round_ = [p for p in range(machine.positions) if counts[p] <= k]
         if round_:
             return round_
@@ -106,15 +111,14 @@ def circle_choice(machine) -> tuple[Target | None, NextPlacement | None]:
         return next((at(p) for p in range(machine.positions) if counts[p] < plan.poses_per_position), None), None
     if _confident(machine, len(caps), plan.min_projector_captures):
         return None, None  # confident (at least the plan's minimum): the counts were maximums
-    for k in range(plan.poses_per_position):  # one pose at every position before the next
-        round_ = [p for p in range(machine.positions) if counts[p] <= k]
-        if round_:
-            asked = _asked_position(machine, round_)
-            if asked is not None:
-                return at(asked), None
-            best = _best(machine, round_, dict(enumerate(counts)))
-            return at(round_[0] if best is None else best.position), best
-    return None, None
+    round_ = _circle_round(machine, counts)
+    if not round_:
+        return None, None
+    asked = _asked_position(machine, round_)
+    if asked is not None:
+        return at(asked), None
+    best = _best(machine, round_, dict(enumerate(counts)))
+    return at(round_[0] if best is None else best.position), best
 
 
 def structured_choice(machine) -> tuple[Target | None, NextPlacement | None]:
