@@ -109,6 +109,23 @@ def test_asking_for_the_pose_and_the_next_best_position_together_is_refused(tmp_
     assert "both choose where the board goes next: give one" in line and not out.exists()
 
 
+@pytest.mark.parametrize("args, says", [
+    (["--rig", "sim", "--auto", "--blank-area", "300:20"], "the simulated rig's board is its scenario's"),
+    (["--rig", "realsense", "--board", "8x6:DICT_5X5_50:44.3", "--blank-area", "300:x"],
+     "blank area '300:x' does not parse"),
+    (["--rig", "realsense", "--board", "8x6:DICT_5X5_50:44.3", "--blank-area", "-5"], "need WIDTH > 0"),
+])
+def test_a_blank_area_the_session_cannot_use_is_refused_before_any_folder(tmp_path, args, says):
+    out = tmp_path / "new"
+    line = refused("session", *args, "--out", str(out))
+    assert says in line and not out.exists()
+
+
+def test_a_resumed_session_keeps_its_blank_area(session):
+    line = refused("session", "--auto", "--resume", str(session), "--blank-area", "300:20")
+    assert "a resumed session keeps its own" in line
+
+
 def test_verify_seed_names_the_option(session):
     line = refused("verify", str(session), "--seed", "-1")
     assert "argument --seed: must be a whole number from 0" in line

@@ -31,7 +31,7 @@ def _manifest(**kw) -> SessionManifest:
     )
     base = dict(rig=RigInfo((120, 80), (1280, 720), VIEW_MIRROR, {"exposure_us": 8000, "gain": 16}, "sim"),
                 projector_board=BOARD, pattern=PATTERN, mirror_board=MBOARD, mirror_method="real-virtual",
-                board_thickness=0.0, captures=caps, state={"step": "projector", "position": 4})
+                board_thickness=0.0, captures=caps, state={"step": "projector", "position": 4}, blank_area=(250.0, 15.0))
     base.update(kw)
     return SessionManifest(**base)
 
@@ -47,7 +47,10 @@ def test_manifest_dict_round_trip():
     back = SessionManifest.from_dict(json.loads(json.dumps(d)))
     assert back.to_dict() == d
     assert back.rig == m.rig and back.projector_board == BOARD and back.mirror_board == MBOARD
-    assert back.pattern == PATTERN and back.state == m.state
+    assert back.pattern == PATTERN and back.state == m.state and back.blank_area == (250.0, 15.0)
+    # a session written before the blank area was recorded: not given
+    d.pop("projector_blank_area")
+    assert SessionManifest.from_dict(json.loads(json.dumps(d))).blank_area is None
     assert np.array_equal(back.captures[1].pattern_points_px, m.captures[1].pattern_points_px)
     assert back.captures[1].pattern_position == 3 and back.captures[0].pattern_points_px is None
     # a direct rig without a mirror board and method
@@ -129,6 +132,10 @@ def _broken(tmp_path, edit):
     (lambda d: d["pattern"].__setitem__("rows", "9"), "pattern.rows", "wrong type"),
     (lambda d: d.__setitem__("mirror_method", "mirror-magic"), "mirror_method", "must be one of"),
     (lambda d: d.__setitem__("board_thickness", -1), "board_thickness", ">= 0"),
+    (lambda d: d.__setitem__("projector_blank_area", [320, 20]), "projector_blank_area", "must be an object"),
+    (lambda d: d.__setitem__("projector_blank_area", {"width": 0, "gap": 20}), "projector_blank_area.width", "> 0"),
+    (lambda d: d.__setitem__("projector_blank_area", {"width": 320}), "projector_blank_area.gap", ">= 0"),
+    (lambda d: d.__setitem__("projector_blank_area", {"width": 320, "gap": True}), "projector_blank_area.gap", ">= 0"),
     (lambda d: d.__setitem__("format", "something-else"), "format", "procam-session"),
     (lambda d: d.__setitem__("version", 99), "version", "newer"),
     (lambda d: d.pop("captures"), "captures", "missing"),

@@ -194,3 +194,21 @@ def test_the_zip_goes_out_even_when_the_report_fails(tmp_path, monkeypatch):
     path, why = write_report_if_available(tmp_path)
     assert why is None and path == tmp_path / "report.html"
     assert results_zip(tmp_path)[1] == ["calibration.json", "report.html"]
+
+
+def test_the_asked_outline_uses_the_blank_area_the_session_records():
+    from types import SimpleNamespace
+
+    from app.station.asked import DEFAULT_BLANK_MM, board_layout
+    from calib.models.boards import CharucoSpec
+
+    mm = CharucoSpec(8, 6, "DICT_5X5_50", 44.3, 22.15, "mm")
+    given = board_layout(None, SimpleNamespace(projector_board=mm, blank_area=(250.0, 15.0)))
+    w, h = mm.size
+    assert given.blank_rect == (w + 15.0, 0.0, w + 265.0, h)  # --blank-area 250:15, as session.json has it
+    scenario = SimpleNamespace(layout=SimpleNamespace(blank_rect="the scenario's"))
+    assert board_layout(SimpleNamespace(scenario=scenario), SimpleNamespace(projector_board=mm, blank_area=None)) \
+        is scenario.layout
+    cm = CharucoSpec(8, 6, "DICT_5X5_50", 4.43, 2.215, "cm")
+    default = board_layout(None, SimpleNamespace(projector_board=cm, blank_area=None))
+    assert default.blank_width == pytest.approx(DEFAULT_BLANK_MM[0] / 10) and default.gap == pytest.approx(2.0)

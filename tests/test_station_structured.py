@@ -211,6 +211,8 @@ def test_once_a_grid_is_known_each_placement_goes_where_the_uncertainty_is_large
         return real_ask(step, pos, index)
 
     monkeypatch.setattr(rig.operator, "request_pose", recording_ask)
+    layout = rig.scenario.layout
+    assert m.manifest.blank_area == (layout.blank_width, layout.gap)  # session.json records the board's blank area
     tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=900)
     caps = m.captures_of(STEP_PROJECTOR)
     assert len(caps) == plan.structured_placements
@@ -258,6 +260,8 @@ def test_with_ask_pose_each_placement_after_the_first_calibration_is_the_whole_p
         return text
 
     monkeypatch.setattr(rig.operator, "request_pose", recording_ask)
+    layout = rig.scenario.layout
+    assert m.manifest.blank_area == (layout.blank_width, layout.gap)  # session.json records the board's blank area
     tick_until(st, lambda: m.state == CALIBRATION and m.result is not None, max_ticks=900)
     caps = m.captures_of(STEP_PROJECTOR)
     assert len(caps) == plan.structured_placements

@@ -104,6 +104,10 @@ def add_board_options(p, previous: bool = False) -> None:
                             "without its session.json (else the boards are PREVIOUS's)")
     else:
         g.add_argument("--board", default=None, help="real rig: projector board COLSxROWS:DICT:SQUARE[:MARKER]")
+        g.add_argument("--blank-area", default=None, metavar="WIDTH[:GAP]",
+                       help="real rig: the projector board's blank area, WIDTH wide, GAP (default 20 mm) right of the "
+                            "squares, in --units, as printed by `procam board --blank-area` (default: the blank area of "
+                            "`procam board --assets`' projector board, 320:20 mm); --ask-pose draws the board with it")
     g.add_argument("--mirror-board", default=None, help="mirror board spec, as --board (default: --board)")
     g.add_argument("--units", choices=choices(LengthUnit), default=None if previous else LengthUnit.MM,
                    help="unit of the --board lengths (default " + ("PREVIOUS's)" if previous else "mm)"))

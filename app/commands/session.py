@@ -110,13 +110,16 @@ def open_session(args, log=print):
         DEFAULT_SCENARIO, RigRequest, check_same_rig, create_session, make_machine, open_requested_rig,
         resume_request,
     )
-    from calib.errors import SessionError
+    from calib.errors import OptionError, SessionError
     from calib.formats.session import SessionStore
     from drivers.factory import default_rig_kind
     from calib.models.boards import CharucoSpec
     from calib.models.observations import VIEW_DIRECT, VIEW_MIRROR
 
     if args.resume:
+        if getattr(args, "blank_area", None) is not None:
+            raise OptionError("--blank-area is recorded when a session is created: a resumed session keeps its own "
+                              "(session.json's projector_blank_area)")
         folder = Path(args.resume)
         refuse_recalibration_folder(folder)
         store = SessionStore.open(folder, lock=True)  # one process per session folder: refused while in use
@@ -145,12 +148,20 @@ def open_session(args, log=print):
 
         if not is_simulated(kind) and not args.board:
             raise SessionError("a real rig needs the board spec: --board COLSxROWS:DICT:SQUARE[:MARKER]")
-        rig = open_requested_rig(req, **rig_options(args, kind))
+        blank = getattr(args, "blank_area", None)
+        if blank is not None and is_simulated(kind):
+            raise OptionError("--blank-area is for a real rig's board: the simulated rig's board is its scenario's")
+        rig_kw = rig_options(args, kind)
         kw = {}
         if not is_simulated(kind):
+            from app.board_sheet import BlankArea
+
             board = CharucoSpec.parse(args.board, args.units)
+            area = None if blank is None else BlankArea.parse(blank, board.units)
             kw = dict(board=board, mirror_board=CharucoSpec.parse(args.mirror_board, args.units)
-                      if args.mirror_board else None, view=VIEW_DIRECT if args.direct else VIEW_MIRROR)
+                      if args.mirror_board else None, view=VIEW_DIRECT if args.direct else VIEW_MIRROR,
+                      blank_area=None if area is None else (area.width, area.gap))
+        rig = open_requested_rig(req, **rig_kw)
         from app.commands._rig_options import structured_placements
 
         structured_placements(args)  # --placements only with --projector-pattern structured

@@ -200,6 +200,7 @@ def simulate_session(scenario, out, quality: str = RenderQuality.SESSION, worker
         mirror_method=scenario.mirror_method,
         board_thickness=float(scenario.board_thickness_mm) if scenario.mirror_method == MirrorMethod.REAL_MIRROR else 0.0,
         state={"simulated": True, "scenario": scenario.name, "seed": scenario.seed},
+        blank_area=(float(scenario.layout.blank_width), float(scenario.layout.gap)),
     )
     store = SessionStore.create(out, manifest, exist_ok=force)
     from app.commands._progress import Progress, progress_mode

@@ -51,13 +51,25 @@ class AskedTarget:
         return self.asked.reason()
 
 
+#: the blank area (width, gap) of `procam board --assets`' projector board, mm: a session that gives none
+DEFAULT_BLANK_MM = (320.0, 20.0)
+
+
 def board_layout(rig, manifest):
-    """The projector board's layout (ChArUco and blank area): the simulated rig's scenario's, else the
-    session's board with the blank area `procam board` prints (calib.synthetic.BoardLayout's defaults)."""
+    """The projector board's layout (ChArUco and blank area): the blank area session.json records
+    (`--blank-area`, a simulated scenario's own), else the simulated rig's scenario's, else the one of
+    `procam board --assets`' projector board (DEFAULT_BLANK_MM, in the board's units)."""
+    from calib.models.boards import MM_PER_UNIT
     from calib.synthetic import BoardLayout
 
+    board = manifest.projector_board
+    if getattr(manifest, "blank_area", None) is not None:
+        return BoardLayout(board, *manifest.blank_area)
     layout = getattr(getattr(rig, "scenario", None), "layout", None)
-    return layout if layout is not None else BoardLayout(manifest.projector_board)
+    if layout is not None:
+        return layout
+    per_mm = 1.0 / MM_PER_UNIT.get(board.units, 1.0)
+    return BoardLayout(board, DEFAULT_BLANK_MM[0] * per_mm, DEFAULT_BLANK_MM[1] * per_mm)
 
 
 def outline_px(result, layout, T_cam_board: np.ndarray) -> np.ndarray:

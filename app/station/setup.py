@@ -89,16 +89,20 @@ def sim_specs(rig) -> dict:
     if view is None:
         srig = _attr(sc, "rig")
         view = _attr(srig, "view") or (VIEW_MIRROR if mirror_board is not None else VIEW_DIRECT)
+    blank = None if layout is None else (float(layout.blank_width), float(layout.gap))
     return {"board": board, "mirror_board": mirror_board if view == VIEW_MIRROR else None, "pattern": pattern,
-            "mirror_method": method if view == VIEW_MIRROR else None, "thickness": float(thickness), "view": view}
+            "mirror_method": method if view == VIEW_MIRROR else None, "thickness": float(thickness), "view": view,
+            "blank_area": blank}
 
 
 def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_board: CharucoSpec | None = None,
                  pattern: PatternSpec | None = None, view: str | None = None, thickness: float = 0.0,
-                 projector_pattern: str | None = None) -> SessionManifest:
+                 projector_pattern: str | None = None,
+                 blank_area: tuple[float, float] | None = None) -> SessionManifest:
     """The manifest of a new session on `rig`: specs from the simulated scenario, or as given;
     `projector_pattern` "structured": the projector step shows the structured-light sequence
-    (app.station.structured_step), the pattern's positions only naming where the board goes."""
+    (app.station.structured_step), the pattern's positions only naming where the board goes;
+    `blank_area` (width, gap) of the projector board's blank area, board units (None: not given)."""
     cam_size = tuple(rig.camera.size)
     proj_size = tuple(rig.projector.size)
     from drivers.factory import is_simulated
@@ -107,6 +111,7 @@ def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_boa
         s = sim_specs(rig)
         board, mirror_board, pattern, view = s["board"], s["mirror_board"], s["pattern"], s["view"]
         thickness = s["thickness"] if s["mirror_method"] == MirrorMethod.REAL_MIRROR else 0.0
+        blank_area = s["blank_area"]
     if board is None:
         raise SessionError("give the projector board spec (--board COLSxROWS:DICT:SQUARE[:MARKER])")
     view = view or VIEW_MIRROR
@@ -121,7 +126,7 @@ def new_manifest(rig, kind: str, *, board: CharucoSpec | None = None, mirror_boa
         settings = {}
     info = RigInfo(cam_size, proj_size, view, settings, kind)
     return SessionManifest(info, board, pattern, mirror_board if view == VIEW_MIRROR else None, None,
-                           float(thickness))
+                           float(thickness), blank_area=blank_area)
 
 
 def create_session(folder, rig, req: RigRequest, plan: Plan | None = None, **manifest_kw) -> SessionStore:

@@ -11,6 +11,8 @@ session.json (format "procam-session", version 1):
     any of the units (converted to the session's on load)
   pattern: PatternSpec dict
   mirror_method: "real-virtual" | "real-mirror" | null; board_thickness: number (board units)
+  projector_blank_area: {width, gap} (board units: the projector board's blank area right of its squares,
+    as `procam board --blank-area WIDTH:GAP` prints it) or null/absent (not given)
   captures: [{id, step, image, pattern_position?, pattern_points_px?, placement?, meta?}, ...], a
     structured-light capture with pattern_kind, structured_light and frames (calib.formats.session_captures)
   state: object the station uses to resume (current step, position, ...); the types of the fields it
@@ -58,7 +60,7 @@ MIRROR_METHODS = choices(MirrorMethod)
 MAX_IMAGE_SIDE = 100_000  # pixels: a width or height above this is a corrupt field, not a camera
 #: the top-level keys of session.json; another key (from a newer program) may hold at most UNKNOWN_MAX_BYTES
 MANIFEST_KEYS = ("format", "version", "rig", "projector_board", "mirror_board", "pattern", "mirror_method",
-                 "board_thickness", "captures", "state")
+                 "board_thickness", "projector_blank_area", "captures", "state")
 UNKNOWN_MAX_BYTES = 64 * 1024
 
 _NUMBER = (int, float)
@@ -102,6 +104,8 @@ class SessionManifest:
     board_thickness: float = 0.0
     captures: tuple[Capture, ...] = ()
     state: dict = field(default_factory=dict)
+    #: (width, gap) of the projector board's blank area in board units; None: not given
+    blank_area: tuple[float, float] | None = None
 
     def __post_init__(self):
         # Every length of a session is in the projector board's units (the units of the result): a mirror
@@ -127,6 +131,8 @@ class SessionManifest:
             "pattern": self.pattern.to_dict(),
             "mirror_method": self.mirror_method,
             "board_thickness": self.board_thickness,
+            "projector_blank_area": None if self.blank_area is None else
+            {"width": float(self.blank_area[0]), "gap": float(self.blank_area[1])},
             "captures": [c.to_dict() for c in self.captures],
             "state": self.state,
         }
@@ -186,6 +192,7 @@ class SessionManifest:
         thickness = d.get("board_thickness", 0.0)
         if not isinstance(thickness, (int, float)) or isinstance(thickness, bool) or thickness < 0:
             raise FormatError(path, "board_thickness", "must be a number >= 0 (board units)")
+        blank = _blank_area(d.get("projector_blank_area"), path)
         caps = need(d, "captures", "", list)
         captures, seen = [], set()
         for i, c in enumerate(caps):
@@ -197,7 +204,23 @@ class SessionManifest:
         state = d.get("state")
         state = {} if state is None else state
         _check_state(state, path)
-        return cls(rig_info, pboard, pattern, mboard, method, float(thickness), tuple(captures), state)
+        return cls(rig_info, pboard, pattern, mboard, method, float(thickness), tuple(captures), state, blank)
+
+
+def _blank_area(v, path) -> tuple[float, float] | None:
+    """session.json's projector_blank_area: null/absent, or {width > 0, gap >= 0} in board units."""
+    if v is None:
+        return None
+    if not isinstance(v, dict):
+        raise FormatError(path, "projector_blank_area", "must be an object {width, gap} (board units) or null")
+    out = []
+    for key, least in (("width", 0.0), ("gap", 0.0)):
+        x = v.get(key)
+        if not isinstance(x, (int, float)) or isinstance(x, bool) or x < least or (key == "width" and x == 0):
+            raise FormatError(path, f"projector_blank_area.{key}",
+                              f"must be a number {'> 0' if key == 'width' else '>= 0'} (board units)")
+        out.append(float(x))
+    return out[0], out[1]
 
 
 _TYPE_WORDS = {str: "a string", int: "an integer", float: "a number", bool: "true or false", dict: "an object",
