@@ -26,20 +26,21 @@ import numpy as np
 
 from calib.errors import ProcamError
 from calib.joint.predict import predict_uncertainty
-from calib.models.observations import ProjectorView, SessionObservations
+from calib.models.observations import MirrorView, ProjectorView, SessionObservations
 from calib.models.result import CalibrationResult
-from calib.models.vocab import Step
+from calib.models.vocab import MirrorMethod, Step
 from calib.quality.confidence import confidence_of
 
 
 @dataclass(frozen=True, eq=False)
 class Candidate:
-    """A board pose the station could ask for: its pattern position, T_cam_board, and the projector
-    view it would give (exact observations through the estimated rig)."""
+    """A board pose the station could ask for: its pattern position (None for a mirror-step pose),
+    T_cam_board, and the view it would give (exact observations through the estimated rig: a projector
+    view, or a mirror view for the mirror step)."""
 
-    position: int
+    position: int | None
     T_cam_board: np.ndarray
-    view: ProjectorView
+    view: ProjectorView | MirrorView
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,7 +60,8 @@ class AskedPose:
         return self.candidate.position
 
     def reason(self) -> str:
-        return (f"a board at pattern position {self.position + 1}, held at the pose shown, leaves the worst "
+        where = "a board" if self.position is None else f"a board at pattern position {self.position + 1}"
+        return (f"{where}, held at the pose shown, leaves the worst "
                 f"predicted 1-sigma least of {self.considered} poses: {self.worst} {self.sigma:.3g} {self.unit} "
                 f"(target {self.target:.3g})")
 
@@ -67,12 +69,16 @@ class AskedPose:
 def ask_pose(obs: SessionObservations, result: CalibrationResult, candidates: Iterable[Candidate],
              step: str = Step.PROJECTOR) -> AskedPose | None:
     """The candidate whose observations, added to `obs` (what `result` was calibrated from), leave the
-    least worst predicted 1-sigma / target of `step`'s quantities. None when no candidate could be
-    predicted (each one's failure is a degenerate prediction: skipped)."""
+    least worst predicted 1-sigma / target of `step`'s quantities (a mirror step's candidates are mirror
+    views: mirror_candidates). None when no candidate could be predicted (each one's failure is a
+    degenerate prediction: skipped)."""
     best: AskedPose | None = None
     considered = 0
     for cand in candidates:
-        merged = replace(obs, projector_views=tuple(obs.projector_views) + (cand.view,))
+        if isinstance(cand.view, MirrorView):
+            merged = replace(obs, mirror_views=tuple(obs.mirror_views) + (cand.view,))
+        else:
+            merged = replace(obs, projector_views=tuple(obs.projector_views) + (cand.view,))
         try:
             conf = confidence_of(predict_uncertainty(merged, result), step)
         except (ProcamError, np.linalg.LinAlgError):
@@ -90,7 +96,8 @@ def ask_pose(obs: SessionObservations, result: CalibrationResult, candidates: It
 def mirror_seen(obs: SessionObservations, result: CalibrationResult, margin_mm: float = 0.0):
     """The part of the mirror the camera has seen a board in so far, as a rectangle on the estimated
     mirror plane (calib.synthetic.MirrorRect): every pixel observed through the mirror (the projector
-    step's boards and pattern points on a mirrored rig, the mirror step's virtual views) cast through the
+    step's boards and pattern points on a mirrored rig, the mirror step's virtual views) or on it (the
+    real-mirror step's boards lying on the mirror) cast through the
     estimated camera onto the plane, their least-area rectangle widened by `margin_mm` on every side.
     What a station knows of the mirror's extent: a candidate seen inside it is seen in the mirror. None
     without a mirror or mirrored pixels."""
@@ -104,6 +111,8 @@ def mirror_seen(obs: SessionObservations, result: CalibrationResult, margin_mm: 
     uv = [pv.board.corners_px for pv in obs.projector_views if pv.board is not None and pv.board.mirrored]
     uv += [pv.pattern_cam_px for pv in obs.projector_views if pv.board is not None and pv.board.mirrored]
     uv += [mv.virtual.corners_px for mv in obs.mirror_views if mv.virtual is not None]
+    # a board lying on the mirror (real-mirror) is seen directly, on the mirror's face
+    uv += [mv.real.corners_px for mv in obs.mirror_views if mv.virtual is None and mv.real is not None]
     uv = [np.asarray(a, float).reshape(-1, 2) for a in uv if len(a)]
     if not uv:
         return None
@@ -180,4 +189,41 @@ def candidate_poses(obs: SessionObservations, result: CalibrationResult, layout,
     return out
 
 
-__all__ = ["AskedPose", "Candidate", "ask_pose", "candidate_poses", "mirror_seen"]
+def mirror_candidates(obs: SessionObservations, result: CalibrationResult, count: int, rng: np.random.Generator,
+                      mirror_rect=None) -> list[Candidate]:
+    """`count` mirror-step board poses drawn through the rig `result` estimates, as the mirror step's own
+    plan draws them (calib.synthetic.mirror_poses, the session's mirror method and board: real-virtual,
+    the board between the camera and the mirror, seen directly and whole in the mirror; real-mirror,
+    lying on the mirror), each with its exact predicted mirror view. `mirror_rect` is the part of the
+    mirror a board may be seen in (mirror_seen); None: unbounded for real-virtual. A real-mirror board
+    lies on the mirror, so its candidates need the rectangle (ProcamError without one). Fewer than
+    `count` when the rig allows no more."""
+    from calib.synthetic import BoardLayout, SyntheticRig, SyntheticSession, mirror_poses, observe
+
+    mirror = result.mirror
+    if mirror is None or obs.mirror_board is None or not obs.mirror_views:
+        raise ProcamError("asking for a mirror-step pose needs a mirror calibration with mirror captures")
+    step = obs.mirror_views[0].method  # a capture step; the synthetic session takes the mirror method
+    method = next(m for m in MirrorMethod if m.step == step)
+    if mirror_rect is None:
+        if method == MirrorMethod.REAL_MIRROR:
+            raise ProcamError("a board lying on the mirror can be asked for only inside the part of the mirror "
+                              "seen so far (no real-mirror board was seen)")
+        mirror_rect = _unbounded(mirror)
+    rig = SyntheticRig(result.camera, result.projector, np.asarray(result.T_cam_proj, float), mirror, mirror_rect,
+                       np.zeros(3), 0.0, 0.0, result.units)
+    thickness = float(obs.board_thickness or 0.0)
+    poses = []
+    for k in range(count, 0, -1):  # as many as the rig allows
+        try:
+            poses = mirror_poses(rig, obs.mirror_board, method, k, int(rng.integers(1 << 31)), thickness)
+            break
+        except RuntimeError:
+            continue
+    ss = SyntheticSession(rig, BoardLayout(obs.projector_board), obs.mirror_board, obs.pattern, [], poses,
+                          method, thickness)
+    views = observe(ss, 0.0, 0).mirror_views
+    return [Candidate(None, T, replace(v, capture_id=f"asked-mirror-{i}")) for i, (T, v) in enumerate(zip(poses, views))]
+
+
+__all__ = ["AskedPose", "Candidate", "ask_pose", "candidate_poses", "mirror_candidates", "mirror_seen"]

@@ -300,12 +300,7 @@ def mirror_poses(rig: SyntheticRig, board: CharucoSpec, method: str, count: int 
             R = _frame_from_normal(n, np.array([1.0, 0, 0]))
             R = rotation_about(R[:, 2], rng.uniform(-35, 35)) @ R
             T = make_T(R, c - R @ centre_b)
-            corners = transform_points(T, board.corner_points())
-            uv = rig.camera.project(corners)
-            outline = transform_points(T, np.array([[0, 0, 0], [w, 0, 0], [0, h, 0], [w, h, 0]], float))
-            D = outline - rect.centre
-            inside = np.all(np.abs(D @ rect.axis_u) < rect.size[0] / 2) and np.all(np.abs(D @ rect.axis_v) < rect.size[1] / 2)
-            if inside and np.all(rig.camera.in_image(uv, 10)):
+            if _real_mirror_ok(rig, board, T):
                 poses.append(T)
             continue
         # real-virtual
@@ -323,6 +318,52 @@ def mirror_poses(rig: SyntheticRig, board: CharucoSpec, method: str, count: int 
     if len(poses) < count:
         raise RuntimeError(f"found only {len(poses)} of {count} {method} mirror poses for this rig")
     return poses
+
+
+def _real_mirror_ok(rig, board, T) -> bool:
+    """A board lying on the mirror: its outline inside the mirror rectangle, its corners in the image."""
+    w, h = board.size
+    rect = rig.mirror_rect
+    outline = transform_points(T, np.array([[0, 0, 0], [w, 0, 0], [0, h, 0], [w, h, 0]], float))
+    D = outline - rect.centre
+    inside = np.all(np.abs(D @ rect.axis_u) < rect.size[0] / 2) and np.all(np.abs(D @ rect.axis_v) < rect.size[1] / 2)
+    return bool(inside and np.all(rig.camera.in_image(rig.camera.project(transform_points(T, board.corner_points())), 10)))
+
+
+def held_mirror_pose(rig, board: CharucoSpec, method: str, T_cam_board: np.ndarray, deg: float, mm: float,
+                     rng: np.random.Generator, thickness_mm: float = 3.0, tries: int = 50) -> np.ndarray:
+    """The mirror-step pose a person holds when shown T_cam_board: as held_pose, about the board's
+    centre, redrawn until valid for `method`. A board laid on the mirror (real-mirror) lies on the rig's
+    own mirror, `thickness_mm` above it, whatever plane the pose shown was drawn on (an estimate of it):
+    it turns about the mirror's normal and slides along it only."""
+    T = np.asarray(T_cam_board, float).copy()
+    w, h = board.size
+    c = transform_points(T, np.array([[w / 2, h / 2, 0.0]]))[0]
+    flat = method == STEP_REAL_MIRROR or method == MirrorMethod.REAL_MIRROR
+    if flat:  # onto the true mirror: the face parallel to it, at the board's thickness
+        n = np.asarray(rig.mirror.normal, float)
+        z = T[:3, 2]
+        axis = np.cross(z, -n)
+        if np.linalg.norm(axis) > 1e-12:
+            ang = np.degrees(np.arctan2(np.linalg.norm(axis), z @ -n))
+            T[:3, :3] = rotation_about(axis, ang) @ T[:3, :3]
+        c_on = c - (float(rig.mirror.signed_distance(c[None])[0]) - thickness_mm) * n
+        T[:3, 3] = c_on - T[:3, :3] @ np.array([w / 2, h / 2, 0.0])
+        c = c_on
+    if deg == 0 and mm == 0:
+        return T
+    for _ in range(tries):
+        if flat:
+            R = rotation_about(T[:3, 2], rng.normal(0.0, deg))
+            shift = T[:3, :2] @ rng.normal(0.0, mm, 2)
+        else:
+            axis = rng.normal(size=3)
+            R = rotation_about(axis / np.linalg.norm(axis), rng.normal(0.0, deg))
+            shift = rng.normal(0.0, mm, 3)
+        H = make_T(R @ T[:3, :3], R @ (T[:3, 3] - c) + c + shift)
+        if (_real_mirror_ok if flat else _real_virtual_ok)(rig, board, H):
+            return H
+    return T
 
 
 def _real_virtual_ok(rig, board, T) -> bool:

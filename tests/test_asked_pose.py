@@ -94,3 +94,58 @@ def test_the_mirror_seen_so_far_lies_on_the_mirror_and_holds_every_mirrored_obse
     wider = mirror_seen(obs, est, margin_mm=30.0)
     assert wider.size == pytest.approx((seen.size[0] + 60, seen.size[1] + 60))
     assert mirror_seen(obs, est.with_(mirror=None)) is None  # a direct rig: no mirror to bound
+
+
+def test_mirror_step_candidates_are_its_own_kind_of_pose_through_the_estimated_rig():
+    from calib.asked_pose import mirror_candidates
+    from calib.errors import ProcamError
+    from calib.synthetic import _real_virtual_ok
+
+    obs, est = _so_far()
+    seen = mirror_seen(obs, est)
+    cands = mirror_candidates(obs, est, 4, np.random.default_rng(5), seen)
+    assert len(cands) == 4 and all(c.position is None for c in cands)
+    est_rig = replace(SC.rig, camera=est.camera, projector=est.projector, T_cam_proj=np.asarray(est.T_cam_proj),
+                      mirror=est.mirror, mirror_rect=seen)
+    for c in cands:  # seen directly and whole in the part of the mirror seen so far, unoccluded
+        assert _real_virtual_ok(est_rig, SC.mirror_board, c.T_cam_board)
+        assert c.view.method == Step.REAL_VIRTUAL and c.view.virtual.mirrored
+        assert len(c.view.real.ids) == SC.mirror_board.n_corners
+    asked = ask_pose(obs, est, cands, Step.REAL_VIRTUAL)
+    needs = []
+    for c in cands:
+        merged = replace(obs, mirror_views=obs.mirror_views + (c.view,))
+        needs.append(confidence_of(predict_uncertainty(merged, est), Step.REAL_VIRTUAL).quantities[0].sigma)
+    assert asked.candidate is cands[int(np.argmin(needs))] and asked.worst == "mirror normal"
+    assert asked.reason().startswith("a board, held at the pose shown")
+    # a board lying on the mirror can only be asked for where the mirror was seen
+    flat = replace(obs, mirror_views=tuple(replace(mv, method=Step.REAL_MIRROR, virtual=None) for mv in obs.mirror_views))
+    with pytest.raises(ProcamError, match="inside the part of the mirror seen so far"):
+        mirror_candidates(flat, est, 2, np.random.default_rng(0), None)
+
+
+def test_a_board_held_on_the_mirror_stays_on_it():
+    from calib.synthetic import held_mirror_pose
+
+    sc = get_scenario("nonoverlap-136-realmirror", 0)
+    rng = np.random.default_rng(2)
+    for T in sc.mirror_poses[:4]:
+        H = held_mirror_pose(sc.rig, sc.mirror_board, sc.mirror_method, T, 3.0, 10.0, rng)
+        assert not np.allclose(H, T)
+        # the same height above the mirror and the same face towards it: turned about its normal, slid along it
+        assert sc.rig.mirror.signed_distance(H[:3, 3][None])[0] == pytest.approx(
+            sc.rig.mirror.signed_distance(T[:3, 3][None])[0], abs=1e-6)
+        assert np.allclose(H[:3, 2], T[:3, 2], atol=1e-9)
+        assert sc.rig.mirror_rect.contains(H[:3, 3][None]).all()
+    # a pose shown on an estimated mirror plane (0.5 mm and 1 deg off the true one) is laid on the true mirror
+    from calib.transforms import make_T, rotation_about
+
+    T = sc.mirror_poses[0]
+    shown = make_T(rotation_about([1.0, 0.0, 0.0], 1.0) @ T[:3, :3], T[:3, 3] + 0.5 * sc.rig.mirror.normal)
+    H = held_mirror_pose(sc.rig, sc.mirror_board, sc.mirror_method, shown, 0.0, 0.0, rng, thickness_mm=3.0)
+    corners = (H[:3, :3] @ sc.mirror_board.corner_points().T).T + H[:3, 3]
+    assert np.allclose(sc.rig.mirror.signed_distance(corners), 3.0, atol=1e-6)
+    T = SC.mirror_poses[0]
+    H = held_mirror_pose(SC.rig, SC.mirror_board, SC.mirror_method, T, 3.0, 10.0, rng)
+    assert 0 < np.linalg.norm(H[:3, 3] - T[:3, 3]) < 80 and not np.allclose(H[:3, 2], T[:3, 2])
+    assert np.array_equal(held_mirror_pose(SC.rig, SC.mirror_board, SC.mirror_method, T, 0, 0, rng), T)
