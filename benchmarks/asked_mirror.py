@@ -2,7 +2,7 @@
 session stopping on confidence takes, and how accurate it is then.
 
     python benchmarks/asked_mirror.py [--scenarios nonoverlap-136 nonoverlap-90 nonoverlap-136-realmirror]
-                                      [--seeds 10] [--first 5] [--most 14] [--noise 0.1] [--follow 3 10]
+                                      [--seeds 10] [--first 5] [--most 14] [--noise 0.05] [--follow 3 10]
 
 Exact-geometry synthetic observations (calib.synthetic.observe, circle centroids, Gaussian noise) of each
 scenario: 6 projector placements in the plan's order with a pattern twice as dense (a stand-in for the
@@ -88,7 +88,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--first", type=int, default=5)
     ap.add_argument("--most", type=int, default=14)
-    ap.add_argument("--noise", type=float, default=0.1)
+    ap.add_argument("--noise", type=float, default=0.05)
     ap.add_argument("--follow", type=float, nargs=2, default=[3.0, 10.0], metavar=("DEG", "MM"))
     args = ap.parse_args()
     print(f"6 projector placements (pattern density 2), mirror placements from {args.first} until confident "
