@@ -451,3 +451,43 @@ def test_error_lines_never_carry_terminal_control_characters(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "\\x1b[2J\\rsuch\\x07" in err
     assert not any(ord(c) < 32 and c not in "\n\t" for c in err) and "\x9b" not in err
+
+
+def test_a_mirror_capture_of_several_frames_is_their_mean_each_its_own_noise(tmp_path, monkeypatch):
+    """procam bench placements --mirror-frames N: each mirror capture the mean of N renders of the still
+    board, each with its own noise draw (less noise than one), recorded in the capture's meta."""
+    import numpy as np
+
+    import app.commands.simulate as sim
+    from calib.formats.session import SessionStore
+    from drivers.sim.scenarios import get_scenario
+
+    sc = get_scenario("nonoverlap-136", 0)
+    jobs = sim.capture_plan(sc, mirror_frames=4)
+    mirror = [j for j in jobs if j["step"] != "projector"]
+    assert mirror and all(j["frames"] == 4 for j in mirror)
+    sim._init_worker(sc, "live")
+    try:
+        job = dict(mirror[0])
+        _, mean, _, _ = sim._render_job(job)
+        rig = sim._worker_rig
+        frames = [rig.render_still(sim.FRAME_KEY_BASE * (1 + job["key"]) + f).astype(float) for f in range(4)]
+        assert np.array_equal(mean, np.clip(np.rint(sum(frames) / 4), 0, 255).astype(np.uint8))
+        assert not np.array_equal(frames[0], frames[1])  # each frame its own noise draw
+        one = sim._render_job(dict(job, frames=1))[1].astype(float)
+        still = np.mean(frames, axis=0)
+        assert np.std(mean - still) < np.std(one - still)  # the mean is nearer the noiseless image
+    finally:
+        sim._worker_rig = None
+    # a session of one mirror and one projector capture: the mirror one records its frames
+    plan = sim.capture_plan
+
+    def two(scenario, structured, frames):
+        js = plan(scenario, structured, frames)
+        few = [next(j for j in js if j["step"] != "projector"), next(j for j in js if j["step"] == "projector")]
+        return [dict(j, key=i) for i, j in enumerate(few)]
+
+    monkeypatch.setattr(sim, "capture_plan", two)
+    sim.simulate_session(sc, tmp_path / "S", quality="live", workers=1, progress=False, mirror_frames=3)
+    caps = SessionStore.open(tmp_path / "S").manifest.captures
+    assert [c.meta.get("frames_averaged") for c in caps] == [3, None]

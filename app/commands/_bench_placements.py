@@ -54,6 +54,9 @@ def add_parser(sub) -> None:
                    help="render quality (default %(default)s)")
     p.add_argument("--structured-placements", type=_types.int_range(2, 52), default=8, metavar="N",
                    help="structured-light placements rendered: the projector step's maximum (default %(default)s)")
+    p.add_argument("--mirror-frames", type=_types.int_range(1, 64), default=1, metavar="N",
+                   help="each mirror capture the mean of N frames of the board held still (default 1): what "
+                        "averaging a placement's frames would give the mirror step")
     p.add_argument("--mirror-first", type=_types.int_range(1, 14), default=5, metavar="N",
                    help="mirror placements before the projector step (default %(default)s)")
     p.add_argument("--fraction", type=_types.float_range(0.0, 10.0, lo_open=True), default=None, metavar="F",
@@ -127,7 +130,7 @@ def _row(scenario, seed, variant, result, gt, mirror_n, proj_n, error=None):
 
 
 def placement_runs(scenarios, seeds: int, quality: str, structured_placements: int, mirror_first: int,
-                   fraction: float | None = None, workers: int = 2, log=print) -> list[dict]:
+                   fraction: float | None = None, workers: int = 2, log=print, mirror_frames: int = 1) -> list[dict]:
     """Every (scenario, seed, variant) row: placements used and the errors against the ground truth."""
     from app.commands.simulate import simulate_session
     from calib.detection.detect import detect_session
@@ -143,7 +146,8 @@ def placement_runs(scenarios, seeds: int, quality: str, structured_placements: i
                     folder = Path(tmp) / f"{name}-{seed}-{pattern}"
                     t0 = time.perf_counter()
                     store = simulate_session(sc, folder, quality=quality, workers=workers, force=True, progress=False,
-                                             structured_placements=structured_placements if pattern == PatternKind.STRUCTURED else None)
+                                             structured_placements=structured_placements if pattern == PatternKind.STRUCTURED else None,
+                                             mirror_frames=mirror_frames)
                     obs = detect_session(store, workers, cache="refresh")
                     t_sim = time.perf_counter() - t0
                     if pattern == PatternKind.CIRCLES:
@@ -191,7 +195,8 @@ def run_placements(args) -> int:
     print(f"procam bench placements: {len(args.scenarios)} scenario(s) x {args.seeds} seed(s), {args.quality} "
           "quality", file=sys.stderr)
     runs = placement_runs(args.scenarios, args.seeds, args.quality, args.structured_placements, args.mirror_first,
-                          args.fraction, args.workers, log=lambda s: print(s, file=sys.stderr))
+                          args.fraction, args.workers, log=lambda s: print(s, file=sys.stderr),
+                          mirror_frames=args.mirror_frames)
     seeds = args.seeds
     print(placements_table(runs))
     print(f"(mean over {seeds} seed{'s' if seeds != 1 else ''}; placements mirror + projector; joint method)")

@@ -108,15 +108,16 @@ def run(args) -> int:
 
 
 # ---- the work ------------------------------------------------------------------------------------------
-def capture_plan(scenario, structured_placements: int | None = None) -> list[dict]:
-    """Every capture of a session, in order: mirror calibration first, then the projector step (with
-    `structured_placements`, that many of the scenario's poses, each a structured-light capture). Each
-    capture is a placement of its own (`key`)."""
+def capture_plan(scenario, structured_placements: int | None = None, mirror_frames: int = 1) -> list[dict]:
+    """Every capture of a session, in order: mirror calibration first (each capture the mean of
+    `mirror_frames` frames of the still board), then the projector step (with `structured_placements`,
+    that many of the scenario's poses, each a structured-light capture). Each capture is a placement of
+    its own (`key`)."""
     jobs = []
     if scenario.mirror_method is not None:
         step = Step.REAL_VIRTUAL if scenario.mirror_method == MirrorMethod.REAL_VIRTUAL else Step.REAL_MIRROR
         for k in range(len(scenario.mirror_poses)):
-            jobs.append({"step": step, "position": None, "index": k})
+            jobs.append({"step": step, "position": None, "index": k, "frames": int(mirror_frames)})
     if structured_placements is not None:
         from drivers.sim.structured import placement_poses
 
@@ -176,19 +177,25 @@ def _render_job(job: dict):
     else:
         img = np.zeros((H, W), np.uint8)
     rig.projector.show(img)
-    image = rig.render_still(job["key"])
+    n = int(job.get("frames", 1))
+    if n <= 1:
+        image = rig.render_still(job["key"])
+    else:  # the mean of n frames of the still board, each its own noise draw (as a structured capture's)
+        acc = sum(rig.render_still(FRAME_KEY_BASE * (1 + job["key"]) + f).astype(np.float64) for f in range(n))
+        image = np.clip(np.rint(acc / n), 0, 255).astype(np.uint8)
     return job["key"], image, rig.board.T_cam_board.copy(), pts
 
 
 def simulate_session(scenario, out, quality: str = RenderQuality.SESSION, workers: int = 2, force: bool = False,
-                     progress: bool = True, structured_placements: int | None = None):
+                     progress: bool = True, structured_placements: int | None = None, mirror_frames: int = 1):
     """Render the scenario's session into folder `out` (its projector step `structured_placements`
-    structured-light captures when given); returns the SessionStore."""
+    structured-light captures when given; each mirror capture the mean of `mirror_frames` frames);
+    returns the SessionStore."""
     from calib.formats.session import RigInfo, SessionManifest, SessionStore
     from drivers.sim.rig import SimRig
 
     out = Path(out)
-    jobs = capture_plan(scenario, structured_placements)
+    jobs = capture_plan(scenario, structured_placements, mirror_frames)
     probe = SimRig(scenario, quality, ideal=True)
     rig = scenario.rig
     manifest = SessionManifest(
@@ -218,6 +225,8 @@ def simulate_session(scenario, out, quality: str = RenderQuality.SESSION, worker
             key, image, T, pts = results.pop(next_key)
             job = jobs[key]
             meta = {"sim_pose_index": job["index"]}
+            if job.get("frames", 1) > 1:
+                meta["frames_averaged"] = job["frames"]
             if job.get("structured"):
                 meta["sim_pattern_position"] = job["position"]
                 cap = store.add_structured_capture(image, STRUCTURED_SPEC, placement=key, meta=meta)
