@@ -53,6 +53,8 @@ NUMBERS = [
     (["station", "--port", "http"], "--port"),
     (["session", "--rig", "sim", "--auto", "--mirror-captures", "-1"], "--mirror-captures"),
     (["session", "--rig", "sim", "--auto", "--poses-per-position", "0"], "--poses-per-position"),
+    (["session", "--rig", "sim", "--auto", "--mirror-frames", "0"], "--mirror-frames"),
+    (["session", "--rig", "sim", "--auto", "--mirror-frames", "65"], "--mirror-frames"),
     (["session", "--rig", "sim", "--auto", "--projector-pattern", "structured", "--placements", "0"], "--placements"),
     (["simulate", "direct", "--blur", "nan"], "--blur"),
     (["simulate", "direct", "--shot", "nan"], "--shot"),
@@ -87,7 +89,7 @@ def test_a_recalibration_refuses_the_structured_step(session, tmp_path):
     assert "a recalibration re-measures with PREVIOUS's own" in line and not out.exists()
 
 
-@pytest.mark.parametrize("option", ["--stop-on-confidence", "--next-best", "--ask-pose"])
+@pytest.mark.parametrize("option", ["--stop-on-confidence", "--next-best", "--ask-pose", "--mirror-frames=4"])
 def test_a_recalibration_refuses_a_new_sessions_plan_switches(session, tmp_path, option):
     out = tmp_path / "new"
     line = refused("station", "--recalibrate", str(session), option, "--session", str(out), "--port", "0")

@@ -296,6 +296,8 @@ def test_far_away_pattern_points_are_refused(tmp_path):
     ({"plan": {"mirror_first": "5"}}, "state.plan.mirror_first"),
     ({"plan": {"mirror_first": -1}}, "state.plan.mirror_first"),
     ({"plan": {"next_best": 1}}, "state.plan.next_best"),
+    ({"plan": {"mirror_frames": 0}}, "state.plan.mirror_frames"),
+    ({"plan": {"mirror_frames": 10**9}}, "state.plan.mirror_frames"),
     ({"plan": {"ask_pose": "yes"}}, "state.plan.ask_pose"),
     ({"retake": {"step": "projector", "pattern_position": "x", "pose_index": 0}}, "state.retake.pattern_position"),
     ({"target": {"step": "elsewhere", "pose_index": 0}}, "state.target.step"),

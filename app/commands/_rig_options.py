@@ -4,6 +4,7 @@ argument group (evo's parent parsers; a private module: not a sub-command)."""
 
 from app.commands import _types
 from calib.models.vocab import LengthUnit, PatternKind, RenderQuality, RigKind, choices
+from calib.formats.session import MAX_MIRROR_FRAMES
 
 #: the capture plan's ranges: a plan outside them is either empty or a session that never ends
 POSES_PER_POSITION = (1, 100)
@@ -137,6 +138,10 @@ def add_rig_options(p) -> None:
                    help="with --stop-on-confidence: once the captures so far are calibrated, ask for the whole board "
                         "pose (position and tilt, its outline dashed on the camera image) predicted to leave the "
                         "projector step's worst 1-sigma least (docs/CALIBRATION.md \"Asking for the pose\")")
+    p.add_argument("--mirror-frames", type=_types.int_range(1, MAX_MIRROR_FRAMES), default=None, metavar="N",
+                   help="each mirror placement the mean of N frames of the board held still (default 1; a board "
+                        "that moves meanwhile is refused and asked for again; docs/CALIBRATION.md \"Several frames "
+                        "per mirror placement\")")
     add_projector_pattern_options(p, "pose")
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")

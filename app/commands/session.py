@@ -63,6 +63,8 @@ def plan_from_args(args, base=None):
             raise OptionError("--ask-pose and --next-best both choose where the board goes next: give one "
                               "(--ask-pose chooses the whole pose, --next-best the position only)")
         kw["ask_pose"] = True
+    if getattr(args, "mirror_frames", None) is not None:
+        kw["mirror_frames"] = args.mirror_frames
     if getattr(args, "placements", None) is not None:
         kw["structured_placements"] = args.placements
     if getattr(args, "mirror_captures", None) is not None:

@@ -99,11 +99,11 @@ def run(args) -> int:
             raise SpecError("--projector-pattern and --placements start a new session's projector step; a "
                             "recalibration re-measures with PREVIOUS's own (the circle grid or the structured-light "
                             "sequence, as its session.json says)")
-        if args.stop_on_confidence or args.next_best or args.ask_pose:
+        if args.stop_on_confidence or args.next_best or args.ask_pose or args.mirror_frames is not None:
             from calib.errors import SpecError
 
-            raise SpecError("--stop-on-confidence, --next-best and --ask-pose plan a new session's capture steps; a "
-                            "recalibration asks for the captures its rig check and re-estimate need")
+            raise SpecError("--stop-on-confidence, --next-best, --ask-pose and --mirror-frames plan a new session's "
+                            "capture steps; a recalibration asks for the captures its rig check and re-estimate need")
         return run_recalibration_mode(args, kind, defaulted)
     rig, store, machine, req = open_session(args, print)
     from drivers.factory import is_simulated

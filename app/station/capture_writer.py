@@ -58,11 +58,14 @@ class CaptureWriter:
         self._detecting: list[Future] = []
 
     def write(self, frame, det: LiveDetection, decision: Decision | None, how: str, projector_ticket: int,
-              operator_pose_index: int | None = None, sequence=None):
+              operator_pose_index: int | None = None, sequence=None, mean=None):
         """Write the capture of the current target from `frame` (ActionRefused when the target changed);
         a structured step's from its captured `sequence` (structured_step.SequenceResult), `frame` its
-        opening frame."""
+        opening frame; a mirror placement of several frames (mirror_frames.MeanFrame) from their mean."""
         meta = capture_meta(frame, det, decision, how, projector_ticket, operator_pose_index)
+        if mean is not None:
+            meta.update({"frames_averaged": len(mean.frame_numbers), "frame_numbers": list(mean.frame_numbers),
+                         "motion_px": round(float(mean.motion_px), 4)})
         asked = self.machine.asked_pose
         if asked is not None:  # the pose the station asked for (--ask-pose): what the operator was to hold
             meta["asked_T_cam_board"] = np.round(np.asarray(asked.T_cam_board, float), 6).tolist()

@@ -43,6 +43,8 @@ class Plan:
     # position and tilt) whose predicted observations leave the step's worst 1-sigma least
     # (calib.asked_pose); the panel dashes the board's outline where it is to be held
     ask_pose: bool = False
+    # each mirror placement the mean of this many frames of the board held still (app/station/mirror_frames.py)
+    mirror_frames: int = 1
 
     def mirror_captures(self, method: str) -> int:
         return self.real_virtual_captures if method == MirrorMethod.REAL_VIRTUAL else self.real_mirror_captures

@@ -267,8 +267,21 @@ class Station:
                 self.operator.start_over()
                 self.autocap.reset(self.captures.taken_for(self.machine.target))
                 raise ActionRefused("capture", sequence.refused)
+        mean = None
+        if target is not None and target.step != STEP_PROJECTOR and self.machine.plan.mirror_frames > 1:
+            from app.station.mirror_frames import capture_mean
+
+            mean = capture_mean(self, frame, det, self.machine.plan.mirror_frames)
+            if mean.refused is not None:
+                self.log(f"placement refused: {mean.refused}")
+                self.machine.log(f"placement refused: {mean.refused}")
+                self.frames.changed()
+                self.operator.start_over()
+                self.autocap.reset(self.captures.taken_for(self.machine.target))
+                raise ActionRefused("capture", mean.refused)
+            frame = mean.frame
         cap = self.captures.write(frame, det, decision, how, self.shown_ticket,
-                                  self.operator.asked_index(self.machine.target), sequence)
+                                  self.operator.asked_index(self.machine.target), sequence, mean)
         self.last_capture_s = time.monotonic()
         self.frames.changed()
         return cap

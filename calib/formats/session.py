@@ -62,6 +62,8 @@ MAX_IMAGE_SIDE = 100_000  # pixels: a width or height above this is a corrupt fi
 MANIFEST_KEYS = ("format", "version", "rig", "projector_board", "mirror_board", "pattern", "mirror_method",
                  "board_thickness", "projector_blank_area", "captures", "state")
 UNKNOWN_MAX_BYTES = 64 * 1024
+#: the most frames a mirror placement may average (Plan.mirror_frames)
+MAX_MIRROR_FRAMES = 64
 
 _NUMBER = (int, float)
 #: the `state` fields the station reads on resume, with their types (None: may be null); other keys are kept
@@ -255,6 +257,8 @@ def _check_state(state, path) -> None:
             continue
         if not typed(value, (int,)) or value < 0 or (key == "poses_per_position" and value < 1):
             raise FormatError(path, f"state.plan.{key}", "must be a whole number >= 0 (poses_per_position >= 1)")
+        if key == "mirror_frames" and not 1 <= value <= MAX_MIRROR_FRAMES:
+            raise FormatError(path, "state.plan.mirror_frames", f"must be 1 to {MAX_MIRROR_FRAMES} (frames per mirror placement)")
 
 
 def _check_unknown_bulk(d: dict, path) -> None:
