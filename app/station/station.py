@@ -255,36 +255,35 @@ class Station:
         return self.live
 
     def _capture(self, frame, det: LiveDetection, decision: Decision | None, how: str):
-        sequence = None
+        sequence = mean = None
         target = self.machine.target
         if self.machine.structured and target is not None and target.step == STEP_PROJECTOR:
             # the whole coded sequence while the board stands still
             sequence = self.sequence.run(frame, det.board)
-            if sequence.refused is not None:
-                self.log(f"placement refused: {sequence.refused}")
-                self.machine.log(f"placement refused: {sequence.refused}")
-                self.frames.changed()
-                self.operator.start_over()
-                self.autocap.reset(self.captures.taken_for(self.machine.target))
-                raise ActionRefused("capture", sequence.refused)
-        mean = None
-        if target is not None and target.step != STEP_PROJECTOR and self.machine.plan.mirror_frames > 1:
+            self._refuse_placement(sequence.refused)
+        elif target is not None and Step(target.step).is_mirror and self.machine.plan.mirror_frames > 1:
             from app.station.mirror_frames import capture_mean
 
             mean = capture_mean(self, frame, det, self.machine.plan.mirror_frames)
-            if mean.refused is not None:
-                self.log(f"placement refused: {mean.refused}")
-                self.machine.log(f"placement refused: {mean.refused}")
-                self.frames.changed()
-                self.operator.start_over()
-                self.autocap.reset(self.captures.taken_for(self.machine.target))
-                raise ActionRefused("capture", mean.refused)
+            self._refuse_placement(mean.refused)
             frame = mean.frame
         cap = self.captures.write(frame, det, decision, how, self.shown_ticket,
                                   self.operator.asked_index(self.machine.target), sequence, mean)
         self.last_capture_s = time.monotonic()
         self.frames.changed()
         return cap
+
+    def _refuse_placement(self, reason: str | None) -> None:
+        """A placement whose frames cannot be kept (the board moved, a frame missing): say why, forget its
+        frames and ask for it again (ActionRefused); nothing when `reason` is None."""
+        if reason is None:
+            return
+        self.log(f"placement refused: {reason}")
+        self.machine.log(f"placement refused: {reason}")
+        self.frames.changed()
+        self.operator.start_over()
+        self.autocap.reset(self.captures.taken_for(self.machine.target))
+        raise ActionRefused("capture", reason)
 
     def wait_for_detections(self, timeout_s: float | None = None) -> None:
         """Block until every capture taken so far has been detected in the background."""
