@@ -129,9 +129,11 @@ class Operator(Protocol):
     """Whoever moves the board. On the real rig a person reads the panel's instruction and this is a
     no-op; on the simulated rig a scripted operator places the board where the protocol wants it."""
 
-    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None) -> str:
+    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None,
+                     on_stand: bool = False) -> str:
         """Ask for the board pose `pose_index` of `step` ('mirror-real-virtual', 'mirror-real-mirror',
         'projector'), for projector steps at pattern position `pattern_position`; `asked`: the whole
         projector-board pose the station asks for (T_cam_board, 4x4; the panel dashes its outline), None
-        when it leaves the pose to the operator. Returns the instruction in plain words (what the panel
-        shows the person)."""
+        when it leaves the pose to the operator; `on_stand`: the board is to rest on a stand (the station
+        uses several frames of the placement, which a hand-held board moves through). Returns the
+        instruction in plain words (what the panel shows the person)."""

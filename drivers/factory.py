@@ -46,29 +46,33 @@ class HumanOperator:
         self.pattern_positions = pattern_positions
         self.last_request: tuple | None = None
 
-    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None) -> str:
+    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None,
+                     on_stand: bool = False) -> str:
         pose = int(pose_index) + 1
+        hold = "set the board on a stand" if on_stand else "hold the board"
         if step == STEP_PROJECTOR:
             if pattern_position is None or int(pattern_position) < 0:
                 raise SpecError("the projector step needs a pattern position (0-based)")
             k = int(pattern_position) + 1
             of = f" of {self.pattern_positions}" if self.pattern_positions else ""
             if asked is not None:
-                text = (f"Pattern position {k}{of}, the pose asked for: hold the board on the dashed outline in the "
+                text = (f"Pattern position {k}{of}, the pose asked for: {hold} on the dashed outline in the "
                         "camera image, the projected pattern on its blank area, and keep it still until the "
                         "capture is taken.")
             else:
-                text = (f"Pattern position {k}{of}, pose {pose}: hold the board so the projected pattern lands "
+                text = (f"Pattern position {k}{of}, pose {pose}: {hold} so the projected pattern lands "
                         "completely on its blank area, at a different angle from the previous poses, and keep it "
                         "still until the capture is taken.")
         elif step == STEP_REAL_VIRTUAL:
-            text = (f"Mirror placement {pose}: hold the small board between the camera and the mirror so the "
-                    "camera sees it both directly and in the mirror, and keep it still.")
+            text = (f"Mirror placement {pose}: {'set the small board on a stand' if on_stand else 'hold the small board'} "
+                    "between the camera and the mirror so the camera sees it both directly and in the mirror, and "
+                    + ("leave it there until the station has taken its frames." if on_stand else "keep it still."))
         elif step == STEP_REAL_MIRROR:
             text = (f"Mirror placement {pose}: lay the small board flat on the mirror, printed side up, where "
                     "the camera sees it; use a new place on the mirror for each capture.")
         elif step == STEP_VERIFICATION:
-            text = ("Verification: hold the board still, facing the projector, in the middle of its image.")
+            text = ("Verification: set the board on a stand, facing the projector, in the middle of its image, "
+                    "and leave it there until the check is done.")
         else:
             raise SpecError(f"unknown step '{step}' (one of {', '.join(STEPS)})")
         self.last_request = (step, pattern_position, pose_index)

@@ -23,7 +23,7 @@ from calib.errors import SpecError
 from calib.models.camera import CameraModel
 from calib.models.result import CalibrationResult
 from calib.transforms import make_T, rotation_about, rotation_angle_deg
-from calib.models.vocab import MirrorMethod, RenderQuality, RigKind
+from calib.models.vocab import MirrorMethod, RenderQuality, RigKind, Step
 from drivers.base import Frame
 from drivers.clock import Clock, SimClock
 from drivers.errors import DeviceError, DeviceTimeout
@@ -331,7 +331,8 @@ class SimOperator:
         rng = np.random.default_rng([sc.seed, 7919, pos, int(pose_index)])
         return held_pose(sc.rig, sc.layout, sc.pattern, pos, T, self.FOLLOW_DEG, self.FOLLOW_MM, rng)
 
-    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None) -> str:
+    def request_pose(self, step: str, pattern_position: int | None, pose_index: int, asked=None,
+                     on_stand: bool = False) -> str:
         sc = self._rig.scenario
         if step not in OPERATOR_STEPS:
             raise SpecError(f"unknown step '{step}' (one of {', '.join(OPERATOR_STEPS)})")
@@ -356,7 +357,8 @@ class SimOperator:
         elif step == STEP_VERIFICATION:
             T = sc.verification_pose_for(pose_index)
             layout = sc.layout
-            text = f"Verification: hold the board still, facing the projector, in the middle of its image; {self._describe(T)}."
+            text = (f"Verification: set the board on a stand, facing the projector, in the middle of its image; "
+                    f"{self._describe(T)}.")
         else:
             if sc.rig.mirror is None:
                 raise DeviceError(f"scenario '{sc.name}' has no mirror: there is no mirror step")
@@ -368,11 +370,12 @@ class SimOperator:
                 T = sc.mirror_poses_for(method, 1, seed=sc.seed * 1000 + 17 + pose_index)[0]
             layout = layout_for(sc.mirror_board)
             if step == STEP_REAL_VIRTUAL:
-                text = (f"Mirror placement {pose_index + 1}: hold the small board between the camera and the mirror so "
+                how = "set the small board on a stand" if on_stand else "hold the small board"
+                text = (f"Mirror placement {pose_index + 1}: {how} between the camera and the mirror so "
                         f"the camera sees it both directly and in the mirror; {self._describe(T)}.")
             else:
                 text = f"Mirror placement {pose_index + 1}: lay the small board flat on the mirror, printed side up."
-        self._rig._place(layout, T)
+        self._rig._place(layout, T, step, on_stand)
         self.last_request = (step, pattern_position, pose_index)
         self.last_pose = T  # where the board was put (T_cam_board)
         return text
@@ -399,7 +402,7 @@ class SimRig:
                  settling_frames: int = 0, motion_jitter_mm: float = 0.0, ideal: bool = False,
                  latency_ms: float | None = None, hardware: HardwareModel | None = None,
                  clock: Clock | None = None, realtime: bool = True, faults=(), fps: float | None = None,
-                 **settings):
+                 hold: str | None = None, **settings):
         if quality not in QUALITIES:
             raise SpecError(f"unknown quality '{quality}' (one of {', '.join(QUALITIES)})")
         self.scenario = scenario
@@ -416,6 +419,12 @@ class SimRig:
         r = scenario.rig
         self.renderer = Renderer(r.camera, r.projector, r.T_cam_proj, r.mirror, r.mirror_rect, self.settings)
         self.motion_jitter_mm = float(motion_jitter_mm)
+        from drivers.sim.hold import Hold
+
+        try:  # None: each step's board held as drivers.sim.hold.STEP_HOLD says (still on the ideal rig)
+            self.hold = None if hold is None else Hold(hold)
+        except ValueError:
+            raise SpecError(f"unknown hold '{hold}' (one of {', '.join(Hold)})") from None
         try:
             from drivers.sim.faults import hardware_overrides
 
@@ -434,6 +443,8 @@ class SimRig:
         self._prev: PlacedBoard | None = None
         self._frames_since_move = 0
         self._move_id = 0
+        self._placed_at_s = 0.0
+        self._hold_model = None  # drivers.sim.hold.HoldModel of the board now placed
         self._other_mirror: dict = {}
         #: the one clock camera, projector and operator share: simulated time (drivers.clock), so a
         #: starved CPU changes nothing the simulated hardware does
@@ -460,12 +471,42 @@ class SimRig:
             self._other_mirror[method] = self.scenario.mirror_poses_for(method, self.scenario.mirror_count)
         return self._other_mirror[method]
 
-    def _place(self, layout, T) -> None:
+    def hold_for(self, step, on_stand: bool = False):
+        """How the board of `step` is held (a drivers.sim.hold.HoldModel): the rig's `hold` when given,
+        else as a person holds it (hold_of), and still on the ideal rig."""
+        from drivers.sim.hold import HOLD_MODELS, Hold, hold_of
+
+        if self.hold is not None:
+            return HOLD_MODELS[self.hold]
+        if self.hardware.ideal or step is None:
+            return HOLD_MODELS[Hold.STILL]
+        return HOLD_MODELS[hold_of(step, on_stand)]
+
+    def _place(self, layout, T, step=None, on_stand: bool = False) -> None:
         with self._lock:
             self._prev = self._board
             self._board = None if layout is None else PlacedBoard(layout, np.array(T, float))
             self._frames_since_move = 0
             self._move_id += 1
+            self._placed_at_s = self.clock.now()
+            self._hold_model = None if layout is None else self.hold_for(step, on_stand)
+
+    def _frame_time_s(self, frame_number: int) -> float:
+        """When frame `frame_number`'s exposure started (now, on the ideal rig)."""
+        if self.hardware.ideal:
+            return self.clock.now()
+        return self.camera.exposure_start_s(frame_number)
+
+    def _held_pose(self, layout, T: np.ndarray, held: tuple, t_s: float) -> np.ndarray:
+        """T_cam_board of a board placed at T, `held` = (HoldModel, move id, placement time), at time t_s."""
+        from drivers.sim.hold import held_offset
+
+        model, move_id, placed_at_s = held
+        if model is None or not model.moves:
+            return T
+        x0, y0, x1, y1 = layout.outline
+        centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+        return T @ held_offset(model, (self.scenario.seed, 4243, move_id), t_s - placed_at_s, centre)
 
     def state(self, frame_number: int | None = None) -> SceneState:
         """The scene for a frame: while settling, the board is on its way from the previous pose."""
@@ -473,6 +514,7 @@ class SimRig:
             b, prev = self._board, self._prev
             k = self._frames_since_move
             n_settle = self.operator.settling_frames
+            held = (self._hold_model, self._move_id, self._placed_at_s)
             if frame_number is not None:
                 self._frames_since_move += 1
             img = self.projector.image
@@ -486,6 +528,8 @@ class SimRig:
                 else:  # coming into view: sliding in along the board's x axis
                     T = T.copy()
                     T[:3, 3] += T[:3, 0] * 60.0 * (n_settle - k) / n_settle
+            if frame_number is not None:
+                T = self._held_pose(b.layout, T, held, self._frame_time_s(frame_number))
             if self.motion_jitter_mm > 0 and frame_number is not None:
                 rng = np.random.default_rng([self.scenario.seed, 555, frame_number])
                 T = T.copy()
