@@ -45,8 +45,8 @@ PROMPTED_CAPTURE_TIMEOUT_S = 600.0  # a person: a board never still and detected
 
 
 #: the prompt before an epipolar verification (the projector draws curves on the board; the camera measures them)
-VERIFY_PROMPT = ("Verification: hold the projector board still, facing the projector, in the middle of its image, "
-                 "where the camera sees it in the mirror, until the verification is done.")
+VERIFY_PROMPT = ("Verification: set the projector board on a stand, facing the projector, in the middle of its image, "
+                 "where the camera sees it in the mirror, and leave it there until the verification is done.")
 
 
 class RecalibrationStopped(SessionError):

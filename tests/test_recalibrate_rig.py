@@ -179,7 +179,7 @@ def test_scripted_operator_is_prompted_through_check_and_remeasure(tmp_path):
     verifying = [t for t, _ in prompts if t.startswith("Epipolar verification")]
     assert [t.split(":")[0] for t in verifying] == ["Epipolar verification of the previous calibration",
                                                    "Epipolar verification of the recalibrated calibration"]
-    assert "hold the projector board still, facing the projector" in verifying[0]
+    assert "set the projector board on a stand, facing the projector" in verifying[0]
     prompts = [(t, k) for t, k in prompts if not t.startswith("Epipolar verification")]
     assert len(prompts) == n and [k for _, k in prompts] == list(range(n))  # one prompt before each capture
     texts = [t for t, _ in prompts]

@@ -202,13 +202,14 @@ def test_once_a_grid_is_known_each_placement_goes_where_the_uncertainty_is_large
     asked = []  # (slot asked for, the next-best choice then, what next_position says on the grids then, instruction)
     real_ask = rig.operator.request_pose
 
-    def recording_ask(step, pos, index):
+    def recording_ask(step, pos, index, **kw):
         if step == STEP_PROJECTOR:
             taken = Counter(slot_of(c)[0] for c in m.captures_of(STEP_PROJECTOR))
             grids = uncertainty_grids(m)
             expected = next_position(grids, range(m.positions), taken) if grids else None
             asked.append(((pos, index), m.next_placement, expected, instruction(m, None, None, "")))
-        return real_ask(step, pos, index)
+            assert kw.get("on_stand") is True  # a structured placement's board is asked to rest on a stand
+        return real_ask(step, pos, index, **kw)
 
     monkeypatch.setattr(rig.operator, "request_pose", recording_ask)
     layout = rig.scenario.layout

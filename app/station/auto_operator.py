@@ -60,12 +60,11 @@ class AutoOperator:
 
     def _ask(self, target: Target) -> str:
         index = target.pose_index + VARIANT_STRIDE * self.variant
-        asked = self.station.machine.asked_pose
-        if asked is not None:  # the whole pose (Plan.ask_pose): the operator holds the dashed outline
-            self.says = self.station.rig.operator.request_pose(target.step, target.pattern_position, index,
-                                                               asked=asked.T_cam_board) or ""
-        else:
-            self.says = self.station.rig.operator.request_pose(target.step, target.pattern_position, index) or ""
+        m = self.station.machine
+        asked = m.asked_pose  # the whole pose (Plan.ask_pose): the operator holds the dashed outline
+        self.says = self.station.rig.operator.request_pose(
+            target.step, target.pattern_position, index, asked=None if asked is None else asked.T_cam_board,
+            on_stand=m.on_stand(target)) or ""
         self.requested = target
         self.pose_index = index
         self.station.frames.changed()

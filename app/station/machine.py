@@ -47,7 +47,7 @@ from calib.formats.session_captures import placements
 from calib.models.camera import CameraModel
 from calib.models.observations import STEP_PROJECTOR, STEP_REAL_MIRROR, STEP_REAL_VIRTUAL, VIEW_DIRECT
 from calib.models.result import CalibrationResult
-from calib.models.vocab import MirrorMethod
+from calib.models.vocab import MirrorMethod, Step
 
 _OWN_STATE_KEYS = ("step", "pattern_position", "pose_index", "target", "retake", "mirror_method",
                    "camera_intrinsics", "plan", "calibrated", "result_stale", "verified", "updated_unix_s")
@@ -204,6 +204,12 @@ class SessionMachine:
     def structured(self) -> bool:
         """The projector step shows the structured-light sequence (app.station.structured_step)."""
         return is_structured(self.manifest)
+
+    def on_stand(self, target) -> bool:
+        """Whether `target`'s board is to rest on a stand: a structured-light placement, whose sequence
+        takes seconds and allows half a pixel of motion, which a board held by hand exceeds (the mean
+        of a mirror placement's frames allows a hand's sway: app.station.mirror_frames)."""
+        return target is not None and Step(target.step) is Step.PROJECTOR and self.structured
 
     @property
     def mirror_total(self) -> int:

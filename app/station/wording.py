@@ -79,8 +79,9 @@ def instruction(m, device_problem: str | None, problem: str | None, hint: str) -
             how = ("on the dashed outline in the camera image" if asked is not None else
                    "where the projector lights it" + ("" if m.direct else " and the camera sees it in the mirror") +
                    f", {place} and a new tilt")
-            where = (f"Placement {c['projector'] + 1} of at most {c['projector_total']}: hold the board {how}, "
-                     "and keep it still while the projector shows its coded sequence (a few seconds).")
+            where = (f"Placement {c['projector'] + 1} of at most {c['projector_total']}: set the board on a stand "
+                     f"{how}, and leave it there while the projector shows its coded sequence (a few seconds; "
+                     "a board held by hand moves too much).")
             return where + why + hint
         where = (f"The projector shows the pattern at position {tgt.pattern_position + 1} of {m.positions}. "
                  f"Pose {tgt.pose_index + 1} of {m.plan.poses_per_position}: hold the board so the pattern "

@@ -45,8 +45,9 @@ CORNER_HALF_WINDOW_PX = 10
 GRID_MIN_VALID = 0.9
 #: fewer board points than this with a projector pixel and the capture is not used
 MIN_POINTS = 6
-#: a ChArUco corner that moved more than this between the sequence's first and closing white frames
-#: means the board moved (corner noise is some 0.05 px; a board held by hand drifts by pixels)
+#: a board whose corners moved more than this between the sequence's first and closing white frames
+#: (board_motion_px) moved (corner noise is some 0.05-0.15 px, less once fitted over the corners; a board
+#: held by hand drifts by a pixel within a quarter of a second)
 MAX_MOTION_PX = 0.5
 
 
@@ -85,14 +86,25 @@ def grid_points(decoded: DecodedMap, step_px: int, half_window_px: int = HALF_WI
 
 
 def board_motion_px(first, last) -> float:
-    """Largest displacement (camera px) of the ChArUco corners found in both the first and the closing
-    white frame; inf when the closing frame has no board or no corner in common."""
+    """How far (camera px) the board moved between two detections of it (the first and the closing white
+    frame of a sequence, the first and last frame of a mirror placement): the largest displacement, over
+    the ChArUco corners found in both, of the homography that maps the first corners onto the last.
+    A flat board's motion is such a homography; fitting it over every corner averages the corners' noise
+    out, where the largest single corner's displacement would call a still board moved when one corner
+    is noisy. inf when the closing frame has no board or fewer than 4 corners in common."""
+    import cv2
+
     if not first or not last:
         return float("inf")
     common, a, b = np.intersect1d(np.asarray(first.ids), np.asarray(last.ids), return_indices=True)
-    if len(common) < 3:
+    if len(common) < 4:
         return float("inf")
-    d = np.asarray(first.corners_px)[a] - np.asarray(last.corners_px)[b]
+    p = np.asarray(first.corners_px, np.float64)[a].reshape(-1, 1, 2)
+    q = np.asarray(last.corners_px, np.float64)[b].reshape(-1, 1, 2)
+    H, _ = cv2.findHomography(p, q, 0)
+    if H is None or not np.isfinite(H).all():
+        return float("inf")
+    d = cv2.perspectiveTransform(p, H).reshape(-1, 2) - p.reshape(-1, 2)
     return float(np.hypot(d[:, 0], d[:, 1]).max())
 
 
