@@ -316,7 +316,7 @@ def run(args) -> int:
             log(f"{stage} {done}/{total}")
 
     station.on_progress = progress
-    machine.on_event = lambda text: None if text.startswith("captured") else log(text)  # the station logs captures
+    machine.on_event = lambda text: None if text.startswith(("captured", "placement refused")) else log(text)  # the station logs these
     last_hint = ""
 
     check_hint = rig_check_hint(req.kind, machine.manifest.rig.view)
