@@ -139,9 +139,9 @@ def add_rig_options(p) -> None:
                         "pose (position and tilt, its outline dashed on the camera image) predicted to leave the "
                         "projector step's worst 1-sigma least (docs/CALIBRATION.md \"Asking for the pose\")")
     p.add_argument("--mirror-frames", type=_types.int_range(1, MAX_MIRROR_FRAMES), default=None, metavar="N",
-                   help="each mirror placement the mean of N frames of the board held still (default 1; a board "
-                        "that moves meanwhile is refused and asked for again; docs/CALIBRATION.md \"Several frames "
-                        "per mirror placement\")")
+                   help="each mirror placement the mean of N frames of the board (default 1; a hand's sway up to "
+                        "1.5 px is allowed, a board that moves more meanwhile is refused and its frames taken again; "
+                        "docs/CALIBRATION.md \"Several frames per mirror placement\")")
     add_projector_pattern_options(p, "pose")
     p.add_argument("--camera-intrinsics", metavar="FILE", type=_types.regular_file, default=None,
                    help="pre-calibrated camera (calibration.json or OpenCV YAML): skip the camera step")
