@@ -21,9 +21,9 @@ from calib.detection.structured_view import board_motion_px
 #: frames read per frame wanted before giving up (a camera that stopped delivering)
 MAX_READS_PER_FRAME = 30
 #: a board that moved more than this over the frames is refused: up to 2 px the mean image's corners
-#: were as close to the mean pose's as a still board's are to its pose, beyond it the direct view's
-#: error grew by a fifth (benchmarks/hold_motion.py, docs/BENCHMARKS.md "Holding the board"); stricter
-#: than that, most placements of a hand-held board would be refused for nothing
+#: were as close to the mean pose's as a still board's are to its pose, and beyond it they began to
+#: drift on one rig (benchmarks/hold_motion.py, docs/BENCHMARKS.md "Holding the board"); stricter than
+#: that, most placements of a hand-held board would be refused for nothing
 MAX_MEAN_MOTION_PX = 1.5
 
 
