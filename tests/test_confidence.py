@@ -57,6 +57,22 @@ def test_a_thin_projector_step_is_not_confident_and_says_which_quantities(full):
     assert all(thin_sigmas[q.key] > full_sigmas[q.key] for q in conf.quantities)
 
 
+def test_an_unconfident_mirror_step_says_what_limits_it_and_what_more_would_give(full):
+    obs = observations(NOISE_PX, 1)
+    thin = calibrate_observations(replace(obs, mirror_views=obs.mirror_views[:3]), trust=None)
+    conf = confidence_of(thin, Step.REAL_VIRTUAL, 0.01)
+    assert not conf.all_met
+    m = thin.uncertainty["mirror"]
+    line = conf.lines()[-1]
+    assert line.startswith("mirror normal outlook: ")
+    assert f"{m['normal_deg_given_camera']:.3g} deg" in line
+    assert f"4 more mirror placements: about {m['normal_deg_with_more_mirror'][3]:.3g} deg" in line
+    assert f"4 more projector placements: about {m['normal_deg_with_more_projector'][3]:.3g} deg" in line
+    # a confident step, and the projector step, carry no outlook line
+    assert not any("outlook" in x for x in confidence_of(full, Step.REAL_VIRTUAL, FRACTION).lines())
+    assert not any("outlook" in x for x in confidence_of(thin, Step.PROJECTOR, 0.01).lines())
+
+
 def test_a_step_whose_captures_do_not_calibrate_meets_nothing():
     conf = unconfident(Step.PROJECTOR, "too few projector views")
     assert not conf.all_met and conf.reason == "too few projector views"

@@ -54,9 +54,67 @@ def test_uncertainty_key_layout():
     assert len(T["t"]) == 3 and len(T["rot_deg"]) == 3
     assert T["t_total"] == pytest.approx(np.linalg.norm(T["t"]))
     assert T["rot_total_deg"] == pytest.approx(np.linalg.norm(T["rot_deg"]))
-    assert set(u["mirror"]) == {"normal_deg", "d"} and u["mirror"]["normal_deg"] > 0
+    assert set(u["mirror"]) == {"normal_deg", "d", "normal_deg_given_camera", "normal_deg_with_more_mirror",
+                                "normal_deg_with_more_projector"} and u["mirror"]["normal_deg"] > 0
     names = u["covariance"]["names"]
     C = np.array(u["covariance"]["matrix"])
     assert C.shape == (len(names), len(names)) and np.allclose(C, C.T)
     assert np.sqrt(C[names.index("proj.fx"), names.index("proj.fx")]) == pytest.approx(u["projector"]["fx"])
     assert 0.5 < u["variance_factor"] < 2.0
+
+
+def _outlook_problem(mirror_method: str, drop_mirror: int = 0):
+    kw = dict(per_position=1, mirror_method=mirror_method)
+    obs = observations(0.2, 3, **kw)
+    if drop_mirror:
+        from dataclasses import replace
+        obs = replace(obs, mirror_views=obs.mirror_views[:-drop_mirror])
+    return obs, ground_truth(**kw)
+
+
+def test_view_information_adds_up_to_the_pose_marginalised_information():
+    from calib.joint.solver import prior_terms
+    from calib.joint.uncertainty import _mean_view_information, _schur_terms
+    from calib.models.vocab import Step
+
+    obs, gt = _outlook_problem("real-virtual")
+    prob, _ = build_problem(obs, perturbed(gt), JointOptions(pattern_model="point"), "5coef", "k1k2")
+    x, _ = solve(prob, "linear", 1.0)
+    Jg, w, B, D, schur, _ = _schur_terms(prob, x)
+    total = np.zeros_like(schur)
+    for is_step in (lambda s: s.is_mirror, lambda s: s == Step.PROJECTOR):
+        views = [v for v, ps in enumerate(prob.poses) if is_step(Step(ps.role))]
+        total += len(views) * _mean_view_information(prob, Jg, w, B, D, views)
+    pi, pl = prior_terms(prob)
+    total[pi, pi] += pl
+    assert np.allclose(total, schur, rtol=1e-8, atol=1e-9 * np.abs(schur).max())
+
+
+@pytest.mark.parametrize("method", ["real-virtual", "real-mirror"])
+def test_mirror_outlook_predicts_the_placements_added(method):
+    """The normal's 1-sigma predicted with 4 more mirror placements is what adding 4 of the session's own
+    gives, within a fifth; the mirror views' own share (the camera known) is below the whole."""
+    full_obs, gt = _outlook_problem(method)
+    part_obs, _ = _outlook_problem(method, drop_mirror=4)
+    opts = JointOptions(camera_model="5coef", projector_model="5coef")
+    part = refine_joint(part_obs, gt, opts).uncertainty["mirror"]
+    full = refine_joint(full_obs, gt, opts).uncertainty["mirror"]
+    more = part["normal_deg_with_more_mirror"]
+    assert len(more) == 16 and all(a >= b for a, b in zip([part["normal_deg"]] + more, more))
+    assert more[3] == pytest.approx(full["normal_deg"], rel=0.2)
+    assert 0 < part["normal_deg_given_camera"] < part["normal_deg"]
+    assert len(part["normal_deg_with_more_projector"]) == 16
+
+
+def test_boards_on_the_mirror_lower_the_normal_less_per_placement():
+    """Most of the normal's 1-sigma is the camera's intrinsics' in both mirror methods. Boards seen directly
+    and in the mirror also constrain the camera; boards lying on the mirror all lie in one plane and
+    hardly do, so each further one lowers the normal's 1-sigma less."""
+    opts = JointOptions(camera_model="5coef", projector_model="5coef")
+    gain = {}
+    for method in ("real-virtual", "real-mirror"):
+        obs, gt = _outlook_problem(method)
+        u = refine_joint(obs, gt, opts).uncertainty["mirror"]
+        assert u["normal_deg_given_camera"] < 0.5 * u["normal_deg"]
+        gain[method] = 1 - u["normal_deg_with_more_mirror"][3] / u["normal_deg"]
+    assert 0 < gain["real-mirror"] < gain["real-virtual"]

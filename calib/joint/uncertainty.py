@@ -12,7 +12,7 @@ import numpy as np
 
 from calib.joint.solver import normal_blocks, prior_terms
 from calib.transforms import rotvec_covariance
-from calib.models.vocab import DistortionModel
+from calib.models.vocab import DistortionModel, Step
 
 
 def _sym_inv(A: np.ndarray) -> np.ndarray:
@@ -27,14 +27,14 @@ def _sym_inv(A: np.ndarray) -> np.ndarray:
     return inv / s[:, None] / s[None, :]
 
 
-def marginal_covariance(prob, x: np.ndarray, unit_noise: bool = False, variance_factor: float | None = None):
-    """(Cov of the global parameters, variance factor, dof) at x, the board poses marginalised:
-    Cov = s^2 (A - B D^-1 B^T)^-1 with J^T J = [[A, B^T], [B, D]] (D block-diagonal per pose) and
-    s^2 = r.r / (N - P) of the (whitened) residuals.
+#: how many more placements of each step the mirror outlook predicts for (result.uncertainty["mirror"]
+#: ["normal_deg_with_more_mirror"][k - 1] is the normal's 1-sigma with k more mirror placements)
+MIRROR_OUTLOOK_MAX = 16
 
-    `unit_noise`: instead, the covariance the same observations would give with 1 px of noise on every
-    one of them (each row un-whitened by its class sigma, s^2 = 1): the session's geometry alone, for
-    the quality gate, which must not judge a session by which of its classes happen to be the cleaner."""
+
+def _schur_terms(prob, x: np.ndarray, unit_noise: bool = False):
+    """(Jg, w, B, D, Schur complement, residuals) of the (whitened, or with `unit_noise` un-whitened)
+    normal equations at x, the board poses eliminated."""
     Jg, Jl = prob.jacobian_blocks(x)
     r = prob.residuals(x)
     w = np.ones_like(r)
@@ -48,14 +48,74 @@ def marginal_covariance(prob, x: np.ndarray, unit_noise: bool = False, variance_
     schur = A - np.einsum("vkg,vkh->gh", B, E)
     pi, pl = prior_terms(prob)  # a zero-mean prior (k3 shrinkage) adds its precision
     schur[pi, pi] += pl
+    return Jg, w, B, D, schur, r
+
+
+def _variance_factor(prob, r: np.ndarray, unit_noise: bool, variance_factor: float | None):
     dof = max(r.size - prob.n_params, 1)
     if unit_noise:
-        s2 = 1.0
-    elif variance_factor is not None:
-        s2 = float(variance_factor)
-    else:
-        s2 = float(np.einsum("i,i->", r, r)) / dof
+        return 1.0, dof
+    if variance_factor is not None:
+        return float(variance_factor), dof
+    return float(np.einsum("i,i->", r, r)) / dof, dof
+
+
+def marginal_covariance(prob, x: np.ndarray, unit_noise: bool = False, variance_factor: float | None = None):
+    """(Cov of the global parameters, variance factor, dof) at x, the board poses marginalised:
+    Cov = s^2 (A - B D^-1 B^T)^-1 with J^T J = [[A, B^T], [B, D]] (D block-diagonal per pose) and
+    s^2 = r.r / (N - P) of the (whitened) residuals.
+
+    `unit_noise`: instead, the covariance the same observations would give with 1 px of noise on every
+    one of them (each row un-whitened by its class sigma, s^2 = 1): the session's geometry alone, for
+    the quality gate, which must not judge a session by which of its classes happen to be the cleaner."""
+    *_, schur, r = _schur_terms(prob, x, unit_noise)
+    s2, dof = _variance_factor(prob, r, unit_noise, variance_factor)
     return s2 * _sym_inv(schur), s2, dof
+
+
+def _mean_view_information(prob, Jg, w, B, D, views) -> np.ndarray | None:
+    """The mean information one of `views` brings to the global parameters, its board pose eliminated:
+    I_v = A_v - B_v^T D_v^-1 B_v (the poses are eliminated per pose, so the views' shares add up)."""
+    if not views:
+        return None
+    row_pose = np.asarray(prob.row_pose)
+    info = np.zeros((Jg.shape[1], Jg.shape[1]))
+    for v in views:
+        rows = np.flatnonzero(row_pose == v)
+        Jv = Jg[rows]
+        info += Jv.T @ (Jv * w[rows, None]) - B[v].T @ np.linalg.solve(D[v], B[v])
+    return info / len(views)
+
+
+def _mirror_outlook(prob, Jg, w, B, D, schur, s2: float, cov: np.ndarray) -> dict:
+    """What more placements could still do for the mirror normal, and what limits it.
+
+    `normal_deg_with_more_mirror[k - 1]` (`_projector`): the normal's 1-sigma with k more mirror
+    (projector) placements, each bringing the mean information of this session's views of that step (so
+    as well spread as those); empty when the session has none. `normal_deg_given_camera`: its 1-sigma were
+    the camera's intrinsics and distortion known, the part the mirror views themselves leave; the rest
+    comes from the camera. Boards seen directly and in the mirror constrain the camera too; boards lying
+    on the mirror, all in one plane, hardly do, so further ones lower the normal's 1-sigma slowly."""
+    idx = {n: i for i, n in enumerate(prob.global_names)}
+    mi = [idx["mirror.tilt_1"], idx["mirror.tilt_2"]]
+
+    def normal_deg(c):
+        return float(np.degrees(np.sqrt(max(float(np.trace(c[np.ix_(mi, mi)])), 0.0))))
+
+    ci = [i for n, i in idx.items() if n.startswith("cam.")]
+    if ci:
+        cmc = cov[np.ix_(mi, ci)]
+        given = cov[np.ix_(mi, mi)] - cmc @ np.linalg.solve(cov[np.ix_(ci, ci)], cmc.T)
+        given_deg = float(np.degrees(np.sqrt(max(float(np.trace(given)), 0.0))))
+    else:
+        given_deg = normal_deg(cov)
+    out = {"normal_deg_given_camera": given_deg}
+    for key, is_step in (("mirror", lambda st: st.is_mirror), ("projector", lambda st: st == Step.PROJECTOR)):
+        info = _mean_view_information(prob, Jg, w, B, D,
+                                      [v for v, ps in enumerate(prob.poses) if is_step(Step(ps.role))])
+        out[f"normal_deg_with_more_{key}"] = [] if info is None else [
+            normal_deg(s2 * _sym_inv(schur + k * info)) for k in range(1, MIRROR_OUTLOOK_MAX + 1)]
+    return out
 
 
 def _summary(prob, cov: np.ndarray, unit_to_mm: float = 1.0) -> dict:
@@ -81,7 +141,9 @@ def _summary(prob, cov: np.ndarray, unit_to_mm: float = 1.0) -> dict:
 def joint_uncertainty(prob, x: np.ndarray, variance_factor: float | None = None) -> dict:
     """1-sigma values of the joint adjustment (prob rebased at its solution x); `variance_factor` as
     marginal_covariance's."""
-    cov, sigma2, dof = marginal_covariance(prob, x, variance_factor=variance_factor)
+    Jg, w, B, D, schur, r = _schur_terms(prob, x)
+    sigma2, dof = _variance_factor(prob, r, False, variance_factor)
+    cov = sigma2 * _sym_inv(schur)
     names = prob.global_names
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     idx = {n: i for i, n in enumerate(names)}
@@ -123,7 +185,8 @@ def joint_uncertainty(prob, x: np.ndarray, variance_factor: float | None = None)
         mi = [idx["mirror.tilt_1"], idx["mirror.tilt_2"]]
         cov_n = cov[np.ix_(mi, mi)]
         out["mirror"] = {"normal_deg": float(np.degrees(np.sqrt(np.trace(cov_n)))),
-                         "d": float(sd[idx["mirror.d"]])}
+                         "d": float(sd[idx["mirror.d"]]),
+                         **_mirror_outlook(prob, Jg, w, B, D, schur, sigma2, cov)}
     else:
         out["mirror"] = None
     try:  # the same observations with 1 px of noise on every one: what the quality gate judges

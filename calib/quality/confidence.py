@@ -55,13 +55,15 @@ class Confidence:
     step: str
     quantities: tuple[Quantity, ...]
     reason: str | None = None  # set when the calibration of the captures so far failed (unconfident)
+    outlook: str | None = None  # a mirror step not yet confident: what limits it, what more would give
 
     @property
     def all_met(self) -> bool:
         return self.reason is None and bool(self.quantities) and all(q.met for q in self.quantities)
 
     def lines(self) -> list[str]:
-        return ([f"not yet: {self.reason}"] if self.reason else []) + [q.line() for q in self.quantities]
+        return (([f"not yet: {self.reason}"] if self.reason else []) + [q.line() for q in self.quantities]
+                + ([self.outlook] if self.outlook and not self.all_met else []))
 
 
 # (key, label, unit, reference attribute of QualityThresholds)
@@ -124,13 +126,36 @@ def sigmas(result) -> dict[str, float]:
     }
 
 
+#: the outlook's "more placements": a few, enough to tell which step's placements would help more
+OUTLOOK_PLACEMENTS = 4
+
+
+def mirror_outlook(result) -> str | None:
+    """What limits the mirror normal's 1-sigma and what more placements would bring it to, from the joint
+    result's outlook (calib.joint.uncertainty: each further placement assumed as informative as the mean
+    of the session's placements of that step); None without one."""
+    unc = result.uncertainty if isinstance(getattr(result, "uncertainty", None), dict) else {}
+    m = unc.get("mirror") or {}
+    given = m.get("normal_deg_given_camera")
+    if not isinstance(given, (int, float)):
+        return None
+    parts = [f"the mirror views' own share {given:.3g} deg (the rest comes from the camera's intrinsics)"]
+    k = OUTLOOK_PLACEMENTS
+    for key, what in (("mirror", "mirror"), ("projector", "projector")):
+        more = m.get(f"normal_deg_with_more_{key}") or []
+        if len(more) >= k and isinstance(more[k - 1], (int, float)):
+            parts.append(f"{k} more {what} placements: about {more[k - 1]:.3g} deg")
+    return "mirror normal outlook: " + "; ".join(parts)
+
+
 def confidence_of(result, step: str, fraction: float | None = None,
                   thresholds: QualityThresholds | None = None) -> Confidence:
-    """The confidence of `step` in a calibrated result."""
+    """The confidence of `step` in a calibrated result (a mirror step's with its outlook)."""
     got = sigmas(result)
     goal = targets(step, fraction, thresholds)
     return Confidence(step, tuple(Quantity(key, label, unit, got[key], goal[key])
-                                  for key, label, unit, _ in _step_quantities(step)))
+                                  for key, label, unit, _ in _step_quantities(step)),
+                      outlook=None if step == Step.PROJECTOR else mirror_outlook(result))
 
 
 def unconfident(step: str, reason: str, fraction: float | None = None,
