@@ -51,4 +51,11 @@ def test_a_mirror_step_stopped_on_confidence_says_so(tmp_path, monkeypatch):
     assert "captures: mirror 5 of at most 14 (stopped when confident) (real-virtual)" in text
     text = summary(_machine(plan, _conf(0.2), normal(0.05)), tmp_path, 1.0)
     assert "captures: mirror 5 of at most 14 (not confident) (real-virtual)" in text
+    # an unconfident mirror step says why, with the outlook of what more placements would give
+    outlook = "mirror normal outlook: the mirror views' own share 0.01 deg; 4 more mirror placements: about 0.04 deg"
+    unmet = Confidence(Step.REAL_VIRTUAL, (Quantity("mirror_normal_deg", "mirror normal", "deg", 0.05, 0.01),),
+                       outlook=outlook)
+    text = summary(_machine(plan, _conf(0.2), unmet), tmp_path, 1.0)
+    assert f"mirror step not confident: mirror normal: 0.05 deg (target 0.01) not yet; {outlook}" in text
+    assert "mirror step not confident" not in summary(_machine(plan, _conf(0.2), normal(0.005)), tmp_path, 1.0)
     assert "captures: mirror 5 (real-virtual)" in summary(_machine(Plan(), _conf(0.2)), tmp_path, 1.0)

@@ -225,6 +225,11 @@ def summary(machine, folder, elapsed_s: float) -> str:
                  f"projector {c['projector']} "
                  + _projector_limit(machine, c) + where)
     lines.append(f"  placements: {c['placements']} (the board's positions: {placement_split(machine)})")
+    mconf = getattr(machine, "mirror_confidence", None)
+    if _mirror_limit(machine, c) and mconf is not None and not mconf.all_met:
+        # what the technician can do about it: the outlook says whether more mirror placements would
+        # lower the normal or whether the camera holds it (more projector placements, a calibrated camera)
+        lines.append("  mirror step not confident: " + "; ".join(mconf.lines()))
     res = machine.result
     if res is not None:
         from app.commands.calibrate import format_rms  # every RMS value with its unit
