@@ -118,3 +118,25 @@ def test_boards_on_the_mirror_lower_the_normal_less_per_placement():
         assert u["normal_deg_given_camera"] < 0.5 * u["normal_deg"]
         gain[method] = 1 - u["normal_deg_with_more_mirror"][3] / u["normal_deg"]
     assert 0 < gain["real-mirror"] < gain["real-virtual"]
+
+
+def test_a_failing_outlook_leaves_the_uncertainty_whole(monkeypatch):
+    import calib.joint.uncertainty as U
+
+    def singular(*a):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(U, "_mirror_outlook", singular)
+    obs, gt = _outlook_problem("real-virtual")
+    u = refine_joint(obs, gt, JointOptions(camera_model="5coef", projector_model="5coef")).uncertainty
+    assert set(u["mirror"]) == {"normal_deg", "d"} and u["mirror"]["normal_deg"] > 0
+
+
+def test_with_the_camera_given_the_normal_is_all_the_mirror_views_own():
+    from calib.quality.confidence import mirror_outlook
+
+    obs, gt = _outlook_problem("real-virtual")
+    res = refine_joint(obs, gt, JointOptions(camera_model="5coef", projector_model="5coef", fix_camera=True))
+    m = res.uncertainty["mirror"]
+    assert m["normal_deg_given_camera"] == pytest.approx(m["normal_deg"])
+    assert "(nearly all of it)" in mirror_outlook(res)

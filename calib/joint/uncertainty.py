@@ -118,6 +118,21 @@ def _mirror_outlook(prob, Jg, w, B, D, schur, s2: float, cov: np.ndarray) -> dic
     return out
 
 
+def _guarded_outlook(*args) -> dict:
+    """The mirror outlook, or none: it only informs, so a degenerate system (a singular block) must not
+    fail a calibration whose covariance itself was computed; non-finite predictions are left out."""
+    try:
+        out = _mirror_outlook(*args)
+    except np.linalg.LinAlgError:
+        return {}
+    if not np.isfinite(out["normal_deg_given_camera"]):
+        return {}
+    for key in ("normal_deg_with_more_mirror", "normal_deg_with_more_projector"):
+        if not all(np.isfinite(out[key])):
+            out[key] = []
+    return out
+
+
 def _summary(prob, cov: np.ndarray, unit_to_mm: float = 1.0) -> dict:
     """The gate's 1-sigma values of a covariance: projector position (total), orientation (total, deg),
     the largest of fx, fy, cx, cy per device (None when held fixed), the mirror normal (deg)."""
@@ -186,7 +201,7 @@ def joint_uncertainty(prob, x: np.ndarray, variance_factor: float | None = None)
         cov_n = cov[np.ix_(mi, mi)]
         out["mirror"] = {"normal_deg": float(np.degrees(np.sqrt(np.trace(cov_n)))),
                          "d": float(sd[idx["mirror.d"]]),
-                         **_mirror_outlook(prob, Jg, w, B, D, schur, sigma2, cov)}
+                         **_guarded_outlook(prob, Jg, w, B, D, schur, sigma2, cov)}
     else:
         out["mirror"] = None
     try:  # the same observations with 1 px of noise on every one: what the quality gate judges

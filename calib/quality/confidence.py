@@ -139,7 +139,12 @@ def mirror_outlook(result) -> str | None:
     given = m.get("normal_deg_given_camera")
     if not isinstance(given, (int, float)):
         return None
-    parts = [f"the mirror views' own share {given:.3g} deg (the rest comes from the camera's intrinsics)"]
+    whole = m.get("normal_deg")
+    if isinstance(whole, (int, float)) and given >= 0.95 * whole:  # a given camera, or one well known
+        parts = [f"the mirror views' own share {given:.3g} deg (nearly all of it)"]
+    else:
+        parts = [f"the mirror views' own share {given:.3g} deg (the rest comes from the camera's intrinsics "
+                 "and distortion)"]
     k = OUTLOOK_PLACEMENTS
     for key, what in (("mirror", "mirror"), ("projector", "projector")):
         more = m.get(f"normal_deg_with_more_{key}") or []
