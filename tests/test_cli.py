@@ -453,6 +453,52 @@ def test_error_lines_never_carry_terminal_control_characters(tmp_path, capsys):
     assert not any(ord(c) < 32 and c not in "\n\t" for c in err) and "\x9b" not in err
 
 
+def test_a_held_mirror_placement_sways_through_its_frames_and_a_moved_one_is_taken_again():
+    """procam bench placements --mirror-hold person: a hand-held real-virtual board moves from frame to
+    frame, within what the station allows over the frames it keeps (else they are taken again, counted);
+    a board laid on the mirror lies still."""
+    import numpy as np
+
+    import app.commands.simulate as sim
+    from app.station.mirror_frames import MAX_MEAN_MOTION_PX
+    from calib.transforms import transform_points
+    from drivers.sim.scenarios import get_scenario
+
+    for name, moves in (("nonoverlap-136", True), ("nonoverlap-136-realmirror", False)):
+        sc = get_scenario(name, 0)
+        sim._init_worker(sc, "live")
+        try:
+            rig = sim._worker_rig
+            X = sc.mirror_board.corner_points()
+            refused_total, swayed = 0, 0.0
+            for job in [j for j in sim.capture_plan(sc, mirror_frames=8, mirror_hold="person") if j["step"] != "projector"]:
+                rig.operator.request_pose(job["step"], job["position"], job["index"])
+                poses, refused = sim.held_frames(rig, job, 8)
+                assert len(poses) == 8 and 0 <= refused <= sim.MAX_HOLD_ATTEMPTS
+                a, b = (sc.rig.camera.project(transform_points(P, X)) for P in (poses[0], poses[-1]))
+                moved = float(np.hypot(*(b - a).T).max())
+                if refused < sim.MAX_HOLD_ATTEMPTS:
+                    assert moved <= MAX_MEAN_MOTION_PX
+                refused_total += refused
+                swayed = max(swayed, float(np.abs(poses[3][:3, 3] - poses[0][:3, 3]).max()))
+                assert sim.held_frames(rig, job, 8)[1] == refused  # deterministic per placement
+            if moves:
+                assert swayed > 0.005 and refused_total > 0  # it moves, and some averages are taken again
+                # the capture is the mean of the frames rendered where the board was at each
+                job = next(j for j in sim.capture_plan(sc, mirror_frames=8, mirror_hold="person") if j["step"] != "projector")
+                _, mean, _, _, refused = sim._render_job(job)
+                poses, _ = sim.held_frames(rig, job, 8)
+                frames = [rig.render_still(sim.FRAME_KEY_BASE * (1 + job["key"]) + f, T).astype(float)
+                          for f, T in enumerate(poses)]
+                assert np.array_equal(mean, np.clip(np.rint(sum(frames) / 8), 0, 255).astype(np.uint8))
+                still = sim._render_job(dict(job, hold="still"))[1]
+                assert not np.array_equal(mean, still)
+            else:
+                assert swayed == 0.0 and refused_total == 0
+        finally:
+            sim._worker_rig = None
+
+
 def test_a_mirror_capture_of_several_frames_is_their_mean_each_its_own_noise(tmp_path, monkeypatch):
     """procam bench placements --mirror-frames N: each mirror capture the mean of N renders of the still
     board, each with its own noise draw (less noise than one), recorded in the capture's meta."""
@@ -469,7 +515,8 @@ def test_a_mirror_capture_of_several_frames_is_their_mean_each_its_own_noise(tmp
     sim._init_worker(sc, "live")
     try:
         job = dict(mirror[0])
-        _, mean, _, _ = sim._render_job(job)
+        _, mean, _, _, refused = sim._render_job(job)
+        assert refused == 0  # a still board: nothing to refuse
         rig = sim._worker_rig
         frames = [rig.render_still(sim.FRAME_KEY_BASE * (1 + job["key"]) + f).astype(float) for f in range(4)]
         assert np.array_equal(mean, np.clip(np.rint(sum(frames) / 4), 0, 255).astype(np.uint8))
@@ -482,8 +529,8 @@ def test_a_mirror_capture_of_several_frames_is_their_mean_each_its_own_noise(tmp
     # a session of one mirror and one projector capture: the mirror one records its frames
     plan = sim.capture_plan
 
-    def two(scenario, structured, frames):
-        js = plan(scenario, structured, frames)
+    def two(scenario, structured, frames, hold="still"):
+        js = plan(scenario, structured, frames, hold)
         few = [next(j for j in js if j["step"] != "projector"), next(j for j in js if j["step"] == "projector")]
         return [dict(j, key=i) for i, j in enumerate(few)]
 

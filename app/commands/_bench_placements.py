@@ -26,6 +26,7 @@ from pathlib import Path
 
 from app.commands import _types
 from calib.models.vocab import CalibrationMethod, PatternKind, RenderQuality, Step, choices
+from drivers.sim.hold import MirrorHold
 
 #: the scenarios the issue's table names (docs/BENCHMARKS.md "Placements")
 SCENARIOS = ("nonoverlap-136", "nonoverlap-90", "nonoverlap-180", "nonoverlap-136-realmirror",
@@ -55,8 +56,12 @@ def add_parser(sub) -> None:
     p.add_argument("--structured-placements", type=_types.int_range(2, 52), default=8, metavar="N",
                    help="structured-light placements rendered: the projector step's maximum (default %(default)s)")
     p.add_argument("--mirror-frames", type=_types.int_range(1, 64), default=1, metavar="N",
-                   help="each mirror capture the mean of N frames of the board held still (default 1): what "
-                        "averaging a placement's frames would give the mirror step")
+                   help="each mirror capture the mean of N frames of the board (default 1; still, or held: "
+                        "--mirror-hold): what averaging a placement's frames would give the mirror step")
+    p.add_argument("--mirror-hold", choices=choices(MirrorHold), default=MirrorHold.STILL,
+                   help="with --mirror-frames: the board still (default), or held as the simulated operator holds "
+                        "it (by hand for real-virtual, laid still on the mirror for real-mirror), an average the "
+                        "station would refuse for motion taken again")
     p.add_argument("--mirror-first", type=_types.int_range(1, 14), default=5, metavar="N",
                    help="mirror placements before the projector step (default %(default)s)")
     p.add_argument("--fraction", type=_types.float_range(0.0, 10.0, lo_open=True), default=None, metavar="F",
@@ -130,7 +135,8 @@ def _row(scenario, seed, variant, result, gt, mirror_n, proj_n, error=None):
 
 
 def placement_runs(scenarios, seeds: int, quality: str, structured_placements: int, mirror_first: int,
-                   fraction: float | None = None, workers: int = 2, log=print, mirror_frames: int = 1) -> list[dict]:
+                   fraction: float | None = None, workers: int = 2, log=print, mirror_frames: int = 1,
+                   mirror_hold: str = MirrorHold.STILL) -> list[dict]:
     """Every (scenario, seed, variant) row: placements used and the errors against the ground truth."""
     from app.commands.simulate import simulate_session
     from calib.detection.detect import detect_session
@@ -147,7 +153,7 @@ def placement_runs(scenarios, seeds: int, quality: str, structured_placements: i
                     t0 = time.perf_counter()
                     store = simulate_session(sc, folder, quality=quality, workers=workers, force=True, progress=False,
                                              structured_placements=structured_placements if pattern == PatternKind.STRUCTURED else None,
-                                             mirror_frames=mirror_frames)
+                                             mirror_frames=mirror_frames, mirror_hold=mirror_hold)
                     obs = detect_session(store, workers, cache="refresh")
                     t_sim = time.perf_counter() - t0
                     if pattern == PatternKind.CIRCLES:
@@ -158,8 +164,10 @@ def placement_runs(scenarios, seeds: int, quality: str, structured_placements: i
                     variant = VARIANTS[1] if pattern == PatternKind.CIRCLES else VARIANTS[2]
                     runs.append(_row(name, seed, variant, result, gt, m, p))
                     runs[-1]["confidence"] = lines
+                    refused = sum(int((c.meta or {}).get("sim_refused_averages", 0)) for c in store.manifest.captures)
                     log(f"  {name} seed {seed} {pattern}: rendered and detected in {t_sim:.0f} s; stopped at "
-                        f"{m} + {p} placements")
+                        f"{m} + {p} placements" + (f"; {refused} mirror averages refused for motion and taken again"
+                                                   if mirror_hold != MirrorHold.STILL else ""))
     return runs
 
 
@@ -196,7 +204,7 @@ def run_placements(args) -> int:
           "quality", file=sys.stderr)
     runs = placement_runs(args.scenarios, args.seeds, args.quality, args.structured_placements, args.mirror_first,
                           args.fraction, args.workers, log=lambda s: print(s, file=sys.stderr),
-                          mirror_frames=args.mirror_frames)
+                          mirror_frames=args.mirror_frames, mirror_hold=args.mirror_hold)
     seeds = args.seeds
     print(placements_table(runs))
     print(f"(mean over {seeds} seed{'s' if seeds != 1 else ''}; placements mirror + projector; joint method)")

@@ -20,6 +20,7 @@ from app.commands._rig_options import add_projector_pattern_options, structured_
 from calib.formats import session_files
 from calib.models.structured_light import StructuredLightSpec
 from calib.models.vocab import MirrorMethod, PatternKind, RenderQuality, Step, choices
+from drivers.sim.hold import MirrorHold
 
 NAME = "simulate"
 HELP = "render a capture session of a simulated rig (with ground truth), or --list the scenarios"
@@ -108,16 +109,18 @@ def run(args) -> int:
 
 
 # ---- the work ------------------------------------------------------------------------------------------
-def capture_plan(scenario, structured_placements: int | None = None, mirror_frames: int = 1) -> list[dict]:
+def capture_plan(scenario, structured_placements: int | None = None, mirror_frames: int = 1,
+                 mirror_hold: str = MirrorHold.STILL) -> list[dict]:
     """Every capture of a session, in order: mirror calibration first (each capture the mean of
-    `mirror_frames` frames of the still board), then the projector step (with `structured_placements`,
-    that many of the scenario's poses, each a structured-light capture). Each capture is a placement of
-    its own (`key`)."""
+    `mirror_frames` frames of the board, still or, with `mirror_hold` "person", held as the simulated
+    operator holds it), then the projector step (with `structured_placements`, that many of the
+    scenario's poses, each a structured-light capture). Each capture is a placement of its own (`key`)."""
     jobs = []
     if scenario.mirror_method is not None:
         step = Step.REAL_VIRTUAL if scenario.mirror_method == MirrorMethod.REAL_VIRTUAL else Step.REAL_MIRROR
         for k in range(len(scenario.mirror_poses)):
-            jobs.append({"step": step, "position": None, "index": k, "frames": int(mirror_frames)})
+            jobs.append({"step": step, "position": None, "index": k, "frames": int(mirror_frames),
+                         "hold": mirror_hold})
     if structured_placements is not None:
         from drivers.sim.structured import placement_poses
 
@@ -170,7 +173,7 @@ def _render_job(job: dict):
             rig.projector.show(img)
             # one noise draw per frame, none shared with another capture's
             frames.append(_single_channel(rig.render_still(FRAME_KEY_BASE * (1 + job["key"]) + f)))
-        return job["key"], frames, rig.board.T_cam_board.copy(), None
+        return job["key"], frames, rig.board.T_cam_board.copy(), None, 0
     pts = None
     if job["step"] == Step.PROJECTOR:
         img, pts = sc.pattern.render(W, H, job["position"])
@@ -179,23 +182,69 @@ def _render_job(job: dict):
     rig.projector.show(img)
     n = int(job.get("frames", 1))
     if n <= 1:
-        image = rig.render_still(job["key"])
-    else:  # the mean of n frames of the still board, each its own noise draw (as a structured capture's)
-        acc = sum(rig.render_still(FRAME_KEY_BASE * (1 + job["key"]) + f).astype(np.float64) for f in range(n))
-        image = np.clip(np.rint(acc / n), 0, 255).astype(np.uint8)
-    return job["key"], image, rig.board.T_cam_board.copy(), pts
+        return job["key"], rig.render_still(job["key"]), rig.board.T_cam_board.copy(), pts, 0
+    # the mean of n frames of the board, each its own noise draw (as a structured capture's)
+    poses, refused = held_frames(rig, job, n)
+    acc = sum(rig.render_still(FRAME_KEY_BASE * (1 + job["key"]) + f, T).astype(np.float64)
+              for f, T in enumerate(poses))
+    image = np.clip(np.rint(acc / n), 0, 255).astype(np.uint8)
+    return job["key"], image, rig.board.T_cam_board.copy(), pts, refused
+
+
+#: the camera's frame period while the station averages a placement's frames (30 fps), and the frames
+#: it lets the board settle after the placement first looks still
+FRAME_S = 1 / 30
+SETTLE_FRAMES = 3
+#: how often a held placement is taken again after the station refused its average
+MAX_HOLD_ATTEMPTS = 8
+
+
+def held_frames(rig, job: dict, n: int) -> tuple[list, int]:
+    """The board's pose at each of a mirror placement's n frames, and how many averages the station
+    would have refused first: held as the simulated operator holds the step's board (`job["hold"]`
+    "person"; drivers/sim/hold.py), a placement whose board moved more than the station allows
+    (app.station.mirror_frames.MAX_MEAN_MOTION_PX, here read from the true corners, which the check reads
+    to within a few hundredths of a pixel) is taken again with the next n frames, as the station asks."""
+    from app.station.mirror_frames import MAX_MEAN_MOTION_PX
+    from calib.transforms import transform_points
+    from drivers.sim.hold import HOLD_MODELS, hold_of, held_offset
+
+    T = rig.board.T_cam_board.copy()
+    if job.get("hold", MirrorHold.STILL) != MirrorHold.PERSON:
+        return [T] * n, 0
+    model = HOLD_MODELS[hold_of(job["step"], False)]
+    if not model.moves:
+        return [T] * n, 0
+    sc = rig.scenario
+    x0, y0, x1, y1 = rig.board.layout.outline
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    X = sc.mirror_board.corner_points()
+    key = (sc.seed, 4244, job["key"])
+    best = None
+    for attempt in range(MAX_HOLD_ATTEMPTS):
+        t0 = (SETTLE_FRAMES + attempt * n) * FRAME_S
+        poses = [T @ held_offset(model, key, t0 + f * FRAME_S, centre) for f in range(n)]
+        a, b = (sc.rig.camera.project(transform_points(P, X)) for P in (poses[0], poses[-1]))
+        moved = float(np.hypot(*(b - a).T).max())
+        if moved <= MAX_MEAN_MOTION_PX:
+            return poses, attempt
+        if best is None or moved < best[0]:
+            best = (moved, poses)
+    return best[1], MAX_HOLD_ATTEMPTS  # a person who never held it still enough: the stillest average
 
 
 def simulate_session(scenario, out, quality: str = RenderQuality.SESSION, workers: int = 2, force: bool = False,
-                     progress: bool = True, structured_placements: int | None = None, mirror_frames: int = 1):
+                     progress: bool = True, structured_placements: int | None = None, mirror_frames: int = 1,
+                     mirror_hold: str = MirrorHold.STILL):
     """Render the scenario's session into folder `out` (its projector step `structured_placements`
-    structured-light captures when given; each mirror capture the mean of `mirror_frames` frames);
+    structured-light captures when given; each mirror capture the mean of `mirror_frames` frames, the
+    board still or, `mirror_hold` "person", held as the simulated operator holds it: held_frames);
     returns the SessionStore."""
     from calib.formats.session import RigInfo, SessionManifest, SessionStore
     from drivers.sim.rig import SimRig
 
     out = Path(out)
-    jobs = capture_plan(scenario, structured_placements, mirror_frames)
+    jobs = capture_plan(scenario, structured_placements, mirror_frames, mirror_hold)
     probe = SimRig(scenario, quality, ideal=True)
     rig = scenario.rig
     manifest = SessionManifest(
@@ -222,11 +271,14 @@ def simulate_session(scenario, out, quality: str = RenderQuality.SESSION, worker
     def flush():
         nonlocal next_key
         while next_key in results:
-            key, image, T, pts = results.pop(next_key)
+            key, image, T, pts, refused = results.pop(next_key)
             job = jobs[key]
             meta = {"sim_pose_index": job["index"]}
             if job.get("frames", 1) > 1:
                 meta["frames_averaged"] = job["frames"]
+                if job.get("hold", MirrorHold.STILL) != MirrorHold.STILL:
+                    meta["sim_hold"] = job["hold"]
+                    meta["sim_refused_averages"] = int(refused)
             if job.get("structured"):
                 meta["sim_pattern_position"] = job["position"]
                 cap = store.add_structured_capture(image, STRUCTURED_SPEC, placement=key, meta=meta)

@@ -36,6 +36,14 @@ class Hold(enum.StrEnum):
     HAND = "hand"  # held by hand: postural sway and tremor
 
 
+class MirrorHold(enum.StrEnum):
+    """How a rendered session's averaged mirror placements are held (`procam bench placements
+    --mirror-hold`): still, or as the simulated operator holds the step's board (STEP_HOLD)."""
+
+    STILL = "still"
+    PERSON = "person"
+
+
 @dataclass(frozen=True)
 class HoldModel:
     """1-sigma sizes of the board's motion about where it was placed, per axis."""

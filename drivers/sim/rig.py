@@ -589,12 +589,15 @@ class SimRig:
         meta["flicker_factor"] = factor  # the projector light's share in this frame, 1 without flicker
         return img, meta
 
-    def render_still(self, noise_key: int) -> np.ndarray:
+    def render_still(self, noise_key: int, T_cam_board: np.ndarray | None = None) -> np.ndarray:
         """The image of the current (settled) state, noise seeded by (seed, 2, noise_key): for writing
-        sessions reproducibly whatever the order frames are rendered in."""
+        sessions reproducibly whatever the order frames are rendered in. `T_cam_board`: the placed board
+        at this pose instead (where a held board is at one frame)."""
         with self._lock:
             b = self._board
             img = self.projector.image
+        if b is not None and T_cam_board is not None:
+            b = PlacedBoard(b.layout, np.asarray(T_cam_board, float))
         st = SceneState(() if b is None else (b,), img)
         return self.renderer.render(st, np.random.default_rng([self.scenario.seed, 2, int(noise_key)]))
 
