@@ -161,8 +161,9 @@ def _init_worker(scenario, quality):
 
 
 def _render_job(job: dict):
-    """Place the board, show the pattern (or black), render: (key, image, T_cam_board, points or None); a
-    structured job's image is the list of its sequence's frames."""
+    """Place the board, show the pattern (or black), render: (key, image, T_cam_board, points or None,
+    averages refused for motion: held_frames); a structured job's image is the list of its sequence's
+    frames."""
     rig = _worker_rig
     sc = rig.scenario
     W, H = sc.rig.projector.size
