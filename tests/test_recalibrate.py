@@ -307,7 +307,7 @@ def inflated(prev, k: float):
         u[dev] = {key: ([k * x for x in v] if isinstance(v, list) else k * v) for key, v in u[dev].items()}
     t = u["T_cam_proj"]
     u["T_cam_proj"] = {key: ([k * x for x in v] if isinstance(v, list) else k * v) for key, v in t.items()}
-    u["mirror"] = {key: k * v for key, v in u["mirror"].items()}
+    u["mirror"] = {key: ([k * x for x in v] if isinstance(v, list) else k * v) for key, v in u["mirror"].items()}
     u["covariance"] = dict(u["covariance"], matrix=(k * k * np.array(u["covariance"]["matrix"])).tolist())
     out = prev.with_(uncertainty=u)
     out = out.with_(projection_uncertainty=projection_uncertainty(out))

@@ -41,3 +41,26 @@ def test_no_capture_of_the_projector_step_saturates_the_board(tmp_path, pattern)
         rel = cap.frames[0] if cap.structured else cap.image
         img = cv2.imread(str(m.store.folder / rel), cv2.IMREAD_UNCHANGED)
         assert np.mean(img >= 254) < 1e-4, (cap.id, float(np.mean(img >= 254)))
+
+
+@pytest.mark.parametrize("error, ok", [("reset", True), ("timeout", False)])
+def test_a_stream_the_driver_reset_is_asked_again_a_dead_one_fails(tmp_path, monkeypatch, error, ok):
+    """The first frame meets a stalled stream: reset by the driver (StreamReset: it streams again), the
+    check asks once more and the camera passes; no frame at all (DeviceTimeout) fails the camera."""
+    from drivers.errors import DeviceTimeout, StreamReset
+
+    rig, m, st, lines = station_on_sim(tmp_path / "s", PLAN, auto=True)
+    real = rig.camera.get_frame
+    calls = []
+
+    def stalling(*a, **kw):
+        calls.append(1)
+        if len(calls) == 1 or error == "timeout":
+            raise (StreamReset if error == "reset" else DeviceTimeout)("no frame for 3.0 s with the camera connected")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(rig.camera, "get_frame", stalling)
+    camera = next(c for c in RigChecker(st).run() if c.name == "camera")
+    assert camera.ok is ok, camera
+    if not ok:
+        assert "no frame" in camera.detail

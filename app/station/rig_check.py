@@ -16,7 +16,7 @@ from app.station.activity import CHECK_RIG_NAME
 from app.station.machine import RigCheck
 from calib.errors import ProcamError, SpecError
 from calib.models.observations import VIEW_MIRROR
-from drivers.errors import DeviceError, ExposureUnsupported
+from drivers.errors import DeviceError, ExposureUnsupported, StreamReset
 from calib.models.vocab import Step
 
 _log = logging.getLogger("procam.station")
@@ -56,12 +56,22 @@ class RigChecker:
     def _rig_stage(self, line: str) -> None:
         self.station.activities.progress(CHECK_RIG_NAME, line)
 
+    def _first_frame(self):
+        """The camera's first frame. A stream the driver found stalled and reset (StreamReset: it streams
+        again) is asked once more, as the driver asks its callers to: a stall it recovered from is not a
+        camera that fails (the stream line reports the reset)."""
+        cam = self.station.rig.camera
+        try:
+            return cam.get_frame(timeout_s=self.station.options.frame_timeout_s)
+        except StreamReset:
+            return cam.get_frame(timeout_s=self.station.options.frame_timeout_s)
+
     def run(self) -> list[RigCheck]:
         """The findings of every stage, in order; the machine records them (set_rig_checks)."""
         man = self.station.machine.manifest
         checks = []
         try:
-            f = self.station.rig.camera.get_frame(timeout_s=self.station.options.frame_timeout_s)
+            f = self._first_frame()
             h, w = f.image.shape[:2]
             ok = (w, h) == tuple(man.rig.camera_size)
             checks.append(RigCheck("camera", ok, f"{w}x{h} frames streaming" if ok else
