@@ -64,3 +64,26 @@ def test_a_stream_the_driver_reset_is_asked_again_a_dead_one_fails(tmp_path, mon
     assert camera.ok is ok, camera
     if not ok:
         assert "no frame" in camera.detail
+
+
+def test_the_rig_check_passes_a_realsense_stream_that_stalled_and_was_reset(tmp_path):
+    """Through the real RealSense driver on librealsense's software device: the stream stalls before the
+    rig check's first frame, the driver resets it (hardware_reset, StreamReset), and the check asks
+    again: the camera passes and the stream line reports the reset."""
+    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
+    from app.station.station import Station, StationOptions
+    from drivers.sim.faults import parse_faults
+
+    req = RigRequest("sim-realsense", "nonoverlap-136", 0)
+    rig = open_requested_rig(req, faults=parse_faults("stall"))
+    try:
+        rig.device.stall_after_frames = 0
+        m = make_machine(create_session(tmp_path / "s", rig, req, PLAN), rig, PLAN)
+        st = Station(rig, m, StationOptions(auto=True), log=lambda s: None)
+        checks = RigChecker(st).run()
+        camera = next(c for c in checks if c.name == "camera")
+        assert camera.ok, camera
+        assert rig.device.resets == 1
+        assert any("stalled and was reset (1x)" in c.detail for c in checks), [c.detail for c in checks]
+    finally:
+        rig.close()
