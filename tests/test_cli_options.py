@@ -226,3 +226,11 @@ def test_two_origin_headers_are_refused_with_403(panel):
         s.sendall(request.encode())
         status_line = s.makefile("rb").readline().decode()
     assert status_line.split()[1] == "403", status_line
+
+
+def test_bench_placements_refuses_an_unknown_mirror_hold_before_any_work():
+    r = run_procam("bench", "placements", "--mirror-hold", "../etc", "--mirror-frames", "4", timeout=TIMEOUT_S)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr[-2000:]
+    assert lines[0].startswith("procam bench placements: error: argument --mirror-hold: invalid choice")
+    assert "'still', 'person'" in lines[0] and "rendered" not in r.stderr  # refused before any rendering
