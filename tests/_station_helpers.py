@@ -240,13 +240,14 @@ def live_image_updates(page, n=3):
 
 
 def station_on_sim(folder, plan, *, projector_pattern=None, rig_options=None, scenario="nonoverlap-136", seed=0,
-                   **station_options):
-    """A new session in `folder` on the simulated rig (by default nonoverlap-136, seed 0) and the Station
-    driving it: (rig, machine, station, the station's log lines)."""
+                   kind="sim", **station_options):
+    """A new session in `folder` on the simulated rig (by default nonoverlap-136, seed 0; `kind` another
+    simulated camera path, e.g. "sim-realsense") and the Station driving it: (rig, machine, station, the
+    station's log lines)."""
     from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
     from app.station.station import Station, StationOptions
 
-    req = RigRequest("sim", scenario, seed)
+    req = RigRequest(kind, scenario, seed)
     rig = open_requested_rig(req, **(rig_options or {}))
     m = make_machine(create_session(folder, rig, req, plan, projector_pattern=projector_pattern), rig, plan)
     lines = []

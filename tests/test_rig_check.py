@@ -70,16 +70,12 @@ def test_the_rig_check_passes_a_realsense_stream_that_stalled_and_was_reset(tmp_
     """Through the real RealSense driver on librealsense's software device: the stream stalls before the
     rig check's first frame, the driver resets it (hardware_reset, StreamReset), and the check asks
     again: the camera passes and the stream line reports the reset."""
-    from app.station.setup import RigRequest, create_session, make_machine, open_requested_rig
-    from app.station.station import Station, StationOptions
     from drivers.sim.faults import parse_faults
 
-    req = RigRequest("sim-realsense", "nonoverlap-136", 0)
-    rig = open_requested_rig(req, faults=parse_faults("stall"))
+    rig, m, st, lines = station_on_sim(tmp_path / "s", PLAN, kind="sim-realsense",
+                                       rig_options={"faults": parse_faults("stall")}, auto=True)
     try:
         rig.device.stall_after_frames = 0
-        m = make_machine(create_session(tmp_path / "s", rig, req, PLAN), rig, PLAN)
-        st = Station(rig, m, StationOptions(auto=True), log=lambda s: None)
         checks = RigChecker(st).run()
         camera = next(c for c in checks if c.name == "camera")
         assert camera.ok, camera

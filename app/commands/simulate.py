@@ -208,7 +208,7 @@ def held_frames(rig, job: dict, n: int) -> tuple[list, int]:
     to within a few hundredths of a pixel) is taken again with the next n frames, as the station asks."""
     from app.station.mirror_frames import MAX_MEAN_MOTION_PX
     from calib.transforms import transform_points
-    from drivers.sim.hold import HOLD_MODELS, hold_of, held_offset
+    from drivers.sim.hold import HOLD_MODELS, held_pose, hold_of
 
     T = rig.board.T_cam_board.copy()
     if job.get("hold", MirrorHold.STILL) != MirrorHold.PERSON:
@@ -217,14 +217,13 @@ def held_frames(rig, job: dict, n: int) -> tuple[list, int]:
     if not model.moves:
         return [T] * n, 0
     sc = rig.scenario
-    x0, y0, x1, y1 = rig.board.layout.outline
-    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    outline = rig.board.layout.outline
     X = sc.mirror_board.corner_points()
     key = (sc.seed, 4244, job["key"])
     best = None
     for attempt in range(MAX_HOLD_ATTEMPTS):
         t0 = (SETTLE_FRAMES + attempt * n) * FRAME_S
-        poses = [T @ held_offset(model, key, t0 + f * FRAME_S, centre) for f in range(n)]
+        poses = [held_pose(model, key, T, outline, t0 + f * FRAME_S) for f in range(n)]
         a, b = (sc.rig.camera.project(transform_points(P, X)) for P in (poses[0], poses[-1]))
         moved = float(np.hypot(*(b - a).T).max())
         if moved <= MAX_MEAN_MOTION_PX:

@@ -32,6 +32,11 @@ def _sym_inv(A: np.ndarray) -> np.ndarray:
 MIRROR_OUTLOOK_MAX = 16
 
 
+def _normal_deg(cov: np.ndarray, mi: list[int]) -> float:
+    """The mirror normal's angular 1-sigma (deg, both tilts together) in a covariance."""
+    return float(np.degrees(np.sqrt(max(float(np.trace(cov[np.ix_(mi, mi)])), 0.0))))
+
+
 def _schur_terms(prob, x: np.ndarray, unit_noise: bool = False):
     """(Jg, w, B, D, Schur complement, residuals) of the (whitened, or with `unit_noise` un-whitened)
     normal equations at x, the board poses eliminated."""
@@ -98,23 +103,19 @@ def _mirror_outlook(prob, Jg, w, B, D, schur, s2: float, cov: np.ndarray) -> dic
     on the mirror, all in one plane, hardly do, so further ones lower the normal's 1-sigma slowly."""
     idx = {n: i for i, n in enumerate(prob.global_names)}
     mi = [idx["mirror.tilt_1"], idx["mirror.tilt_2"]]
-
-    def normal_deg(c):
-        return float(np.degrees(np.sqrt(max(float(np.trace(c[np.ix_(mi, mi)])), 0.0))))
-
     ci = [i for n, i in idx.items() if n.startswith("cam.")]
     if ci:
         cmc = cov[np.ix_(mi, ci)]
         given = cov[np.ix_(mi, mi)] - cmc @ np.linalg.solve(cov[np.ix_(ci, ci)], cmc.T)
-        given_deg = float(np.degrees(np.sqrt(max(float(np.trace(given)), 0.0))))
+        given_deg = _normal_deg(given, [0, 1])
     else:
-        given_deg = normal_deg(cov)
+        given_deg = _normal_deg(cov, mi)
     out = {"normal_deg_given_camera": given_deg}
     for key, is_step in (("mirror", lambda st: st.is_mirror), ("projector", lambda st: st == Step.PROJECTOR)):
         info = _mean_view_information(prob, Jg, w, B, D,
                                       [v for v, ps in enumerate(prob.poses) if is_step(Step(ps.role))])
         out[f"normal_deg_with_more_{key}"] = [] if info is None else [
-            normal_deg(s2 * _sym_inv(schur + k * info)) for k in range(1, MIRROR_OUTLOOK_MAX + 1)]
+            _normal_deg(s2 * _sym_inv(schur + k * info), mi) for k in range(1, MIRROR_OUTLOOK_MAX + 1)]
     return out
 
 
@@ -147,7 +148,7 @@ def _summary(prob, cov: np.ndarray, unit_to_mm: float = 1.0) -> dict:
         out[f"{dev}_intrinsics_px"] = float(max(sd[idx[k]] for k in keys)) if all(k in idx for k in keys) else None
     if prob.mirrored:
         mi = [idx["mirror.tilt_1"], idx["mirror.tilt_2"]]
-        out["mirror_normal_deg"] = float(np.degrees(np.sqrt(np.trace(cov[np.ix_(mi, mi)]))))
+        out["mirror_normal_deg"] = _normal_deg(cov, mi)
     else:
         out["mirror_normal_deg"] = None
     return out
@@ -198,8 +199,7 @@ def joint_uncertainty(prob, x: np.ndarray, variance_factor: float | None = None)
     }
     if prob.mirrored:
         mi = [idx["mirror.tilt_1"], idx["mirror.tilt_2"]]
-        cov_n = cov[np.ix_(mi, mi)]
-        out["mirror"] = {"normal_deg": float(np.degrees(np.sqrt(np.trace(cov_n)))),
+        out["mirror"] = {"normal_deg": _normal_deg(cov, mi),
                          "d": float(sd[idx["mirror.d"]]),
                          **_guarded_outlook(prob, Jg, w, B, D, schur, sigma2, cov)}
     else:

@@ -146,10 +146,10 @@ def mirror_outlook(result) -> str | None:
         parts = [f"the mirror views' own share {given:.3g} deg (the rest comes from the camera's intrinsics "
                  "and distortion)"]
     k = OUTLOOK_PLACEMENTS
-    for key, what in (("mirror", "mirror"), ("projector", "projector")):
-        more = m.get(f"normal_deg_with_more_{key}") or []
+    for step in ("mirror", "projector"):
+        more = m.get(f"normal_deg_with_more_{step}") or []
         if len(more) >= k and isinstance(more[k - 1], (int, float)):
-            parts.append(f"{k} more {what} placements: about {more[k - 1]:.3g} deg")
+            parts.append(f"{k} more {step} placements: about {more[k - 1]:.3g} deg")
     return "mirror normal outlook: " + "; ".join(parts)
 
 

@@ -106,3 +106,12 @@ def held_offset(model: HoldModel, key, t_s: float, centre_board: np.ndarray) -> 
     R = rotation_about(rot / angle, angle) if angle > 0 else np.eye(3)
     c = np.asarray(centre_board, float).reshape(3)
     return make_T(R, c - R @ c + shift)
+
+
+def held_pose(model: HoldModel, key, T_cam_board: np.ndarray, outline, t_s: float) -> np.ndarray:
+    """T_cam_board of a board placed at `T_cam_board` and held by `model`, t_s seconds after its
+    placement, rotating about the middle of its `outline` (x0, y0, x1, y1, board frame)."""
+    if not model.moves:
+        return T_cam_board
+    x0, y0, x1, y1 = outline
+    return T_cam_board @ held_offset(model, key, t_s, np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0]))

@@ -499,14 +499,12 @@ class SimRig:
 
     def _held_pose(self, layout, T: np.ndarray, held: tuple, t_s: float) -> np.ndarray:
         """T_cam_board of a board placed at T, `held` = (HoldModel, move id, placement time), at time t_s."""
-        from drivers.sim.hold import held_offset
+        from drivers.sim.hold import held_pose
 
         model, move_id, placed_at_s = held
-        if model is None or not model.moves:
+        if model is None:
             return T
-        x0, y0, x1, y1 = layout.outline
-        centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
-        return T @ held_offset(model, (self.scenario.seed, 4243, move_id), t_s - placed_at_s, centre)
+        return held_pose(model, (self.scenario.seed, 4243, move_id), T, layout.outline, t_s - placed_at_s)
 
     def state(self, frame_number: int | None = None) -> SceneState:
         """The scene for a frame: while settling, the board is on its way from the previous pose."""
