@@ -278,6 +278,12 @@ def projector_points_on_board(rig: SyntheticRig, T_cam_board: np.ndarray, q_px: 
     return rays_to_board_plane(invert_T(T_cam_board) @ rig.T_cam_proj, rig.projector.rays(q_px))[0]
 
 
+#: draws of a mirror placement before giving up, and before giving up when none was valid yet (over the
+#: random rigs' family the first valid pose comes within 2500 draws whenever one comes at all)
+MIRROR_POSE_TRIES = 20000
+FIRST_MIRROR_POSE_WITHIN = 3000
+
+
 def mirror_poses(rig: SyntheticRig, board: CharucoSpec, method: str, count: int = 7, seed: int = 0,
                  thickness_mm: float = 3.0) -> list[np.ndarray]:
     """T_cam_board of mirror-calibration placements. real-virtual: board between camera and mirror,
@@ -290,9 +296,11 @@ def mirror_poses(rig: SyntheticRig, board: CharucoSpec, method: str, count: int 
     w, h = board.size
     centre_b = np.array([w / 2, h / 2, 0.0])
     poses = []
-    for _ in range(20000):
+    for k in range(MIRROR_POSE_TRIES):
         if len(poses) == count:
             break
+        if not poses and k == FIRST_MIRROR_POSE_WITHIN:
+            break  # no valid pose in this many draws: the rig leaves none worth searching for
         if method == STEP_REAL_MIRROR or method == MirrorMethod.REAL_MIRROR:
             rect = rig.mirror_rect
             c = rect.centre + rect.axis_u * rng.uniform(-0.25, 0.25) * rect.size[0] \
