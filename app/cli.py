@@ -122,6 +122,9 @@ def unexpected_error_line(command: str, exc: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from app.blas_threads import limit_blas_threads
+
+    limit_blas_threads()  # before any command computes (app/blas_threads.py says why)
     try:
         args = build_parser().parse_args(argv)
     except OptionError as e:
