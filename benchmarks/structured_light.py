@@ -15,13 +15,16 @@ detected as a session would be (the camera's recorded tone curve given to the de
   sl-corners    the same sequence, projector points at the ChArUco corners;
   sl-both       both sets of points;
   sl-gray-grid  Gray code alone down to 1-pixel stripes (47 frames too), lattice points;
-  sl-grid-4steps  4 phase steps instead of 8 (39 frames); sl-grid-64px  a 64 px period (43 frames).
+  sl-grid-4steps  4 phase steps instead of 8 (39 frames); sl-grid-64px  a 64 px period (43 frames);
+  sl-grid-unweighted  sl-grid's points without their own sigmas (every point weighed alike, as before
+                the joint took each point's sigma: ProjectorView.pattern_sigma_px).
 The mirror-calibration views are the same for every arm: the scenario's 14 mirror placements as exact
 synthetic observations with 0.1 px Gaussian noise (calib.synthetic.observe), so that the arms differ by
 their projector step only. Then the paper and joint methods, and the errors against the truth.
 
 Printed: the structured-light projector points' errors against the renderer's exact projector pixels
-(RMS and 99th percentile, px, with the fits' median 1-sigma), then per scenario, arm and method the means
+(RMS and 99th percentile, px, with the fits' median 1-sigma, and the RMS error of the points whose fit
+sigma is in its lowest and highest quartile), then per scenario, arm and method the means
 over seeds of distance (mm), angle (deg), ProjK and CamK (px), projector and camera distortion over the
 image (px) and the mirror normal (deg); `fail` counts seeds whose calibration raised.
 """
@@ -61,7 +64,11 @@ ARMS = {
     "sl-gray-grid": (StructuredLightSpec(32, 0), BoardPoints.BLANK_GRID),
     "sl-grid-4steps": (StructuredLightSpec(32, 4), BoardPoints.BLANK_GRID),
     "sl-grid-64px": (StructuredLightSpec(64, 8), BoardPoints.BLANK_GRID),
+    "sl-grid-unweighted": (StructuredLightSpec(32, 8), BoardPoints.BLANK_GRID),
 }
+#: arms whose views drop the points' own sigmas
+UNWEIGHTED = {"sl-grid-unweighted"}
+
 def placements(sc, n: int) -> list[tuple[int, np.ndarray]]:
     poses = sc.projector_poses
     return [poses[p * sc.per_position + k] for p, k in placement_poses(sc, n)]
@@ -103,7 +110,7 @@ def projector_views(sc, R, arm: str, poses, seed: int, response, stats: dict, wi
         qt = true_projector_px(R, sc.layout, T, sv.view.pattern_cam_px)
         stats.setdefault("err", []).append(np.hypot(*(np.asarray(sv.view.pattern_proj_px) - qt).T))
         stats.setdefault("sigma", []).append(sv.points.sigma_px)
-        out.append(sv.view)
+        out.append(replace(sv.view, pattern_sigma_px=None) if arm in UNWEIGHTED else sv.view)
     return out
 
 
@@ -147,8 +154,9 @@ def run(args) -> None:
                                            pm.mirror_angle_deg if pm.mirror_angle_deg is not None else float("nan")))
         print(f"\n## {name}: {args.placements} projector placements, {args.seeds} seeds, {args.quality} quality "
               f"({time.process_time() - t0:.0f} s CPU)\n")
-        print("| arm | frames | points per view | point error RMS px | p99 px | fit sigma median px | failed views |")
-        print("|---|---|---|---|---|---|---|")
+        print("| arm | frames | points per view | point error RMS px | p99 px | fit sigma median px | error RMS, "
+              "points of the lowest / highest sigma quartile px | failed views |")
+        print("|---|---|---|---|---|---|---|---|")
         for arm in args.arms:
             s = pstats.get(arm, {})
             if arm == "circles" or not s.get("err"):
@@ -156,8 +164,10 @@ def run(args) -> None:
             e = np.concatenate(s["err"])
             sg = np.concatenate(s["sigma"])
             n_frames = len(ARMS[arm][0].frames(*get_scenario(name).rig.projector.size))
+            lo, hi = np.percentile(sg, [25, 75])  # does a point's own sigma say how large its error is?
+            q = f"{np.sqrt(np.mean(e[sg <= lo] ** 2)):.3f} / {np.sqrt(np.mean(e[sg >= hi] ** 2)):.3f}"
             print(f"| {arm} | {n_frames} | {len(e) / len(s['err']):.0f} | {np.sqrt(np.mean(e ** 2)):.3f} | "
-                  f"{np.percentile(e, 99):.3f} | {np.median(sg):.3f} | {len(s.get('failed', []))} |")
+                  f"{np.percentile(e, 99):.3f} | {np.median(sg):.3f} | {q} | {len(s.get('failed', []))} |")
         print()
         print("| arm | method | views | distance mm | angle deg | ProjK px | CamK px | proj dist px | cam dist px "
               "| mirror deg | fail |")

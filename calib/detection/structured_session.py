@@ -7,9 +7,9 @@ cap; the PNG header checked before decoding), then detects the view
 size or undecodable, or a frame list that is not the sequence's, makes that capture a DetectionFailure
 naming the frame: the session's other captures are unaffected.
 
-The job's result is (board, points) like a circle capture's, the points an (N, 4) array of camera
-pixels and the projector pixels that light them, so the detection cache's encoding and the copy check
-take it unchanged; `projector_view` makes the ProjectorView of it.
+The job's result is (board, points) like a circle capture's, the points an (N, 5) array of camera
+pixels, the projector pixels that light them and each point's camera-pixel sigma, so the detection
+cache's encoding and the copy check take it unchanged; `projector_view` makes the ProjectorView of it.
 
 Entry points: `job_for(store, capture) -> StructuredJob`, `StructuredJob.run()`, `projector_view`.
 """
@@ -43,7 +43,7 @@ class StructuredJob:
     response: CameraResponse | None = None
 
     def run(self):
-        """(capture_id, (board, (N, 4) points) or DetectionFailure, None): never cached, so no image hash."""
+        """(capture_id, (board, (N, 5) points) or DetectionFailure, None): never cached, so no image hash."""
         return self.capture_id, self._detect(), None
 
     def _detect(self):
@@ -66,7 +66,7 @@ class StructuredJob:
         if isinstance(sv, DetectionFailure):
             return sv
         v = sv.view
-        return v.board, np.hstack([v.pattern_cam_px, v.pattern_proj_px])
+        return v.board, np.hstack([v.pattern_cam_px, v.pattern_proj_px, v.pattern_sigma_px[:, None]])
 
 
 def _read_frame(path: str, camera_size) -> np.ndarray | str:
@@ -100,5 +100,5 @@ def job_for(store, capture) -> StructuredJob:
 
 def projector_view(capture, board, points) -> ProjectorView:
     """The ProjectorView of a structured job's result."""
-    pts = np.asarray(points, float).reshape(-1, 4)
-    return ProjectorView(capture.id, board, pts[:, :2], pts[:, 2:], None)
+    pts = np.asarray(points, float).reshape(-1, 5)
+    return ProjectorView(capture.id, board, pts[:, :2], pts[:, 2:4], None, pts[:, 4])

@@ -16,7 +16,8 @@ the projector pixel of each chosen camera point from a local homography
 The view's pattern_cam_px are those camera pixels and pattern_proj_px the fitted projector pixels, so
 both calibration methods take them like circle centres (the camera pixel maps onto the board through the
 board's pose); here the camera side is exact (grid) or a detected corner, and the projector side carries
-the fit's uncertainty, returned beside the view.
+the fit's uncertainty, returned beside the view and, carried into camera pixels (camera_sigma_px), in
+the view's pattern_sigma_px: the joint adjustment weighs each point by it.
 
 Entry point: `detect_structured_view(images, spec, board, projector_size, mirrored) -> StructuredView |
 DetectionFailure`.
@@ -184,8 +185,31 @@ def detect_structured_view(images, spec: StructuredLightSpec, board: CharucoSpec
     kept = LocalProjectorPoints(*(_take(a, sel) for a in (fit.cam_px, fit.proj_px, fit.cov_px2, fit.n_pixels,
                                                           fit.n_rejected, fit.rms_px)),
                                 tuple(fit.reasons[i] for i in sel))
-    view = ProjectorView(capture_id, obs, kept.cam_px, kept.proj_px, None)
+    view = ProjectorView(capture_id, obs, kept.cam_px, kept.proj_px, None,
+                         camera_sigma_px(kept.cam_px, kept.proj_px, kept.cov_px2))
     return StructuredView(view, kept, decoded, int((~ok).sum()), lit_share_of(decoded, obs.corners_px))
+
+
+#: the smallest camera-pixel sigma a point is given (a fit over noiseless pixels has none at all)
+MIN_SIGMA_PX = 1e-4
+
+
+def camera_sigma_px(cam_px, proj_px, cov_px2) -> np.ndarray:
+    """Each point's 1-sigma per coordinate in camera pixels: its projector pixel's covariance carried
+    through the view's projector-to-camera map, here the homography of the board plane fitted over the
+    view's points (a Jacobian needs no more: lens distortion bends the map far less than it scales it)."""
+    cam, proj = np.asarray(cam_px, float), np.asarray(proj_px, float)
+    cov = np.asarray(cov_px2, float).reshape(-1, 2, 2)
+    H, _ = cv2.findHomography(proj, cam, 0)
+    if H is None:  # degenerate (collinear points): the points alike
+        return np.full(len(cam), 1.0)
+    w = proj @ H[2, :2] + H[2, 2]
+    c = (proj @ H[:2, :2].T + H[:2, 2]) / w[:, None]
+    # d cam / d proj of c = (A p + b) / (h . p + h33): (A - c h^T) / w
+    J = (H[None, :2, :2] - c[:, :, None] * H[None, 2, None, :2]) / w[:, None, None]
+    cov_cam = J @ cov @ np.transpose(J, (0, 2, 1))
+    s = np.sqrt(np.maximum(np.trace(cov_cam, axis1=1, axis2=2) / 2.0, 0.0))
+    return np.where(np.isfinite(s), np.maximum(s, MIN_SIGMA_PX), np.nanmedian(s) if np.isfinite(s).any() else 1.0)
 
 
 def _take(a, sel):

@@ -27,6 +27,10 @@ from calib.models.vocab import PatternKind
 
 #: the fewest ChArUco corners a view's board pose is initialised from
 MIN_VIEW_CORNERS = 6
+#: bounds of a pattern point's noise relative to its class's median (PatternSet.rel): a local fit's
+#: covariance comes from a few hundred pixels and can be optimistic, so no point counts for more than
+#: 16 times (1/REL_MIN^2) the median one, and none is nearly ignored
+REL_MIN, REL_MAX = 0.25, 4.0
 
 
 def _camera_K4(cam: CameraModel) -> np.ndarray:
@@ -37,6 +41,17 @@ def _cat(lst, shape, dtype=float):
     return np.concatenate(lst).astype(dtype) if lst else np.zeros(shape, dtype)
 
 
+def relative_noise(sigma_px: np.ndarray) -> np.ndarray:
+    """Each pattern point's noise relative to the median of those with a sigma of their own (NaN: none,
+    relative 1), within [REL_MIN, REL_MAX]. The class's sigma, estimated from the residuals, sets the
+    scale; a point's own sigma only says how much noisier or cleaner than its class it is."""
+    rel = np.ones(len(sigma_px))
+    own = np.isfinite(sigma_px)
+    if own.any():
+        rel[own] = np.clip(sigma_px[own] / np.median(sigma_px[own]), REL_MIN, REL_MAX)
+    return rel
+
+
 class _Gatherer:
     """The views, their initial poses and their observations, collected view by view."""
 
@@ -45,7 +60,7 @@ class _Gatherer:
         self.captures: list[str] = []
         self.Rs, self.ts, self.planes = [], [], []
         self.C = {k: [] for k in ("pose", "X", "uv", "mirror", "kind", "cid", "pid")}
-        self.P = {k: [] for k in ("pose", "q", "uv", "mirror", "cid", "pid")}
+        self.P = {k: [] for k in ("pose", "q", "uv", "mirror", "cid", "pid", "sigma")}
 
     def add_view(self, view: View, T: np.ndarray, plane: np.ndarray) -> int:
         self.poses.append(view)
@@ -73,6 +88,8 @@ class _Gatherer:
         P["mirror"].append(np.full(k, through))
         P["cid"].append(np.full(k, len(self.captures) - 1))
         P["pid"].append(np.arange(k))
+        s = getattr(pv, "pattern_sigma_px", None)
+        P["sigma"].append(np.full(k, np.nan) if s is None else np.asarray(s, float))
 
     def corner_set(self) -> CornerSet:
         C = self.C
@@ -83,7 +100,8 @@ class _Gatherer:
     def pattern_set(self) -> PatternSet:
         P = self.P
         return PatternSet(_cat(P["pose"], (0,), int), _cat(P["q"], (0, 2)), _cat(P["uv"], (0, 2)),
-                          _cat(P["mirror"], (0,), bool), _cat(P["cid"], (0,), int), _cat(P["pid"], (0,), int))
+                          _cat(P["mirror"], (0,), bool), _cat(P["cid"], (0,), int), _cat(P["pid"], (0,), int),
+                          relative_noise(_cat(P["sigma"], (0,))))
 
 
 def _add_projector_views(g: _Gatherer, obs: SessionObservations, cam: CameraModel, S: np.ndarray,

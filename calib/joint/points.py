@@ -55,7 +55,8 @@ class CornerSet(_PointSet):
 @dataclass(frozen=True, eq=False)
 class PatternSet(_PointSet):
     """Projected pattern points: projector pixels q (M, 2), observed camera pixels uv (M, 2), whether each
-    is seen through the mirror, capture index and the point's index in its view."""
+    is seen through the mirror, capture index, the point's index in its view, and its noise relative to
+    the class's (`rel`: 1 for points without a sigma of their own; calib.joint.assembly)."""
 
     pose: np.ndarray
     q: np.ndarray
@@ -63,3 +64,4 @@ class PatternSet(_PointSet):
     mirror: np.ndarray
     cid: np.ndarray
     pid: np.ndarray
+    rel: np.ndarray

@@ -116,8 +116,9 @@ class JointProblem:
         self.on_mirror = np.array([ps.on_mirror for ps in poses], bool)
         # a fixed in-plane reference for boards lying on the mirror (their 3 parameters are relative to it)
         self.plane_ref = tangent_basis(state.n)[0] if self.mirrored else None
-        #: noise sigma (px) of every point's class, corners then pattern points (set_class_sigmas)
-        self.point_sigma = np.ones(len(corners) + len(pattern))
+        #: noise sigma (px) of every point, corners then pattern points: its class's sigma times the
+        #: point's relative noise (PatternSet.rel; set_class_sigmas)
+        self.point_sigma = np.concatenate([np.ones(len(corners)), pattern.rel])
         self.set_state(state)
         self.centroid_corr = np.zeros((len(pattern), 2))
         self._xu_cache = None
@@ -387,12 +388,17 @@ class JointProblem:
             out[PATTERN_CLASS] = m
         return out
 
+    def relative_noise(self) -> np.ndarray:
+        """Every point's noise relative to its class's sigma: 1 for corners, PatternSet.rel for pattern points."""
+        return np.concatenate([np.ones(len(self.corners)), self.pattern.rel])
+
     def set_class_sigmas(self, sig_px: dict) -> None:
-        """Weight every observation by 1 / sigma of its class (pixels)."""
+        """Weight every observation by 1 / (sigma of its class (pixels) x its relative noise)."""
         self.class_sigma = dict(sig_px)
         scale = np.ones(len(self.corners) + len(self.pattern))
         for name, m in self.class_masks().items():
             scale[m] = sig_px.get(name, 1.0)
+        scale = scale * self.relative_noise()
         self.point_sigma = scale
         self.row_scale = np.repeat(scale, 2)
 

@@ -24,9 +24,12 @@ def robust_sigma(r: np.ndarray) -> float:
 
 
 def class_sigmas(prob: JointProblem, r_px: np.ndarray, options: JointOptions, robust: bool) -> dict:
-    """Noise sigma (px, per coordinate) of each observation class: robust (MAD) or RMS of the residuals.
-    weighting="none" pools all classes; classes with fewer than 20 points take the pooled value."""
+    """Noise sigma (px, per coordinate) of each observation class: robust (MAD) or RMS of the residuals,
+    each divided by its point's relative noise (a point with a sigma of its own, PatternSet.rel), so the
+    class's sigma is that of its median point. weighting="none" pools all classes; classes with fewer
+    than 20 points take the pooled value."""
     floor = 1e-3
+    r_px = r_px / np.repeat(prob.relative_noise(), 2)
     pooled = robust_sigma(r_px) if robust else float(np.sqrt(np.mean(r_px ** 2))) if r_px.size else 1.0
     pooled = max(pooled, floor)
     out = {}

@@ -59,19 +59,31 @@ class BoardObservation:
 @dataclass(frozen=True, eq=False)
 class ProjectorView:
     """One projector-calibration capture: the board, and the projected pattern points seen in the
-    camera image (`pattern_cam_px`) with the projector pixels they were drawn at (`pattern_proj_px`)."""
+    camera image (`pattern_cam_px`) with the projector pixels they were drawn at (`pattern_proj_px`).
+
+    `pattern_sigma_px`: each point's own 1-sigma in camera pixels (per coordinate), where its detection
+    measured one (a structured-light point's local-homography fit); None when every point of the view
+    is alike (circle centres: the calibration estimates their one noise level)."""
 
     capture_id: str
     board: BoardObservation
     pattern_cam_px: np.ndarray
     pattern_proj_px: np.ndarray
     pattern_position: int | None = None
+    pattern_sigma_px: np.ndarray | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "pattern_cam_px", _ro(self.pattern_cam_px, (2,)))
         object.__setattr__(self, "pattern_proj_px", _ro(self.pattern_proj_px, (2,)))
         if len(self.pattern_cam_px) != len(self.pattern_proj_px):
             raise ValueError("pattern_cam_px and pattern_proj_px differ in length")
+        if self.pattern_sigma_px is not None:
+            s = _ro(self.pattern_sigma_px, ())
+            if len(s) != len(self.pattern_cam_px):
+                raise ValueError("pattern_sigma_px and pattern_cam_px differ in length")
+            if not np.all(np.isfinite(s) & (s > 0)):
+                raise ValueError("pattern_sigma_px must be positive and finite")
+            object.__setattr__(self, "pattern_sigma_px", s)
 
 
 @dataclass(frozen=True, eq=False)
