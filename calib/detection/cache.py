@@ -199,8 +199,7 @@ def encode_result(result) -> dict:
     board, pts = result
     pts = np.asarray(pts, float)
     # rows kept: a circle capture's (N, 2) centres, a structured capture's (N, 5) (structured_session)
-    return {"board": _board_to(board), "pattern_px": pts.reshape(len(pts), -1).tolist() if pts.ndim == 2
-            else pts.reshape(-1, 2).tolist()}
+    return {"board": _board_to(board), "pattern_px": (pts if pts.ndim == 2 else pts.reshape(-1, 2)).tolist()}
 
 
 def decode_result(d, capture_id: str, step: str, mirrored: bool, board, pattern, size):

@@ -209,7 +209,8 @@ def camera_sigma_px(cam_px, proj_px, cov_px2) -> np.ndarray:
     J = (H[None, :2, :2] - c[:, :, None] * H[None, 2, None, :2]) / w[:, None, None]
     cov_cam = J @ cov @ np.transpose(J, (0, 2, 1))
     s = np.sqrt(np.maximum(np.trace(cov_cam, axis1=1, axis2=2) / 2.0, 0.0))
-    return np.where(np.isfinite(s), np.maximum(s, MIN_SIGMA_PX), np.nanmedian(s) if np.isfinite(s).any() else 1.0)
+    ok = np.isfinite(s)  # a point the map sends to infinity (w = 0) takes the others' median
+    return np.where(ok, np.maximum(s, MIN_SIGMA_PX), np.median(s[ok]) if ok.any() else 1.0)
 
 
 def _take(a, sel):

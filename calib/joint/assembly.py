@@ -88,8 +88,7 @@ class _Gatherer:
         P["mirror"].append(np.full(k, through))
         P["cid"].append(np.full(k, len(self.captures) - 1))
         P["pid"].append(np.arange(k))
-        s = getattr(pv, "pattern_sigma_px", None)
-        P["sigma"].append(np.full(k, np.nan) if s is None else np.asarray(s, float))
+        P["sigma"].append(np.full(k, np.nan) if pv.pattern_sigma_px is None else np.asarray(pv.pattern_sigma_px, float))
 
     def corner_set(self) -> CornerSet:
         C = self.C

@@ -118,7 +118,7 @@ class JointProblem:
         self.plane_ref = tangent_basis(state.n)[0] if self.mirrored else None
         #: noise sigma (px) of every point, corners then pattern points: its class's sigma times the
         #: point's relative noise (PatternSet.rel; set_class_sigmas)
-        self.point_sigma = np.concatenate([np.ones(len(corners)), pattern.rel])
+        self.point_sigma = self.relative_noise()
         self.set_state(state)
         self.centroid_corr = np.zeros((len(pattern), 2))
         self._xu_cache = None
